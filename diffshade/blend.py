@@ -1,0 +1,50 @@
+"""blend: per-fragment colours -> an RGBA image over a background colour.
+
+Hard mode keeps the nearest fragment: alpha = coverage in {0, 1} and
+rgb = alpha * colour + (1 - alpha) * background.
+
+Soft mode is SoftRas aggregation (Liu et al., ICCV 2019). For the K candidates of a pixel,
+with d2 the signed squared distance in pixels^2 (positive inside):
+    D_k = sigmoid(d2_k / sigma)                    (coverage; sigma in pixels^2)
+    w_k = D_k exp(zt_k / gamma) / (sum_j D_j exp(zt_j / gamma) + exp(eps / gamma))
+    rgb = sum_k w_k c_k + w_bg * background,       w_bg = exp(eps / gamma) / (...)
+    alpha = 1 - prod_k (1 - D_k)
+zt = (1/z - 1/far) / (1/near - 1/far) is the normalized inverse depth (1 at the near plane,
+0 at the far plane). Everything is computed in log space: log D = log_sigmoid(d2 / sigma),
+the weights are a softmax (which subtracts the per-pixel maximum), and
+log(1 - D) = log_sigmoid(-d2 / sigma); so tiny sigma and gamma cannot overflow.
+"""
+
+import jax
+import jax.numpy as jnp
+
+from diffshade.numerics import safe_div
+
+BACKGROUND_EPS = 1e-3
+
+
+def hard_blend(colours, frags, background):
+    """colours: [H, W, K, 3]; background: [3] -> [H, W, 4] RGBA from the nearest slot."""
+    alpha = frags.valid[..., 0, None].astype(colours.dtype)
+    rgb = alpha * colours[..., 0, :] + (1.0 - alpha) * background
+    return jnp.concatenate([rgb, alpha], axis=-1)
+
+
+def normalized_inverse_depth(depth, near, far):
+    """zt in [0, 1] (1 = near plane) of eye-space depth: [...] -> [...]."""
+    inv = safe_div(jnp.ones_like(depth), depth)
+    return jnp.clip((inv - 1.0 / far) / (1.0 / near - 1.0 / far), 0.0, 1.0)
+
+
+def soft_blend(colours, frags, background, near, far, sigma, gamma):
+    """colours: [H, W, K, 3]; background: [3]; sigma (pixels^2), gamma: floats
+    -> [H, W, 4] RGBA by SoftRas aggregation (module docstring)."""
+    x = frags.dist / sigma
+    zt = normalized_inverse_depth(frags.depth, near, far)
+    logits = jnp.where(frags.valid, jax.nn.log_sigmoid(x) + zt / gamma, -jnp.inf)
+    bg = jnp.full(logits.shape[:-1] + (1,), BACKGROUND_EPS / gamma, logits.dtype)
+    weights = jax.nn.softmax(jnp.concatenate([logits, bg], -1), axis=-1)
+    rgb = jnp.sum(weights[..., :-1, None] * colours, -2) + weights[..., -1:] * background
+    log_clear = jnp.sum(jnp.where(frags.valid, jax.nn.log_sigmoid(-x), 0.0), -1)
+    alpha = 1.0 - jnp.exp(log_clear)
+    return jnp.concatenate([rgb, alpha[..., None]], axis=-1)

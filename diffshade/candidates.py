@@ -1,0 +1,217 @@
+"""Candidate search: which faces reach which pixel, nearest first (non-differentiable).
+
+Runs on the host (called through `jax.pure_callback` by raster.py) as a numba-compiled
+loop over each face's screen bounding box, so its cost grows with the number of
+(pixel, nearby face) pairs, never with pixels x faces, and it allocates only the output.
+
+Coverage uses 2D homogeneous rasterization (Olano & Greer 1997): with v_i = (X, Y, W)
+of the clip-space vertices and p = (x_ndc, y_ndc, 1), the edge functions
+e_i = (v_j x v_k) . p give the perspective-correct barycentrics e_i / sum(e) directly, and
+a pixel is covered when all barycentrics are >= 0, the point is in front of the eye
+(det / sum(e) > 0) and its NDC depth lies in [-1, 1]. This is exactly OpenGL's clipping
+against the near and far planes, done per pixel: faces that cross the near plane are
+clipped, not culled, and no new triangles are made.
+
+Soft mode (SoftRas) grows each face's footprint by `radius_px` pixels: a pixel outside
+the projected triangle is a candidate when its squared distance to the triangle is at most
+radius_px^2, with the depth taken at the clamped barycentrics. Faces that cross the near
+plane are culled in soft mode (their screen-space triangle is not defined).
+
+Each pixel keeps its k nearest faces (by NDC depth) in a small sorted list; every candidate
+fragment that does not fit is counted in `dropped`.
+"""
+
+import numba
+import numpy as np
+
+EDGES = ((1, 2), (2, 0), (0, 1))
+
+
+@numba.njit(cache=True, nogil=True)
+def _face_setup(clip, faces, f, tri, coeffs):
+    """Fill tri [3, 4] and coeffs [3, 3] (rows v_j x v_k of [X Y W]); return det."""
+    for i in range(3):
+        tri[i] = clip[faces[f, i]]
+    for i in range(3):
+        j, k = (i + 1) % 3, (i + 2) % 3
+        coeffs[i, 0] = tri[j, 1] * tri[k, 3] - tri[j, 3] * tri[k, 1]
+        coeffs[i, 1] = tri[j, 3] * tri[k, 0] - tri[j, 0] * tri[k, 3]
+        coeffs[i, 2] = tri[j, 0] * tri[k, 1] - tri[j, 1] * tri[k, 0]
+    return coeffs[0, 0] * tri[0, 0] + coeffs[0, 1] * tri[0, 1] + coeffs[0, 2] * tri[0, 3]
+
+
+@numba.njit(cache=True, nogil=True)
+def _near_clipped_bbox(tri, box):
+    """NDC box [xmin, xmax, ymin, ymax] of the face clipped to Z + W >= 0; False if empty."""
+    box[0], box[1], box[2], box[3] = np.inf, -np.inf, np.inf, -np.inf
+    for i in range(3):
+        j = (i + 1) % 3
+        di, dj = tri[i, 2] + tri[i, 3], tri[j, 2] + tri[j, 3]
+        for t in (0.0, di / (di - dj) if di * dj < 0.0 else -1.0):
+            if t < 0.0 or (t == 0.0 and di < 0.0):
+                continue
+            w = tri[i, 3] + t * (tri[j, 3] - tri[i, 3])
+            if not w > 0.0:
+                continue
+            x = (tri[i, 0] + t * (tri[j, 0] - tri[i, 0])) / w
+            y = (tri[i, 1] + t * (tri[j, 1] - tri[i, 1])) / w
+            box[0], box[1] = min(box[0], x), max(box[1], x)
+            box[2], box[3] = min(box[2], y), max(box[3], y)
+    return box[0] <= box[1] and box[2] <= box[3]
+
+
+@numba.njit(cache=True, nogil=True)
+def _pixel_range(lo, hi, size, radius_px, flip):
+    """Inclusive range of pixel indices whose centres lie in [lo, hi] (NDC) grown by radius."""
+    if flip:
+        lo, hi = -hi, -lo
+    a = np.ceil((lo + 1.0) * size / 2.0 - 0.5 - radius_px)
+    b = np.floor((hi + 1.0) * size / 2.0 - 0.5 + radius_px)
+    return int(max(a, 0.0)), int(min(b, size - 1.0))
+
+
+@numba.njit(cache=True, nogil=True)
+def _insert(ids, keys, pixel, face, key):
+    """Insert (face, key) into pixel's ascending list; returns 1 if a fragment fell off."""
+    k = ids.shape[1]
+    if ids[pixel, k - 1] >= 0 and key >= keys[pixel, k - 1]:
+        return 1
+    fell = 1 if ids[pixel, k - 1] >= 0 else 0
+    slot = k - 1
+    while slot > 0 and (ids[pixel, slot - 1] < 0 or keys[pixel, slot - 1] > key):
+        ids[pixel, slot] = ids[pixel, slot - 1]
+        keys[pixel, slot] = keys[pixel, slot - 1]
+        slot -= 1
+    while slot > 0 and ids[pixel, slot - 1] < 0:
+        slot -= 1
+    ids[pixel, slot] = face
+    keys[pixel, slot] = key
+    return fell
+
+
+@numba.njit(cache=True, nogil=True)
+def _covered_depth(coeffs, tri, f, x, y):
+    """NDC depth of the pixel on face f, or +inf when the face does not cover it."""
+    e0 = coeffs[f, 0, 0] * x + coeffs[f, 0, 1] * y + coeffs[f, 0, 2]
+    e1 = coeffs[f, 1, 0] * x + coeffs[f, 1, 1] * y + coeffs[f, 1, 2]
+    e2 = coeffs[f, 2, 0] * x + coeffs[f, 2, 1] * y + coeffs[f, 2, 2]
+    s = e0 + e1 + e2
+    if s == 0.0 or e0 * s < 0.0 or e1 * s < 0.0 or e2 * s < 0.0:
+        return np.inf
+    w = e0 * tri[f, 0, 3] + e1 * tri[f, 1, 3] + e2 * tri[f, 2, 3]
+    if w * s <= 0.0:
+        return np.inf
+    z = (e0 * tri[f, 0, 2] + e1 * tri[f, 1, 2] + e2 * tri[f, 2, 2]) / w
+    return z if -1.0 <= z <= 1.0 else np.inf
+
+
+@numba.njit(cache=True, nogil=True)
+def _search_hard(clip, faces, width, height, k, cull_backfaces):
+    ids = np.full((width * height, k), -1, np.int32)
+    keys = np.full((width * height, k), np.inf)
+    tri, coeffs, box = np.empty((1, 3, 4)), np.empty((1, 3, 3)), np.empty(4)
+    dropped = 0
+    for f in range(faces.shape[0]):
+        det = _face_setup(clip, faces, f, tri[0], coeffs[0])
+        if not np.isfinite(det) or det == 0.0 or (cull_backfaces and det < 0.0):
+            continue
+        if not _near_clipped_bbox(tri[0], box):
+            continue
+        c0, c1 = _pixel_range(box[0], box[1], width, 0.0, False)
+        r0, r1 = _pixel_range(box[2], box[3], height, 0.0, True)
+        for row in range(r0, r1 + 1):
+            y = 1.0 - (2.0 * row + 1.0) / height
+            for col in range(c0, c1 + 1):
+                z = _covered_depth(coeffs, tri, 0, (2.0 * col + 1.0) / width - 1.0, y)
+                if z < np.inf:
+                    dropped += _insert(ids, keys, row * width + col, f, z)
+    return ids, dropped
+
+
+@numba.njit(cache=True, nogil=True)
+def _segment_dist2(px, py, ax, ay, bx, by):
+    """Squared distance from point p to segment ab (all in pixels)."""
+    ex, ey = bx - ax, by - ay
+    len2 = ex * ex + ey * ey
+    t = 0.0 if len2 == 0.0 else min(max(((px - ax) * ex + (py - ay) * ey) / len2, 0.0), 1.0)
+    dx, dy = px - ax - t * ex, py - ay - t * ey
+    return dx * dx + dy * dy
+
+
+@numba.njit(cache=True, nogil=True)
+def _soft_key(scr, inv_len, zndc, px, py, radius_px):
+    """NDC depth of the fragment at pixel p for a screen triangle, or +inf if out of reach.
+
+    scr: [3, 2] vertex pixel coordinates (counter-clockwise on screen, y down: negative
+    area); inv_len: [3] 1 / edge lengths; zndc: [3]. Inside: depth at the barycentrics
+    (NDC z is affine in screen space); outside within reach: at the clamped ones.
+    """
+    b0 = (scr[1, 0] - px) * (scr[2, 1] - py) - (scr[2, 0] - px) * (scr[1, 1] - py)
+    b1 = (scr[2, 0] - px) * (scr[0, 1] - py) - (scr[0, 0] - px) * (scr[2, 1] - py)
+    b2 = (scr[0, 0] - px) * (scr[1, 1] - py) - (scr[1, 0] - px) * (scr[0, 1] - py)
+    area = b0 + b1 + b2
+    sign = 1.0 if area > 0.0 else -1.0
+    # signed distances to the edge lines: a cheap necessary test before the exact one
+    if min(b0 * inv_len[1], b1 * inv_len[2], b2 * inv_len[0]) * sign < -radius_px:
+        return np.inf
+    if b0 * sign < 0.0 or b1 * sign < 0.0 or b2 * sign < 0.0:
+        d2 = min(_segment_dist2(px, py, scr[0, 0], scr[0, 1], scr[1, 0], scr[1, 1]),
+                 _segment_dist2(px, py, scr[1, 0], scr[1, 1], scr[2, 0], scr[2, 1]),
+                 _segment_dist2(px, py, scr[2, 0], scr[2, 1], scr[0, 0], scr[0, 1]))
+        if d2 > radius_px * radius_px:
+            return np.inf
+    w0, w1, w2 = max(b0 * sign, 0.0), max(b1 * sign, 0.0), max(b2 * sign, 0.0)
+    return (w0 * zndc[0] + w1 * zndc[1] + w2 * zndc[2]) / (w0 + w1 + w2)
+
+
+@numba.njit(cache=True, nogil=True)
+def _search_soft(clip, faces, width, height, k, cull_backfaces, radius_px):
+    ids = np.full((width * height, k), -1, np.int32)
+    keys = np.full((width * height, k), np.inf)
+    tri, coeffs = np.empty((3, 4)), np.empty((3, 3))
+    scr, zndc, inv_len = np.empty((3, 2)), np.empty(3), np.empty(3)
+    dropped = 0
+    for f in range(faces.shape[0]):
+        det = _face_setup(clip, faces, f, tri, coeffs)
+        if not np.isfinite(det) or det == 0.0 or (cull_backfaces and det < 0.0):
+            continue
+        if min(tri[0, 2] + tri[0, 3], tri[1, 2] + tri[1, 3], tri[2, 2] + tri[2, 3]) < 0.0:
+            continue
+        for i in range(3):
+            scr[i, 0] = (tri[i, 0] / tri[i, 3] + 1.0) * width / 2.0
+            scr[i, 1] = (1.0 - tri[i, 1] / tri[i, 3]) * height / 2.0
+            zndc[i] = tri[i, 2] / tri[i, 3]
+        area2 = ((scr[1, 0] - scr[0, 0]) * (scr[2, 1] - scr[0, 1])
+                 - (scr[2, 0] - scr[0, 0]) * (scr[1, 1] - scr[0, 1]))
+        if area2 == 0.0:
+            continue
+        for i in range(3):
+            j = (i + 1) % 3
+            inv_len[i] = 1.0 / np.hypot(scr[j, 0] - scr[i, 0], scr[j, 1] - scr[i, 1])
+        c0 = int(max(np.ceil(scr[:, 0].min() - 0.5 - radius_px), 0.0))
+        c1 = int(min(np.floor(scr[:, 0].max() - 0.5 + radius_px), width - 1.0))
+        r0 = int(max(np.ceil(scr[:, 1].min() - 0.5 - radius_px), 0.0))
+        r1 = int(min(np.floor(scr[:, 1].max() - 0.5 + radius_px), height - 1.0))
+        for row in range(r0, r1 + 1):
+            for col in range(c0, c1 + 1):
+                z = _soft_key(scr, inv_len, zndc, col + 0.5, row + 0.5, radius_px)
+                if z < np.inf and -1.0 <= z <= 1.0:
+                    dropped += _insert(ids, keys, row * width + col, f, z)
+    return ids, dropped
+
+
+def find_candidates(clip, faces, width, height, k, cull_backfaces=False, radius_px=0.0):
+    """Per pixel, the ids of the k nearest faces that reach it.
+
+    clip: [V, 4] float clip coordinates; faces: [F, 3] int; radius_px: 0 for hard
+    coverage, else the soft footprint radius in pixels. Returns (face_ids [H, W, k] int32,
+    -1 where fewer faces reach the pixel, nearest first; dropped: [] int32, candidate
+    fragments beyond the k nearest).
+    """
+    clip = np.ascontiguousarray(clip, np.float64)
+    faces = np.ascontiguousarray(faces, np.int64)
+    if radius_px > 0.0:
+        ids, dropped = _search_soft(clip, faces, width, height, k, cull_backfaces, radius_px)
+    else:
+        ids, dropped = _search_hard(clip, faces, width, height, k, cull_backfaces)
+    return ids.reshape(height, width, k), np.int32(dropped)

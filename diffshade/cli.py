@@ -1,0 +1,160 @@
+"""The `diffshade` command line: `main(argv) -> exit status`.
+
+    diffshade render SCENE.json -o OUT.png [--shading MODE] [--size WxH] [--parts]
+    diffshade render --builtin sphere -o OUT.png
+
+Commands register themselves. A command module exposes `register(subparsers)`, which
+adds its parser with `subparsers.add_parser(name, help=...)` and sets
+`parser.set_defaults(run=fn)`, fn(args) -> int exit status. `render` is registered here;
+the modules named in `_EXTRA_COMMANDS` are imported when `main` runs, and one that is not
+installed is skipped (only a ModuleNotFoundError for that very module: a missing
+dependency inside an installed command module is a bug and surfaces).
+
+A user error (ValueError, including SceneFileError, or OSError such as a missing or
+unwritable file) prints one line `diffshade: error: <message>` on stderr and returns 2,
+never a traceback; so do command-line usage errors. Success prints each written path and
+returns 0. Output files are written atomically (diffshade.io).
+"""
+
+import argparse
+import dataclasses
+import importlib
+import os
+import sys
+
+import numpy as np
+
+from diffshade.builtin import BUILTIN_SCENES, builtin_scene
+from diffshade.io import write_npy, write_png
+from diffshade.render import render, render_parts
+from diffshade.scene import replace
+from diffshade.scenefile import load_scene
+from diffshade.settings import SHADING_MODES, RenderSettings
+
+__all__ = ["build_parser", "main"]
+
+_EXTRA_COMMANDS = ("data_synth.cli", "fitting.cli")
+_USER_ERRORS = (ValueError, OSError)
+_OUTPUT_KINDS = (".png", ".npy")
+_PARTS = ("ambient", "diffuse", "specular", "emission")
+
+
+class _UsageError(ValueError):
+    """A command-line usage error (argparse would print usage and exit instead)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):
+        raise _UsageError(f"{message} (see '{self.prog} --help')")
+
+
+def _size(text):
+    """'WxH' -> (width, height), both positive integers."""
+    width, sep, height = text.lower().partition("x")
+    if not (sep and width.isdigit() and height.isdigit() and int(width) > 0 and int(height) > 0):
+        raise argparse.ArgumentTypeError(f"got {text!r}; expected WxH in pixels, e.g. 256x256")
+    return int(width), int(height)
+
+
+def _register_render(subparsers):
+    parser = subparsers.add_parser(
+        "render", help="render a scene file or a built-in scene to an image",
+        description="Render a JSON scene file (see docs/scene-format.md) or a built-in "
+                    "scene. OUT.png gets 8-bit RGB over the scene's background; OUT.npy "
+                    "gets float32 RGBA [H, W, 4] (alpha = coverage).")
+    parser.add_argument("scene", nargs="?", metavar="SCENE.json", help="scene file")
+    parser.add_argument("--builtin", choices=BUILTIN_SCENES, help="render a built-in scene")
+    parser.add_argument("-o", "--output", required=True, metavar="OUT",
+                        help="output image, .png or .npy")
+    parser.add_argument("--shading", choices=SHADING_MODES,
+                        help="override the scene's settings.shading")
+    parser.add_argument("--size", type=_size, metavar="WxH",
+                        help="override the image size (built-in default: 256x256)")
+    parser.add_argument("--parts", action="store_true",
+                        help="also write OUT_ambient, OUT_diffuse, OUT_specular, "
+                             "OUT_emission (unclamped, zero off the object)")
+    parser.set_defaults(run=_run_render)
+
+
+def _scene_and_settings(args):
+    """(Scene, RenderSettings) from args.scene or args.builtin, with --size applied."""
+    if (args.scene is None) == (args.builtin is None):
+        raise _UsageError("render: expected a scene file or --builtin NAME, not "
+                          f"{'both' if args.scene else 'neither'}")
+    if args.builtin:
+        return builtin_scene(args.builtin, *(args.size or (256, 256))), RenderSettings()
+    scene, settings = load_scene(args.scene)
+    if args.size:
+        width, height = args.size
+        scene = replace(scene, camera=replace(scene.camera, width=width, height=height))
+    return scene, settings
+
+
+def _write(path, image, kind):
+    """PNG: the RGB channels (already composited over the background); .npy: all of them."""
+    if kind == ".png":
+        return write_png(path, image[..., :3])
+    return write_npy(path, image.astype(np.float32))
+
+
+def _run_render(args):
+    root, kind = os.path.splitext(args.output)
+    if kind.lower() not in _OUTPUT_KINDS:
+        raise _UsageError(f"--output: got {args.output!r}; expected a path ending in "
+                          f"{' or '.join(_OUTPUT_KINDS)}")
+    scene, settings = _scene_and_settings(args)
+    if args.shading:
+        settings = dataclasses.replace(settings, shading=args.shading)
+    # Render everything before writing anything, so that a failure leaves no output.
+    images = {args.output: np.asarray(render(scene, settings))}
+    if args.parts:
+        parts = render_parts(scene, settings)
+        images |= {f"{root}_{name}{kind}": np.asarray(getattr(parts, name)) for name in _PARTS}
+    for path, image in images.items():
+        print(_write(path, image, kind.lower()))
+    return 0
+
+
+def _register_extra_commands(subparsers):
+    for name in _EXTRA_COMMANDS:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as err:
+            absent = err.name is not None and (name + ".").startswith(err.name + ".")
+            if absent:
+                continue
+            raise
+        module.register(subparsers)
+
+
+def build_parser():
+    """The argument parser with `render` and the installed extra commands registered."""
+    parser = _Parser(prog="diffshade",
+                     description="diffshade: a differentiable Blinn-Phong renderer.")
+    subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _register_render(subparsers)
+    _register_extra_commands(subparsers)
+    return parser
+
+
+def _one_line(err):
+    if isinstance(err, OSError) and err.strerror and err.filename:
+        # A failed rename (filename -> filename2) is about its target, not the temporary.
+        text = f"{err.filename2 or err.filename}: {err.strerror}"
+    else:
+        text = str(err) or type(err).__name__
+    return " ".join(text.split())
+
+
+def main(argv=None) -> int:
+    """Run the command line on argv (default sys.argv[1:]); returns the exit status."""
+    parser = build_parser()
+    try:
+        try:
+            args = parser.parse_args(argv)
+        except SystemExit as done:  # --help: argparse printed it and wants to exit
+            return 0 if done.code is None else done.code
+        return args.run(args)
+    except _USER_ERRORS as err:
+        print(f"diffshade: error: {_one_line(err)}", file=sys.stderr)
+        return 2

@@ -1,0 +1,167 @@
+"""Light sources with OpenGL 1.x semantics, and their grouping by type.
+
+Each light has ambient, diffuse and specular colours as in `glLightfv`. The factory
+functions (`ambient_light`, `directional_light`, `point_light`, `spot_light`) validate
+their input; `color=` sets diffuse = specular = color and leaves ambient at 0.
+`group_lights` stacks the lights of one type into one pytree with a leading light axis,
+and leaves a type absent (`None`) when the scene has none, so that no code for it is
+traced or compiled.
+
+Conventions: positions are world-space points; a `direction` is the direction the light
+*travels* (from the light into the scene), as for `GL_SPOT_DIRECTION`; attenuation is
+(constant, linear, quadratic) giving 1 / (a + b d + c d^2); spot cutoff and exponent as
+`GL_SPOT_CUTOFF` (degrees, in [0, 90], or 180 for no cone) and `GL_SPOT_EXPONENT`.
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from diffshade.numerics import float_dtype
+
+
+def _pytree(cls):
+    cls = dataclasses.dataclass(frozen=True)(cls)
+    fields = [f.name for f in dataclasses.fields(cls)]
+    return jax.tree_util.register_dataclass(cls, data_fields=fields, meta_fields=[])
+
+
+@_pytree
+class AmbientLight:
+    """ambient: [..., 3] colour added as ka * ambient (no attenuation)."""
+
+    ambient: jax.Array
+
+
+@_pytree
+class DirectionalLight:
+    """direction: [..., 3] travel direction; ambient, diffuse, specular: [..., 3]."""
+
+    direction: jax.Array
+    ambient: jax.Array
+    diffuse: jax.Array
+    specular: jax.Array
+
+
+@_pytree
+class PointLight:
+    """position: [..., 3]; colours [..., 3]; attenuation: [..., 3] (constant, linear, quadratic)."""
+
+    position: jax.Array
+    ambient: jax.Array
+    diffuse: jax.Array
+    specular: jax.Array
+    attenuation: jax.Array
+
+
+@_pytree
+class SpotLight:
+    """A point light restricted to a cone: direction [..., 3], cutoff [...] degrees,
+    exponent [...]."""
+
+    position: jax.Array
+    direction: jax.Array
+    ambient: jax.Array
+    diffuse: jax.Array
+    specular: jax.Array
+    attenuation: jax.Array
+    cutoff: jax.Array
+    exponent: jax.Array
+
+
+@_pytree
+class LightGroups:
+    """Lights stacked by type (leading axis = light index); a type with no light is None."""
+
+    ambient: AmbientLight | None = None
+    directional: DirectionalLight | None = None
+    point: PointLight | None = None
+    spot: SpotLight | None = None
+
+
+def _array(name, value, shape, *, nonneg=False):
+    arr = np.asarray(value, dtype=np.float64)
+    if shape == (3,) and arr.shape == ():
+        arr = np.full(3, float(arr))
+    if arr.shape != shape or not np.all(np.isfinite(arr)) or (nonneg and np.any(arr < 0)):
+        kind = "non-negative " if nonneg else ""
+        raise ValueError(f"{name}: got {value!r}; expected {kind}finite numbers of shape {shape}")
+    return jnp.asarray(arr, dtype=float_dtype())
+
+
+def _direction(name, value):
+    arr = _array(name, value, (3,))
+    if float(jnp.linalg.norm(arr)) < 1e-12:
+        raise ValueError(f"{name}: got {value!r}; expected a non-zero vector")
+    return arr
+
+
+def _colours(color, ambient, diffuse, specular):
+    """OpenGL colours: `color` sets diffuse = specular; explicit keywords win."""
+    base = 1.0 if color is None else color
+    diffuse = base if diffuse is None else diffuse
+    specular = base if specular is None else specular
+    return (_array("ambient", ambient, (3,), nonneg=True),
+            _array("diffuse", diffuse, (3,), nonneg=True),
+            _array("specular", specular, (3,), nonneg=True))
+
+
+def _attenuation(value):
+    att = _array("attenuation", value, (3,), nonneg=True)
+    if float(att[0]) <= 0.0:
+        raise ValueError(f"attenuation: got {value!r}; expected (constant > 0, linear >= 0, "
+                         "quadratic >= 0) so that 1/(a + b d + c d^2) stays finite at d = 0")
+    return att
+
+
+def ambient_light(color=1.0) -> AmbientLight:
+    """A light with only an ambient colour: [3] or scalar grey."""
+    return AmbientLight(_array("color", color, (3,), nonneg=True))
+
+
+def directional_light(direction, color=None, *, ambient=0.0, diffuse=None,
+                      specular=None) -> DirectionalLight:
+    """A light at infinity shining along `direction` (white when no colour is given)."""
+    return DirectionalLight(_direction("direction", direction),
+                            *_colours(color, ambient, diffuse, specular))
+
+
+def point_light(position, color=None, *, ambient=0.0, diffuse=None, specular=None,
+                attenuation=(1.0, 0.0, 0.0)) -> PointLight:
+    """A positional light with attenuation 1/(a + b d + c d^2)."""
+    return PointLight(_array("position", position, (3,)),
+                      *_colours(color, ambient, diffuse, specular), _attenuation(attenuation))
+
+
+def spot_light(position, direction, color=None, *, cutoff=30.0, exponent=0.0, ambient=0.0,
+               diffuse=None, specular=None, attenuation=(1.0, 0.0, 0.0)) -> SpotLight:
+    """A positional light limited to the cone of half-angle `cutoff` degrees around `direction`."""
+    if not (np.isfinite(cutoff) and (0.0 <= cutoff <= 90.0 or cutoff == 180.0)):
+        raise ValueError(f"cutoff: got {cutoff!r}; expected degrees in [0, 90], or 180 (no cone)")
+    if not (np.isfinite(exponent) and 0.0 <= exponent <= 128.0):
+        raise ValueError(f"exponent: got {exponent!r}; expected a number in [0, 128]")
+    dt = float_dtype()
+    return SpotLight(_array("position", position, (3,)), _direction("direction", direction),
+                     *_colours(color, ambient, diffuse, specular), _attenuation(attenuation),
+                     jnp.asarray(cutoff, dt), jnp.asarray(exponent, dt))
+
+
+_GROUP_OF = {AmbientLight: "ambient", DirectionalLight: "directional", PointLight: "point",
+             SpotLight: "spot"}
+
+
+def group_lights(lights) -> LightGroups:
+    """Stack a list of single lights by type into `LightGroups` (absent types are None)."""
+    if isinstance(lights, LightGroups):
+        return lights
+    groups = {name: [] for name in _GROUP_OF.values()}
+    for i, light in enumerate(lights):
+        if type(light) not in _GROUP_OF:
+            raise TypeError(f"lights[{i}]: got {type(light).__name__}; expected one of "
+                            f"{[c.__name__ for c in _GROUP_OF]}")
+        groups[_GROUP_OF[type(light)]].append(light)
+    stacked = {name: jax.tree.map(lambda *xs: jnp.stack(xs), *items) if items else None
+               for name, items in groups.items()}
+    return LightGroups(**stacked)

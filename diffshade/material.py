@@ -1,0 +1,51 @@
+"""Material: the Blinn-Phong reflection coefficients of a surface (OpenGL `glMaterial`).
+
+`Material` holds coefficients only. ka, kd, ks and emission are RGB ([3]; a scalar
+broadcasts), shininess is a scalar exponent. `ks=None` means no specular term is traced or
+compiled, `emission=None` no emission. Defaults are OpenGL's: ka 0.2, kd 0.8, no specular,
+no emission.
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from diffshade.numerics import float_dtype
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Material:
+    """ka, kd: [..., 3]; ks: [..., 3] or None; shininess: [...]; emission: [..., 3] or None."""
+
+    ka: jax.Array
+    kd: jax.Array
+    ks: jax.Array | None = None
+    shininess: jax.Array | None = None
+    emission: jax.Array | None = None
+
+
+def _coefficient(name, value):
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape == ():
+        arr = np.full(3, float(arr))
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
+        raise ValueError(f"{name}: got {value!r}; expected a non-negative finite number "
+                         "or 3 of them (RGB)")
+    return jnp.asarray(arr, dtype=float_dtype())
+
+
+def material(ka=0.2, kd=0.8, ks=None, shininess=0.0, emission=None) -> Material:
+    """Build a validated Material. shininess must be finite and >= 0 (OpenGL caps it at 128;
+    diffshade does not, so that sharp highlights can be fitted)."""
+    if not (np.ndim(shininess) == 0 and np.isfinite(shininess) and shininess >= 0):
+        raise ValueError(f"shininess: got {shininess!r}; expected a finite number >= 0")
+    return Material(
+        ka=_coefficient("ka", ka),
+        kd=_coefficient("kd", kd),
+        ks=None if ks is None else _coefficient("ks", ks),
+        shininess=jnp.asarray(shininess, dtype=float_dtype()),
+        emission=None if emission is None else _coefficient("emission", emission),
+    )

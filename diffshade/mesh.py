@@ -1,0 +1,448 @@
+"""Triangle meshes: the `Mesh` pytree, its builders, and differentiable normals.
+
+`Mesh` holds vertices [V, 3] float32, faces [F, 3] int32 (counter-clockwise = front) and
+unit vertex normals [V, 3] float32. Its constructor is cheap and unchecked, because JAX
+transforms rebuild it from tracers; the public builders validate their input and raise
+ValueError naming the argument, the value and what was expected. `face_normals`,
+`face_areas`, `vertex_normals` and `transform_mesh` are pure jax.numpy, differentiable and
+jit-able, finite in value and gradient on degenerate faces and unused vertices (whose
+normals are zero). Crease splitting is numpy work done once, at construction time.
+"""
+
+import dataclasses
+import itertools
+import math
+import numbers
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import trimesh
+
+from diffshade.numerics import safe_norm, safe_normalize, tiny
+
+__all__ = [
+    "Mesh", "box", "face_areas", "face_normals", "icosphere", "load_mesh", "mesh_from_arrays",
+    "mesh_from_trimesh", "model_matrix", "torus", "transform_mesh", "vertex_normals",
+]  # fmt: skip
+
+WEIGHTINGS = ("angle", "area", "uniform")
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Mesh:
+    """A triangle mesh; every field is a pytree leaf.
+
+    vertices: [V, 3] float32 model-space positions.
+    faces: [F, 3] int32 vertex indices, counter-clockwise = front.
+    normals: [V, 3] float32 unit vertex normals (zero where undefined).
+    """
+
+    vertices: jax.Array
+    faces: jax.Array
+    normals: jax.Array
+
+
+def face_normals(vertices, faces):
+    """Unit normals [F, 3] float of faces [F, 3] int over vertices [V, 3] float.
+
+    normalize(cross(v1 - v0, v2 - v0)): counter-clockwise corners face the viewer.
+    Degenerate faces get a zero normal with a finite gradient.
+    """
+    tri = vertices[faces]
+    return safe_normalize(jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
+
+
+def face_areas(vertices, faces):
+    """Areas [F] float of faces [F, 3] int over vertices [V, 3] float (0 if degenerate)."""
+    tri = vertices[faces]
+    return 0.5 * safe_norm(jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
+
+
+def _corner_angles(vertices, faces):
+    """Interior angle [F, 3] float, in radians, of each face at each of its corners.
+
+    atan2(|e1 x e2|, e1 . e2) keeps its gradient finite near 0 and pi, where arccos of
+    a normalized dot product does not. A corner with a zero-length edge gets 0.
+    """
+    tri = vertices[faces]
+    e1 = jnp.roll(tri, -1, axis=1) - tri
+    e2 = jnp.roll(tri, -2, axis=1) - tri
+    sin_part = safe_norm(jnp.cross(e1, e2))
+    cos_part = jnp.sum(e1 * e2, axis=-1)
+    ok = sin_part**2 + cos_part**2 > tiny(tri.dtype) ** 2
+    angle = jnp.arctan2(jnp.where(ok, sin_part, 0.0), jnp.where(ok, cos_part, 1.0))
+    return jnp.where(ok, angle, 0.0)
+
+
+def _corner_weights(vertices, faces, weighting):
+    """Weight [F, 3] float of each face corner in its vertex normal (see vertex_normals)."""
+    _check_weighting(weighting)
+    if weighting == "angle":
+        return _corner_angles(vertices, faces)
+    if weighting == "area":
+        return jnp.repeat(face_areas(vertices, faces)[:, None], 3, axis=1)
+    return jnp.ones(faces.shape, vertices.dtype)
+
+
+def vertex_normals(vertices, faces, weighting="angle"):
+    """Unit vertex normals [V, 3] float for vertices [V, 3] float and faces [F, 3] int.
+
+    Each is the normalized weighted sum of the unit normals of the faces sharing the
+    vertex. weighting: "angle" (default) weighs a face by its interior angle at the
+    vertex (Thürmer & Wüthrich 1998), the only choice that does not depend on how the
+    surface is triangulated: splitting a face leaves the normals of its corners as they
+    were. "area" weighs by face area, "uniform" by 1. A vertex used by no face, or whose
+    face normals cancel, gets a zero normal; values and gradients stay finite. Under jit,
+    make weighting static.
+    """
+    weights = _corner_weights(vertices, faces, weighting)
+    weighted = weights[..., None] * face_normals(vertices, faces)[:, None, :]
+    summed = jax.ops.segment_sum(
+        weighted.reshape(-1, 3), faces.reshape(-1), num_segments=vertices.shape[0]
+    )
+    return safe_normalize(summed)
+
+
+def _check_weighting(weighting):
+    if weighting not in WEIGHTINGS:
+        raise ValueError(f"weighting: {weighting!r}; expected one of {WEIGHTINGS}")
+
+
+def _is_real(value):
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _check_points(values, name):
+    """values as a finite [N, 3] float64 numpy array, or ValueError naming `name`."""
+    arr = np.asarray(values)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"{name}: shape {arr.shape}; expected [N, 3]")
+    if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+        raise ValueError(f"{name}: dtype {arr.dtype}; expected real numbers")
+    bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
+    if bad.size:
+        raise ValueError(f"{name}: row {bad[0]} is {arr[bad[0]].tolist()}; expected finite")
+    return arr.astype(np.float64)
+
+
+def _check_faces(faces, num_vertices):
+    """faces as an [F, 3] int32 numpy array of indices into num_vertices, F >= 1."""
+    arr = np.asarray(faces)
+    if arr.ndim != 2 or arr.shape[1] != 3 or arr.shape[0] == 0:
+        raise ValueError(f"faces: shape {arr.shape}; expected [F, 3] with F >= 1")
+    if np.issubdtype(arr.dtype, np.floating):
+        bad = np.flatnonzero(~np.isfinite(arr) | (arr != np.floor(arr)))
+        if bad.size:
+            raise ValueError(f"faces: value {arr.flat[bad[0]]} is not an integer index")
+    elif not np.issubdtype(arr.dtype, np.integer):
+        raise ValueError(f"faces: dtype {arr.dtype}; expected integer vertex indices")
+    bad = np.flatnonzero((arr < 0) | (arr >= num_vertices))
+    if bad.size:
+        raise ValueError(
+            f"faces: index {arr.flat[bad[0]]:g} out of range for {num_vertices} vertices; "
+            f"expected 0 <= index < {num_vertices}"
+        )
+    return arr.astype(np.int32)
+
+
+def _check_crease(crease_angle):
+    if crease_angle is not None and not (_is_real(crease_angle) and 0 <= crease_angle <= 180):
+        raise ValueError(f"crease_angle: {crease_angle!r}; expected None or degrees in [0, 180]")
+
+
+def mesh_from_arrays(vertices, faces, normals=None, *, weighting="angle", crease_angle=None):
+    """Validated Mesh from vertices [V, 3] real, faces [F, 3] integer (CCW = front).
+
+    normals: optional [V, 3] real, normalized here. Without them they are computed by
+    `vertex_normals(weighting)`; with crease_angle (degrees) the vertices are first split
+    along sharp edges (see `_split_creases`), which changes V. Float faces are accepted
+    when they hold exact integers. Raises ValueError on any bad argument.
+    """
+    verts = _check_points(vertices, "vertices")
+    tris = _check_faces(faces, len(verts))
+    _check_weighting(weighting)
+    _check_crease(crease_angle)
+    if normals is not None:
+        return _mesh_with_normals(verts, tris, normals, crease_angle)
+    if crease_angle is not None:
+        return _split_creases(verts, tris, weighting, crease_angle)
+    vs, fs = jnp.asarray(verts, jnp.float32), jnp.asarray(tris)
+    return Mesh(vs, fs, vertex_normals(vs, fs, weighting))
+
+
+def _mesh_with_normals(verts, tris, normals, crease_angle):
+    """Mesh from validated verts [V, 3], tris [F, 3] and user normals [V, 3] real."""
+    if crease_angle is not None:
+        raise ValueError(f"crease_angle: {crease_angle!r}; expected None when normals are given")
+    given = _check_points(normals, "normals")
+    if given.shape != verts.shape:
+        raise ValueError(f"normals: shape {given.shape}; expected {verts.shape} like vertices")
+    unit = safe_normalize(jnp.asarray(given, jnp.float32))
+    return Mesh(jnp.asarray(verts, jnp.float32), jnp.asarray(tris), unit)
+
+
+def _smooth_corner_links(faces, face_n, cos_limit):
+    """Links (a [L] int, b [L] int) between corners (id 3 * face + k) of the same vertex
+    whose faces share an edge and have face normals with dot >= cos_limit."""
+    flat = faces.ravel().astype(np.int64)
+    start = np.arange(flat.size)
+    end = start - start % 3 + (start + 1) % 3
+    low = np.where(flat[start] <= flat[end], start, end)
+    high = start + end - low
+    key = flat[low] * (flat.max() + 1) + flat[high]
+    order = np.argsort(key, kind="stable")
+    # Consecutive records of one edge: its two faces (a chain of them if non-manifold).
+    same = key[order[1:]] == key[order[:-1]]
+    a, b = order[:-1][same], order[1:][same]
+    smooth = np.einsum("ij,ij->i", face_n[a // 3], face_n[b // 3]) >= cos_limit
+    a, b = a[smooth], b[smooth]
+    return np.concatenate([low[a], high[a]]), np.concatenate([low[b], high[b]])
+
+
+def _components(num_nodes, a, b):
+    """Connected-component label [num_nodes] int (its smallest node) under links a-b."""
+    labels = np.arange(num_nodes)
+    while True:
+        low = np.minimum(labels[a], labels[b])
+        new = labels.copy()
+        np.minimum.at(new, a, low)
+        np.minimum.at(new, b, low)
+        if np.array_equal(new, labels):
+            return labels
+        labels = new
+
+
+def _split_creases(verts, tris, weighting, crease_angle):
+    """Mesh from validated verts [V, 3] float64 and tris [F, 3] int32, split at creases.
+
+    A crease is an edge whose two face normals differ by more than crease_angle degrees.
+    The corners of a vertex joined through smooth edges form one smoothing group and
+    share one output vertex, whose normal is the weighted normal of the group's faces;
+    every other group gets a copy of the vertex. Splitting at edges, not by comparing
+    every face pair around a vertex, keeps a smooth fan whole even when its far sides
+    differ by more than crease_angle. Vertices used by no face are dropped.
+    """
+    vs, fs = jnp.asarray(verts, jnp.float32), jnp.asarray(tris)
+    face_n = np.asarray(face_normals(vs, fs), np.float64)
+    weights = np.asarray(_corner_weights(vs, fs, weighting), np.float64).ravel()
+    # float32 normals of coplanar faces differ by ~1e-7: flat regions must stay whole at 0.
+    cos_limit = math.cos(math.radians(crease_angle)) - 1e-6
+    group = _components(tris.size, *_smooth_corner_links(tris, face_n, cos_limit))
+    corner_vertex = tris.ravel().astype(np.int64)
+    _, first, inverse = np.unique(
+        corner_vertex * tris.size + group, return_index=True, return_inverse=True
+    )
+    summed = np.zeros((first.size, 3))
+    np.add.at(summed, inverse.ravel(), weights[:, None] * np.repeat(face_n, 3, axis=0))
+    return Mesh(
+        jnp.asarray(verts[corner_vertex[first]], jnp.float32),
+        jnp.asarray(inverse.reshape(-1, 3), jnp.int32),
+        safe_normalize(jnp.asarray(summed, jnp.float32)),
+    )
+
+
+def _check_positive(value, name):
+    if not (_is_real(value) and math.isfinite(value) and value > 0):
+        raise ValueError(f"{name}: {value!r}; expected a finite number > 0")
+
+
+def _check_count(value, name, low, high):
+    is_int = isinstance(value, numbers.Integral) and not isinstance(value, bool)
+    if not (is_int and low <= value <= high):
+        raise ValueError(f"{name}: {value!r}; expected an int in [{low}, {high}]")
+
+
+_PHI = (1.0 + math.sqrt(5.0)) / 2.0
+_ICOSAHEDRON_VERTICES = np.array(
+    [[-1, _PHI, 0], [1, _PHI, 0], [-1, -_PHI, 0], [1, -_PHI, 0],
+     [0, -1, _PHI], [0, 1, _PHI], [0, -1, -_PHI], [0, 1, -_PHI],
+     [_PHI, 0, -1], [_PHI, 0, 1], [-_PHI, 0, -1], [-_PHI, 0, 1]]
+)  # fmt: skip
+_ICOSAHEDRON_FACES = np.array(
+    [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11],
+     [1, 5, 9], [5, 11, 4], [11, 10, 2], [10, 7, 6], [7, 1, 8],
+     [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9],
+     [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]]
+)  # fmt: skip
+
+
+def _subdivide(verts, tris):
+    """One `subSphere` step on unit verts [V, 3] float64 and tris [F, 3] int.
+
+    (v1, v2, v3) -> (v1, v12, v31), (v12, v2, v23), (v31, v12, v23), (v31, v23, v3),
+    midpoints pushed onto the unit sphere and shared by the two faces of their edge.
+    """
+    edges = np.sort(tris[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    unique, inverse = np.unique(edges, axis=0, return_inverse=True)
+    mids = verts[unique[:, 0]] + verts[unique[:, 1]]
+    mids /= np.linalg.norm(mids, axis=1, keepdims=True)
+    v12, v23, v31 = (inverse.reshape(-1, 3) + len(verts)).T
+    v1, v2, v3 = tris.T
+    new = np.stack([v1, v12, v31, v12, v2, v23, v31, v12, v23, v31, v23, v3], axis=1)
+    return np.concatenate([verts, mids]), new.reshape(-1, 3)
+
+
+def icosphere(subdivisions=3, radius=1.0):
+    """Watertight sphere Mesh centred at the origin, from the regular icosahedron.
+
+    subdivisions: int in [0, 8]; V = 10 * 4**s + 2, F = 20 * 4**s. Normals are the exact
+    sphere normals (unit positions), as `glNormal` in the lecture's `subSphere`.
+    """
+    _check_count(subdivisions, "subdivisions", 0, 8)
+    _check_positive(radius, "radius")
+    verts = _ICOSAHEDRON_VERTICES / np.linalg.norm(_ICOSAHEDRON_VERTICES, axis=1)[:, None]
+    tris = _ICOSAHEDRON_FACES
+    for _ in range(subdivisions):
+        verts, tris = _subdivide(verts, tris)
+    unit = jnp.asarray(verts, jnp.float32)
+    return Mesh(unit * jnp.float32(radius), jnp.asarray(tris, jnp.int32), unit)
+
+
+def torus(major_radius=1.0, minor_radius=0.35, major_segments=48, minor_segments=24):
+    """Watertight torus Mesh around the y axis (y up), centred at the origin.
+
+    V = major_segments * minor_segments, F = 2 * V, faces CCW seen from outside, exact
+    analytic normals. Needs 0 < minor_radius < major_radius and segments >= 3.
+    """
+    _check_positive(major_radius, "major_radius")
+    _check_positive(minor_radius, "minor_radius")
+    if minor_radius >= major_radius:
+        raise ValueError(f"minor_radius: {minor_radius!r}; expected < major_radius")
+    _check_count(major_segments, "major_segments", 3, 2**16)
+    _check_count(minor_segments, "minor_segments", 3, 2**16)
+    u = np.linspace(0.0, 2 * np.pi, major_segments, endpoint=False)[:, None]
+    v = np.linspace(0.0, 2 * np.pi, minor_segments, endpoint=False)[None, :]
+    cos_u, sin_u, cos_v, sin_v = np.cos(u), np.sin(u), np.cos(v), np.sin(v)
+    normals = np.stack(np.broadcast_arrays(cos_v * cos_u, sin_v, cos_v * sin_u), -1)
+    ring = np.stack(np.broadcast_arrays(cos_u, 0.0 * v, sin_u), -1) * major_radius
+    return Mesh(
+        jnp.asarray((ring + minor_radius * normals).reshape(-1, 3), jnp.float32),
+        jnp.asarray(_grid_faces(major_segments, minor_segments), jnp.int32),
+        jnp.asarray(normals.reshape(-1, 3), jnp.float32),
+    )
+
+
+def _grid_faces(rows, cols):
+    """Faces [2 * rows * cols, 3] int of a rows x cols vertex grid wrapped in both
+    directions (vertex id row * cols + col), two triangles per cell."""
+    i, j = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
+    a, b = i * cols + j, i * cols + (j + 1) % cols
+    c, d = (b + cols) % (rows * cols), (a + cols) % (rows * cols)
+    # Stepping along a column (around the tube) before a row winds CCW seen from outside.
+    return np.stack([a, b, c, a, c, d], axis=-1).reshape(-1, 3)
+
+
+def box(size=(1.0, 1.0, 1.0)):
+    """Axis-aligned box Mesh centred at the origin with side lengths size: 3 floats > 0.
+
+    24 vertices (4 per side, so each side has its own flat normal), 12 faces CCW outward.
+    """
+    half = np.asarray(size, np.float64) / 2.0
+    if half.shape != (3,) or not np.all(np.isfinite(half) & (half > 0)):
+        raise ValueError(f"size: {size!r}; expected 3 finite numbers > 0")
+    square = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
+    corners, normals = [], []
+    for axis, sign in itertools.product(range(3), (1.0, -1.0)):
+        side = np.zeros((4, 3))
+        side[:, axis] = sign
+        # Reversing the square for the negative side keeps it CCW seen from outside.
+        side[:, [(axis + 1) % 3, (axis + 2) % 3]] = square if sign > 0 else square[::-1]
+        corners.append(side)
+        normals.append(np.broadcast_to(np.eye(3)[axis] * sign, (4, 3)))
+    tris = (np.arange(6)[:, None, None] * 4 + np.array([[0, 1, 2], [0, 2, 3]])).reshape(-1, 3)
+    return Mesh(
+        jnp.asarray(np.concatenate(corners) * half, jnp.float32),
+        jnp.asarray(tris, jnp.int32),
+        jnp.asarray(np.concatenate(normals), jnp.float32),
+    )
+
+
+def mesh_from_trimesh(tm, *, weighting="angle", crease_angle=None):
+    """Mesh from a trimesh.Trimesh (a trimesh.Scene is concatenated first).
+
+    Only positions and faces are taken: normals are our own (`vertex_normals`, or crease
+    splitting when crease_angle is given), never trimesh's.
+    """
+    if isinstance(tm, trimesh.Scene):
+        tm = trimesh.util.concatenate(tm.dump())
+    if not isinstance(tm, trimesh.Trimesh):
+        raise TypeError(f"tm: {type(tm).__name__}; expected trimesh.Trimesh or trimesh.Scene")
+    verts, faces = np.asarray(tm.vertices), np.asarray(tm.faces)
+    return mesh_from_arrays(verts, faces, weighting=weighting, crease_angle=crease_angle)
+
+
+def load_mesh(path, *, weighting="angle", crease_angle=None):
+    """Mesh from any file trimesh reads (OBJ, PLY, STL, GLB, ...); see mesh_from_trimesh.
+
+    Loaded with process=True so that duplicated vertices (STL stores each triangle alone)
+    are merged and can share a normal. Raises FileNotFoundError for a missing file and
+    ValueError for a file that cannot be parsed or has no faces.
+    """
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"mesh file not found: {path!r}")
+    try:
+        tm = trimesh.load(path, force="mesh", process=True)
+    # trimesh's loaders raise many exception types; all mean "cannot read this file".
+    except Exception as err:
+        raise ValueError(f"path: cannot read mesh file {path!r}: {err}") from err
+    if not isinstance(tm, trimesh.Trimesh) or len(tm.faces) == 0:
+        raise ValueError(f"path: mesh file {path!r} has no faces; expected triangles")
+    return mesh_from_trimesh(tm, weighting=weighting, crease_angle=crease_angle)
+
+
+def _inverse_transpose_direction(linear):
+    """sign(det) * cofactor matrix [3, 3] of linear [3, 3]: |det| * inv(linear).T.
+
+    Same directions as the inverse transpose once renormalized, but finite (and zero for
+    a singular matrix, so normals become zero) where inv would divide by zero.
+    """
+    r0, r1, r2 = linear
+    cofactor = jnp.stack([jnp.cross(r1, r2), jnp.cross(r2, r0), jnp.cross(r0, r1)])
+    return jnp.sign(jnp.dot(r0, cofactor[0])) * cofactor
+
+
+def transform_mesh(mesh, matrix):
+    """Mesh moved by the affine model matrix [4, 4] float (last row 0, 0, 0, 1).
+
+    Vertices [V, 3] map by the matrix, normals by the inverse transpose of its
+    upper-left 3x3, renormalized, so they stay perpendicular to the transformed surface
+    under non-uniform scale. Pure jax: differentiable wrt matrix and mesh.
+    """
+    matrix = jnp.asarray(matrix, mesh.vertices.dtype)
+    if matrix.shape != (4, 4):
+        raise ValueError(f"matrix: shape {matrix.shape}; expected [4, 4]")
+    linear = matrix[:3, :3]
+    vertices = mesh.vertices @ linear.T + matrix[:3, 3]
+    normals = safe_normalize(mesh.normals @ _inverse_transpose_direction(linear).T)
+    return Mesh(vertices, mesh.faces, normals)
+
+
+def _axis_rotation(axis, angle):
+    """Right-handed rotation [3, 3] float64 by angle (radians) about coordinate axis 0-2."""
+    b, c = (axis + 1) % 3, (axis + 2) % 3
+    rot = np.eye(3)
+    rot[b, b] = rot[c, c] = np.cos(angle)
+    rot[c, b], rot[b, c] = np.sin(angle), -np.sin(angle)
+    return rot
+
+
+def model_matrix(translate=(0.0, 0.0, 0.0), rotate_deg=(0.0, 0.0, 0.0), scale=(1.0, 1.0, 1.0)):
+    """Affine model matrix [4, 4] float32 = T @ Rz @ Ry @ Rx @ S.
+
+    Applied to a point: scale first, then rotate about X, then Y, then Z (right-handed
+    Euler angles rotate_deg, in degrees), then translate. Each argument is 3 numbers.
+    """
+    args = {"translate": translate, "rotate_deg": rotate_deg, "scale": scale}
+    for name, value in args.items():
+        if np.shape(value) != (3,) or not np.all(np.isfinite(value)):
+            raise ValueError(f"{name}: {value!r}; expected 3 finite numbers")
+    rx, ry, rz = np.radians(np.asarray(rotate_deg, np.float64))
+    matrix = np.eye(4)
+    rotation = _axis_rotation(2, rz) @ _axis_rotation(1, ry) @ _axis_rotation(0, rx)
+    matrix[:3, :3] = rotation * np.asarray(scale, np.float64)[None, :]
+    matrix[:3, 3] = translate
+    return matrix.astype(np.float32)

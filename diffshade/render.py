@@ -1,0 +1,158 @@
+"""render: project -> rasterize -> interpolate -> shade -> blend, as a short composition.
+
+Shading modes (RenderSettings.shading), following OpenGL 1.x:
+- 'phong': normals interpolated perspective-correctly and renormalized, lit per fragment;
+  the final colour is clamped (when clamping is on).
+- 'gouraud': lit per vertex, each vertex colour clamped, then interpolated.
+- 'flat': one evaluation per face, at the centroid with the face normal.
+- 'flat_last': OpenGL's flat shading: the whole face takes the lit colour of its last
+  vertex (the provoking vertex), computed with that vertex's normal.
+Two-sided lighting (scene.two_sided) flips the normal and uses the back material on faces
+that are clockwise on screen, as OpenGL does.
+"""
+
+import dataclasses
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+
+from diffshade.blend import hard_blend, soft_blend
+from diffshade.camera import view_dir_infinite
+from diffshade.interpolate import gather_faces, interpolate
+from diffshade.numerics import clamp01, safe_normalize
+from diffshade.project import Projected, project
+from diffshade.raster import Fragments, face_edge_coefficients, rasterize
+from diffshade.settings import RenderSettings
+from diffshade.shading import ShadingParts, shade
+
+
+def _view_dirs(scene, points):
+    """Unit directions towards the viewer: local (to the eye) or infinite (eye +z)."""
+    if scene.local_viewer:
+        return safe_normalize(scene.camera.eye - points)
+    return jnp.broadcast_to(view_dir_infinite(scene.camera), points.shape).astype(points.dtype)
+
+
+def _fill_absent(material, other):
+    """`material` with each absent optional term (ks, emission) set to zeros shaped like
+    `other`'s, so that front and back materials share one structure."""
+    changes = {name: jnp.zeros_like(getattr(other, name)) for name in ("ks", "emission")
+               if getattr(material, name) is None and getattr(other, name) is not None}
+    shininess = material.shininess if material.shininess is not None else other.shininess
+    return dataclasses.replace(material, shininess=shininess, **changes)
+
+
+def _pick_material(scene, front):
+    """Front material where `front`, back material elsewhere; front: [...] bool."""
+    back = scene.material if scene.back_material is None else scene.back_material
+    front_mat, back = _fill_absent(scene.material, back), _fill_absent(back, scene.material)
+
+    def pick(f, b):
+        mask = front.reshape(front.shape + (1,) * jnp.ndim(f))
+        return jnp.where(mask, f, b)
+    return jax.tree.map(pick, front_mat, back)
+
+
+def _shade_points(scene, settings, points, normals, front) -> ShadingParts:
+    """Light samples with OpenGL's two-sided rule; front: [...] bool."""
+    material = scene.material
+    if scene.two_sided:
+        normals = jnp.where(front[..., None], normals, -normals)
+        material = _pick_material(scene, front)
+    return shade(material, scene.lights, scene.global_ambient, points, normals,
+                 _view_dirs(scene, points), settings)
+
+
+def _colour(parts, settings):
+    return clamp01(parts.total) if settings.clamp else parts.total
+
+
+def _phong(scene, proj, frags, settings):
+    faces = scene.mesh.faces
+    points = interpolate(proj.world, faces, frags)
+    normals = safe_normalize(interpolate(proj.normals, faces, frags))
+    parts = _shade_points(scene, settings, points, normals, frags.front)
+    return parts, _colour(parts, settings)
+
+
+def _vertex_sides(scene, proj, settings):
+    """Per-vertex (parts, colour) lit as front and, when two-sided, as back faces."""
+    n = proj.world.shape[0]
+    sides = [True, False] if scene.two_sided else [True]
+    lit = [_shade_points(scene, settings, proj.world, proj.normals, jnp.full(n, side))
+           for side in sides]
+    return [(parts, _colour(parts, settings)) for parts in lit]
+
+
+def _by_side(sides, front, select):
+    """Combine per-side values with `select(value)`, choosing by front-facing."""
+    values = [jax.tree.map(select, side) for side in sides]
+    if len(values) == 1:
+        return values[0]
+    return jax.tree.map(lambda f, b: jnp.where(front[..., None], f, b), *values)
+
+
+def _gouraud(scene, proj, frags, settings):
+    sides = _vertex_sides(scene, proj, settings)
+    return _by_side(sides, frags.front, lambda a: interpolate(a, scene.mesh.faces, frags))
+
+
+def _flat_last(scene, proj, frags, settings):
+    last = scene.mesh.faces[:, 2]
+    sides = _vertex_sides(scene, proj, settings)
+    return _by_side(sides, frags.front, lambda a: gather_faces(a[last], frags))
+
+
+def _flat(scene, proj, frags, settings):
+    tri = proj.world[scene.mesh.faces]
+    normals = safe_normalize(jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
+    _, det = face_edge_coefficients(proj.clip, scene.mesh.faces)
+    parts = _shade_points(scene, settings, tri.mean(1), normals, det > 0)
+    return jax.tree.map(lambda a: gather_faces(a, frags), (parts, _colour(parts, settings)))
+
+
+DEFAULT_SETTINGS = RenderSettings()
+
+_SHADERS = {"phong": _phong, "gouraud": _gouraud, "flat": _flat, "flat_last": _flat_last}
+
+
+def shade_fragments(scene, proj: Projected, frags: Fragments, settings):
+    """(ShadingParts, colour) per fragment, each [H, W, K, 3], by settings.shading."""
+    return _SHADERS[settings.shading](scene, proj, frags, settings)
+
+
+def rasterize_scene(scene, settings=DEFAULT_SETTINGS) -> Fragments:
+    """Project and rasterize the scene's mesh (cache the result when geometry is fixed)."""
+    cam = scene.camera
+    return rasterize(project(scene), scene.mesh.faces, cam.width, cam.height, settings)
+
+
+def blend(scene, colours, frags: Fragments, settings):
+    """Hard (nearest fragment) or soft (SoftRas) blending by settings.raster: [H, W, 4]."""
+    if settings.raster == "hard":
+        return hard_blend(colours, frags, scene.background)
+    cam = scene.camera
+    return soft_blend(colours, frags, scene.background, cam.near, cam.far, settings.sigma,
+                      settings.gamma)
+
+
+def render_fragments(scene, frags: Fragments, settings=DEFAULT_SETTINGS):
+    """Shade and blend cached fragments: [H, W, 4] RGBA."""
+    _, colours = shade_fragments(scene, project(scene), frags, settings)
+    return blend(scene, colours, frags, settings)
+
+
+@partial(jax.jit, static_argnames=("settings",))
+def render(scene, settings=DEFAULT_SETTINGS):
+    """Render the scene: [H, W, 4] RGBA (alpha = coverage) over scene.background."""
+    return render_fragments(scene, rasterize_scene(scene, settings), settings)
+
+
+@partial(jax.jit, static_argnames=("settings",))
+def render_parts(scene, settings=DEFAULT_SETTINGS) -> ShadingParts:
+    """The unclamped ambient, diffuse, specular and emission images, each [H, W, 3]
+    (zero where no face covers the pixel)."""
+    frags = rasterize_scene(scene, settings)
+    parts, _ = shade_fragments(scene, project(scene), frags, settings)
+    return parts.map(lambda a: jnp.where(frags.valid[..., 0, None], a[..., 0, :], 0.0))
