@@ -156,3 +156,19 @@ def render_parts(scene, settings=DEFAULT_SETTINGS) -> ShadingParts:
     frags = rasterize_scene(scene, settings)
     parts, _ = shade_fragments(scene, project(scene), frags, settings)
     return parts.map(lambda a: jnp.where(frags.valid[..., 0, None], a[..., 0, :], 0.0))
+
+
+def downsample(image, factor: int):
+    """Box-filter an [H*f, W*f, C] image to [H, W, C]."""
+    h, w, c = image.shape
+    return image.reshape(h // factor, factor, w // factor, factor, c).mean(axis=(1, 3))
+
+
+@partial(jax.jit, static_argnames=("settings", "factor"))
+def render_supersampled(scene, settings=DEFAULT_SETTINGS, factor: int = 2):
+    """Anti-aliased render: render at factor x the camera's resolution, then box-filter
+    down: [H, W, 4]."""
+    cam = dataclasses.replace(scene.camera, width=scene.camera.width * factor,
+                              height=scene.camera.height * factor)
+    big = render(dataclasses.replace(scene, camera=cam), settings)
+    return downsample(big, factor)
