@@ -1,6 +1,5 @@
 """Shared benchmark helpers: timing with compile time separated, tables, JSON output."""
 
-import json
 import os
 import platform
 import statistics
