@@ -139,33 +139,51 @@ def _segment_dist2(px, py, ax, ay, bx, by):
 
 
 @numba.njit(cache=True, nogil=True)
-def _soft_key(scr, inv_len, zndc, px, py, radius_px):
-    """NDC depth of the fragment at pixel p for a screen triangle, or +inf if out of reach.
+def _soft_fragment(scr, inv_len, zndc, px, py, radius_px):
+    """(NDC depth, signed squared distance in pixels^2, positive inside) of the fragment of
+    a screen triangle at pixel p; depth is +inf when the pixel is out of reach.
 
-    scr: [3, 2] vertex pixel coordinates (counter-clockwise on screen, y down: negative
-    area); inv_len: [3] 1 / edge lengths; zndc: [3]. Inside: depth at the barycentrics
-    (NDC z is affine in screen space); outside within reach: at the clamped ones.
+    scr: [3, 2] vertex pixel coordinates; inv_len: [3] 1 / edge lengths; zndc: [3].
+    Inside, depth is taken at the barycentrics (NDC z is affine in screen space); outside,
+    at the clamped ones.
     """
     b0 = (scr[1, 0] - px) * (scr[2, 1] - py) - (scr[2, 0] - px) * (scr[1, 1] - py)
     b1 = (scr[2, 0] - px) * (scr[0, 1] - py) - (scr[0, 0] - px) * (scr[2, 1] - py)
     b2 = (scr[0, 0] - px) * (scr[1, 1] - py) - (scr[1, 0] - px) * (scr[0, 1] - py)
-    area = b0 + b1 + b2
-    sign = 1.0 if area > 0.0 else -1.0
+    sign = 1.0 if b0 + b1 + b2 > 0.0 else -1.0
     # signed distances to the edge lines: a cheap necessary test before the exact one
     if min(b0 * inv_len[1], b1 * inv_len[2], b2 * inv_len[0]) * sign < -radius_px:
-        return np.inf
-    if b0 * sign < 0.0 or b1 * sign < 0.0 or b2 * sign < 0.0:
-        d2 = min(_segment_dist2(px, py, scr[0, 0], scr[0, 1], scr[1, 0], scr[1, 1]),
-                 _segment_dist2(px, py, scr[1, 0], scr[1, 1], scr[2, 0], scr[2, 1]),
-                 _segment_dist2(px, py, scr[2, 0], scr[2, 1], scr[0, 0], scr[0, 1]))
-        if d2 > radius_px * radius_px:
-            return np.inf
+        return np.inf, 0.0
+    d2 = min(_segment_dist2(px, py, scr[0, 0], scr[0, 1], scr[1, 0], scr[1, 1]),
+             _segment_dist2(px, py, scr[1, 0], scr[1, 1], scr[2, 0], scr[2, 1]),
+             _segment_dist2(px, py, scr[2, 0], scr[2, 1], scr[0, 0], scr[0, 1]))
+    inside = b0 * sign >= 0.0 and b1 * sign >= 0.0 and b2 * sign >= 0.0
+    if not inside and d2 > radius_px * radius_px:
+        return np.inf, 0.0
     w0, w1, w2 = max(b0 * sign, 0.0), max(b1 * sign, 0.0), max(b2 * sign, 0.0)
-    return (w0 * zndc[0] + w1 * zndc[1] + w2 * zndc[2]) / (w0 + w1 + w2)
+    z = (w0 * zndc[0] + w1 * zndc[1] + w2 * zndc[2]) / (w0 + w1 + w2)
+    return z, (d2 if inside else -d2)
 
 
 @numba.njit(cache=True, nogil=True)
-def _search_soft(clip, faces, width, height, k, cull_backfaces, radius_px):
+def _blend_logit(z_ndc, signed_d2, soft):
+    """log D + zt / gamma of soft_blend, from NDC depth: the fragment's weight in the blend.
+
+    soft = (sigma, gamma, near, far, perspective).
+    """
+    sigma, gamma, near, far, perspective = soft
+    if perspective:
+        inv_depth = ((far + near) - z_ndc * (far - near)) / (2.0 * far * near)
+    else:
+        inv_depth = 2.0 / (z_ndc * (far - near) + (far + near))
+    zt = min(max((inv_depth - 1.0 / far) / (1.0 / near - 1.0 / far), 0.0), 1.0)
+    x = signed_d2 / sigma
+    log_d = -np.log1p(np.exp(-x)) if x >= 0.0 else x - np.log1p(np.exp(x))
+    return log_d + zt / gamma
+
+
+@numba.njit(cache=True, nogil=True)
+def _search_soft(clip, faces, width, height, k, cull_backfaces, radius_px, soft):
     ids = np.full((width * height, k), -1, np.int32)
     keys = np.full((width * height, k), np.inf)
     tri, coeffs = np.empty((3, 4)), np.empty((3, 3))
@@ -194,24 +212,33 @@ def _search_soft(clip, faces, width, height, k, cull_backfaces, radius_px):
         r1 = int(min(np.floor(scr[:, 1].max() - 0.5 + radius_px), height - 1.0))
         for row in range(r0, r1 + 1):
             for col in range(c0, c1 + 1):
-                z = _soft_key(scr, inv_len, zndc, col + 0.5, row + 0.5, radius_px)
+                z, sd2 = _soft_fragment(scr, inv_len, zndc, col + 0.5, row + 0.5, radius_px)
                 if z < np.inf and -1.0 <= z <= 1.0:
-                    dropped += _insert(ids, keys, row * width + col, f, z)
+                    key = -_blend_logit(z, sd2, soft)
+                    dropped += _insert(ids, keys, row * width + col, f, key)
     return ids, dropped
 
 
-def find_candidates(clip, faces, width, height, k, cull_backfaces=False, radius_px=0.0):
-    """Per pixel, the ids of the k nearest faces that reach it.
+def find_candidates(clip, faces, near=0.1, far=100.0, *, width, height, k,
+                    cull_backfaces=False, radius_px=0.0, sigma=1.0, gamma=1e-4,
+                    perspective=True):
+    """Per pixel, the ids of the k faces that reach it, best first.
 
-    clip: [V, 4] float clip coordinates; faces: [F, 3] int; radius_px: 0 for hard
-    coverage, else the soft footprint radius in pixels. Returns (face_ids [H, W, k] int32,
-    -1 where fewer faces reach the pixel, nearest first; dropped: [] int32, candidate
-    fragments beyond the k nearest).
+    clip: [V, 4] float clip coordinates; faces: [F, 3] int. Hard mode (radius_px = 0):
+    covering faces, nearest first. Soft mode (radius_px > 0, the footprint radius in
+    pixels): faces within reach, ranked by their weight in soft_blend,
+    log D + zt / gamma (sigma, gamma, near, far and the projection give D and the
+    normalized inverse depth zt): for small gamma this is nearest first, and among
+    fragments at nearly the same depth the one that covers the pixel outranks neighbours
+    that only graze it. Returns (face_ids [H, W, k] int32, -1 where fewer faces reach the
+    pixel; dropped: [] int32, fragments beyond the k kept).
     """
     clip = np.ascontiguousarray(clip, np.float64)
     faces = np.ascontiguousarray(faces, np.int64)
     if radius_px > 0.0:
-        ids, dropped = _search_soft(clip, faces, width, height, k, cull_backfaces, radius_px)
+        soft = (float(sigma), float(gamma), float(near), float(far), bool(perspective))
+        ids, dropped = _search_soft(clip, faces, width, height, k, cull_backfaces, radius_px,
+                                    soft)
     else:
         ids, dropped = _search_hard(clip, faces, width, height, k, cull_backfaces)
     return ids.reshape(height, width, k), np.int32(dropped)

@@ -59,13 +59,16 @@ def soft_radius(settings) -> float:
     return math.sqrt(settings.sigma * math.log((1.0 - t) / t))
 
 
-def search_faces(clip, faces, width, height, k, cull_backfaces=False, radius_px=0.0):
+def search_faces(clip, faces, camera, k, settings, radius_px=0.0):
     """Host-side candidate search under jit: (face_ids [H, W, k] int32, dropped [] int32)."""
-    shapes = (jax.ShapeDtypeStruct((height, width, k), jnp.int32),
+    shapes = (jax.ShapeDtypeStruct((camera.height, camera.width, k), jnp.int32),
               jax.ShapeDtypeStruct((), jnp.int32))
-    search = partial(find_candidates, width=width, height=height, k=k,
-                     cull_backfaces=cull_backfaces, radius_px=radius_px)
-    return jax.pure_callback(search, shapes, jax.lax.stop_gradient(clip), faces,
+    search = partial(find_candidates, width=camera.width, height=camera.height, k=k,
+                     cull_backfaces=settings.cull_backfaces, radius_px=radius_px,
+                     sigma=settings.sigma, gamma=settings.gamma,
+                     perspective=camera.projection == "perspective")
+    operands = jax.lax.stop_gradient((clip, camera.near, camera.far))
+    return jax.pure_callback(search, shapes, operands[0], faces, operands[1], operands[2],
                              vmap_method="sequential")
 
 
@@ -122,13 +125,13 @@ def fragments_from_ids(proj: Projected, faces, face_ids, dropped, soft=False) ->
     return Fragments(face_ids, bary, depth, valid & (jnp.take(det, ids) > 0), dropped, dist)
 
 
-def rasterize(proj: Projected, faces, width: int, height: int, settings) -> Fragments:
+def rasterize(proj: Projected, faces, camera, settings) -> Fragments:
     """Hard mode: the nearest covering face per pixel (K = 1, z-buffer). Soft mode: up to
-    settings.faces_per_pixel faces whose soft footprint reaches the pixel, nearest first."""
+    settings.faces_per_pixel faces whose soft footprint reaches the pixel, ranked by their
+    weight in the soft blend (candidates.find_candidates)."""
     if settings.raster == "soft":
         k, radius = settings.faces_per_pixel, soft_radius(settings)
     else:
         k, radius = 1, 0.0
-    face_ids, dropped = search_faces(proj.clip, faces, width, height, k,
-                                     settings.cull_backfaces, radius)
+    face_ids, dropped = search_faces(proj.clip, faces, camera, k, settings, radius)
     return fragments_from_ids(proj, faces, face_ids, dropped, soft=settings.raster == "soft")

@@ -124,8 +124,7 @@ def shade_fragments(scene, proj: Projected, frags: Fragments, settings):
 
 def rasterize_scene(scene, settings=DEFAULT_SETTINGS) -> Fragments:
     """Project and rasterize the scene's mesh (cache the result when geometry is fixed)."""
-    cam = scene.camera
-    return rasterize(project(scene), scene.mesh.faces, cam.width, cam.height, settings)
+    return rasterize(project(scene), scene.mesh.faces, scene.camera, settings)
 
 
 def blend(scene, colours, frags: Fragments, settings):
