@@ -27,8 +27,9 @@ from diffshade.settings import RenderSettings
 from diffshade.shading import ShadingParts, shade
 
 
-def _view_dirs(scene, points):
-    """Unit directions towards the viewer: local (to the eye) or infinite (eye +z)."""
+def view_dirs(scene, points):
+    """Unit directions towards the viewer, [..., 3] for points [..., 3]: local (to the eye)
+    or infinite (the camera's +z axis)."""
     if scene.local_viewer:
         return safe_normalize(scene.camera.eye - points)
     return jnp.broadcast_to(view_dir_infinite(scene.camera), points.shape).astype(points.dtype)
@@ -61,7 +62,7 @@ def _shade_points(scene, settings, points, normals, front) -> ShadingParts:
         normals = jnp.where(front[..., None], normals, -normals)
         material = _pick_material(scene, front)
     return shade(material, scene.lights, scene.global_ambient, points, normals,
-                 _view_dirs(scene, points), settings)
+                 view_dirs(scene, points), settings)
 
 
 def _colour(parts, settings):
@@ -104,11 +105,17 @@ def _flat_last(scene, proj, frags, settings):
     return _by_side(sides, frags.front, lambda a: gather_faces(a[last], frags))
 
 
-def _flat(scene, proj, frags, settings):
+def flat_samples(scene, proj: Projected):
+    """Per face, where flat shading lights it: centroids [F, 3], unit face normals [F, 3]
+    and front [F] bool (counter-clockwise on screen)."""
     tri = proj.world[scene.mesh.faces]
     normals = safe_normalize(jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
     _, det = face_edge_coefficients(proj.clip, scene.mesh.faces)
-    parts = _shade_points(scene, settings, tri.mean(1), normals, det > 0)
+    return tri.mean(1), normals, det > 0
+
+
+def _flat(scene, proj, frags, settings):
+    parts = _shade_points(scene, settings, *flat_samples(scene, proj))
     return jax.tree.map(lambda a: gather_faces(a, frags), (parts, _colour(parts, settings)))
 
 
@@ -122,6 +129,7 @@ def shade_fragments(scene, proj: Projected, frags: Fragments, settings):
     return _SHADERS[settings.shading](scene, proj, frags, settings)
 
 
+@partial(jax.jit, static_argnames=("settings",))
 def rasterize_scene(scene, settings=DEFAULT_SETTINGS) -> Fragments:
     """Project and rasterize the scene's mesh (cache the result when geometry is fixed)."""
     return rasterize(project(scene), scene.mesh.faces, scene.camera, settings)

@@ -1,0 +1,136 @@
+"""Dataset folders: `save_dataset(dataset, out_dir)` and `load_dataset(out_dir)`.
+
+Layout (every file written atomically through diffshade.io: a temporary file, then
+os.replace):
+
+    dataset.json       format, version, the view list, info (how the data were made)
+    mesh_vertices.npy, mesh_faces.npy, mesh_normals.npy
+                       the exact mesh arrays the targets were rendered with
+    view_000.json      the view as a diffshade scene file (scene_to_dict): mesh (built-in
+                       reference, or inline with its normals), model, camera, lights,
+                       material (the truth when known), global ambient, settings;
+                       `diffshade render` renders it
+    view_000.png       the target, 8-bit (round(clip(x, 0, 1) * 255))
+    view_000.npy       the target, float32 [H, W, 3] (what a fit reads when present)
+    view_000_mask.png  the mask, when the view has one (white = counts)
+    truth.json         the true material, when the dataset knows it
+
+`load_dataset` reads the cameras, lights, model, global ambient and settings from the
+scene files, the mesh from mesh_*.npy, each target from its .npy or else its PNG (so that
+targets rendered elsewhere can be dropped in as PNGs), and truth.json when present.
+"""
+
+import json
+import os
+
+import jax.numpy as jnp
+import numpy as np
+
+import diffshade as ds
+from fitting.data import Dataset, View, view_scene
+from fitting.params import DEFAULT_INIT
+
+FORMAT = "diffshade-dataset"
+MESH_ARRAYS = ("vertices", "faces", "normals")
+VERSION = 1
+
+
+def _material_dict(mat):
+    def rgb(value):
+        return None if value is None else np.asarray(value, np.float64).tolist()
+    return {"ka": rgb(mat.ka), "kd": rgb(mat.kd), "ks": rgb(mat.ks),
+            "shininess": float(mat.shininess), "emission": rgb(mat.emission)}
+
+
+def _write_mesh(out_dir, dataset):
+    """mesh_*.npy (exact arrays); returns the scene files' mesh reference: the built-in
+    shape when the mesh is one, else None (the scene files then hold the mesh inline,
+    normals included, so that they render exactly what the targets show)."""
+    for name in MESH_ARRAYS:
+        ds.write_npy(os.path.join(out_dir, f"mesh_{name}.npy"),
+                     np.asarray(getattr(dataset.mesh, name)))
+    return dataset.info.get("mesh_ref")
+
+
+def _write_view(out_dir, dataset, i, mesh_ref):
+    view, name = dataset.views[i], f"view_{i:03d}"
+    scene = view_scene(dataset, i, dataset.truth or DEFAULT_INIT)
+    ds.write_json(os.path.join(out_dir, f"{name}.json"),
+                  ds.scene_to_dict(scene, dataset.settings, mesh_ref))
+    ds.write_png(os.path.join(out_dir, f"{name}.png"), view.target)
+    ds.write_npy(os.path.join(out_dir, f"{name}.npy"), view.target.astype(np.float32))
+    entry = {"scene": f"{name}.json", "image": f"{name}.png", "target": f"{name}.npy",
+             "mask": None}
+    if view.mask is not None:
+        entry["mask"] = f"{name}_mask.png"
+        ds.write_png(os.path.join(out_dir, entry["mask"]), view.mask.astype(np.float64))
+    return entry
+
+
+def save_dataset(dataset: Dataset, out_dir) -> str:
+    """Write `dataset` to the folder out_dir (created if missing); returns its path."""
+    out_dir = os.fspath(out_dir)
+    os.makedirs(out_dir, exist_ok=True)
+    mesh_ref = _write_mesh(out_dir, dataset)
+    entries = [_write_view(out_dir, dataset, i, mesh_ref) for i in range(len(dataset.views))]
+    if dataset.truth is not None:
+        ds.write_json(os.path.join(out_dir, "truth.json"), _material_dict(dataset.truth))
+    ds.write_json(os.path.join(out_dir, "dataset.json"),
+                  {"format": FORMAT, "version": VERSION, "views": entries,
+                   "info": dataset.info})
+    return out_dir
+
+
+def _read_json(path):
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"dataset file not found: {path!r}")
+    with open(path, encoding="utf-8") as file:
+        return json.load(file)
+
+
+def _load_target(out_dir, entry, index):
+    npy = entry.get("target")
+    if npy and os.path.isfile(os.path.join(out_dir, npy)):
+        return ds.read_image(os.path.join(out_dir, npy))[..., :3]
+    image = ds.read_image(os.path.join(out_dir, entry["image"]))
+    if image.shape[-1] not in (3, 4):
+        raise ValueError(f"views[{index}].image: {entry['image']!r} has {image.shape[-1]} "
+                         "channels; expected RGB or RGBA")
+    return image[..., :3]
+
+
+def _load_view(out_dir, entry, index):
+    data = _read_json(os.path.join(out_dir, entry["scene"]))
+    scene, settings = ds.scene_from_dict(data, out_dir)
+    target = _load_target(out_dir, entry, index)
+    mask = None
+    if entry.get("mask"):
+        mask = ds.read_image(os.path.join(out_dir, entry["mask"]))[..., 0] > 0.5
+    return scene, settings, View(scene.camera, scene.lights, target, mask)
+
+
+def _load_mesh(out_dir):
+    vertices, faces, normals = (np.load(os.path.join(out_dir, f"mesh_{name}.npy"),
+                                        allow_pickle=False) for name in MESH_ARRAYS)
+    if vertices.shape != normals.shape or vertices.shape[1:] != (3,) or faces.shape[1:] != (3,):
+        raise ValueError(f"{out_dir}/mesh_*.npy: vertices {vertices.shape}, faces "
+                         f"{faces.shape}, normals {normals.shape}; expected [V, 3], [F, 3], [V, 3]")
+    return ds.Mesh(jnp.asarray(vertices, jnp.float32), jnp.asarray(faces, jnp.int32),
+                   jnp.asarray(normals, jnp.float32))
+
+
+def load_dataset(out_dir) -> Dataset:
+    """The Dataset saved in the folder out_dir (see module docstring)."""
+    out_dir = os.fspath(out_dir)
+    meta = _read_json(os.path.join(out_dir, "dataset.json"))
+    if meta.get("format") != FORMAT or meta.get("version") != VERSION:
+        raise ValueError(f"{out_dir}/dataset.json: format {meta.get('format')!r} version "
+                         f"{meta.get('version')!r}; expected {FORMAT!r} version {VERSION}")
+    loaded = [_load_view(out_dir, entry, i) for i, entry in enumerate(meta["views"])]
+    scene, settings, _ = loaded[0]
+    truth_path = os.path.join(out_dir, "truth.json")
+    truth = ds.material(**_read_json(truth_path)) if os.path.isfile(truth_path) else None
+    return Dataset(_load_mesh(out_dir), [view for _, _, view in loaded],
+                   model=np.asarray(scene.model), global_ambient=np.asarray(scene.global_ambient),
+                   settings=settings, truth=truth, local_viewer=scene.local_viewer,
+                   two_sided=scene.two_sided, info=meta.get("info", {}))

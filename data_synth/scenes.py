@@ -1,0 +1,153 @@
+"""Synthetic fitting datasets: a built-in or loaded mesh, seen by several cameras, each
+view lit by one light at a time, rendered by `diffshade.render`.
+
+Layout (chosen so that the data separate every parameter):
+- the mesh is normalized to the unit sphere around the origin (model matrix);
+- `n_views` cameras on a circle of radius 3.2 around it, azimuths 360 / n_views apart,
+  elevations alternating +20 and -10 degrees, fov 40 degrees (the object fills ~90 % of
+  the frame);
+- `n_lights` lights *per camera*, each lighting its own image, so a dataset holds
+  n_views * n_lights images. Light j comes from a direction tilted from the camera's view
+  axis by 65 degrees (even j) or 100 degrees (odd j), rolled around the axis by
+  135 + 360 j / n_lights degrees; even j are directional lights, odd j point lights at
+  distance 5. Each image therefore shows the terminator, a region unlit by its light
+  (ambient only: separates ka from kd) and a highlight (ks, shininess);
+- OpenGL's light model otherwise: global ambient GLOBAL_AMBIENT, white lights of
+  intensity LIGHT_INTENSITY, infinite viewer, one-sided lighting, black background.
+Targets are float renders, optionally with Gaussian noise and 8-bit quantization.
+"""
+
+import os
+
+import numpy as np
+
+import diffshade as ds
+from data_synth.materials import random_material
+from fitting.data import Dataset, View, view_scene
+
+SHAPES = ("icosphere", "torus", "box")
+GLOBAL_AMBIENT = 0.4
+LIGHT_INTENSITY = 0.7
+CAMERA_DISTANCE = 3.2
+POINT_LIGHT_DISTANCE = 5.0
+
+
+def _normalizing_model(vertices, rotate_deg=(0.0, 0.0, 0.0)):
+    """Model matrix [4, 4]: bounding-box centre to the origin, bounding sphere to radius 1."""
+    vertices = np.asarray(vertices, np.float64)
+    centre = (vertices.min(0) + vertices.max(0)) / 2
+    scale = 1.0 / np.max(np.linalg.norm(vertices - centre, axis=1))
+    rotation = ds.model_matrix(rotate_deg=rotate_deg).astype(np.float64)
+    matrix = rotation @ ds.model_matrix(translate=-centre * scale, scale=(scale,) * 3)
+    return matrix.astype(np.float32)  # what the scene stores, so that files round-trip
+
+
+BUILTIN_MESHES = {
+    "icosphere": ({"icosphere": {"subdivisions": 4}}, (0.0, 0.0, 0.0)),
+    "torus": ({"torus": {"major_radius": 1.0, "minor_radius": 0.4, "major_segments": 64,
+                         "minor_segments": 32}}, (35.0, 0.0, 0.0)),
+    "box": ({"box": {"size": [1.0, 1.0, 1.0]}}, (30.0, 40.0, 0.0)),
+}
+_BUILDERS = {"icosphere": ds.icosphere, "torus": ds.torus, "box": ds.box}
+
+
+def shape_mesh(shape):
+    """(Mesh, model [4, 4], info dict) for a built-in shape name, a mesh file path or a
+    Mesh. info['mesh_ref'] is the scene-file mesh object of a built-in shape, else None."""
+    if isinstance(shape, ds.Mesh):
+        return shape, _normalizing_model(shape.vertices), {"shape": "mesh", "mesh_ref": None}
+    if isinstance(shape, str) and shape in BUILTIN_MESHES:
+        ref, rotate = BUILTIN_MESHES[shape]
+        mesh = _BUILDERS[shape](**ref[shape])
+    elif isinstance(shape, (str, os.PathLike)) and os.path.splitext(os.fspath(shape))[1]:
+        ref, rotate = None, (0.0, 0.0, 0.0)
+        mesh = ds.load_mesh(shape)
+    else:
+        raise ValueError(f"shape: got {shape!r}; expected one of {SHAPES} or a mesh file path")
+    info = {"shape": os.fspath(shape), "mesh_ref": None if ref is None else {"builtin": ref}}
+    return mesh, _normalizing_model(mesh.vertices, rotate), info
+
+
+def _camera_frame(eye):
+    back = np.asarray(eye, np.float64) / np.linalg.norm(eye)
+    right = np.cross((0.0, 1.0, 0.0), back)
+    right /= np.linalg.norm(right)
+    return back, right, np.cross(back, right)
+
+
+def camera_eyes(n_views):
+    """Eye positions [n_views, 3] around the origin (see module docstring)."""
+    eyes = []
+    for k in range(n_views):
+        azimuth = np.radians(30.0 + 360.0 * k / n_views)
+        elevation = np.radians(20.0 if k % 2 == 0 else -10.0)
+        eyes.append(CAMERA_DISTANCE * np.array([np.cos(elevation) * np.sin(azimuth),
+                                                np.sin(elevation),
+                                                np.cos(elevation) * np.cos(azimuth)]))
+    return np.array(eyes)
+
+
+def view_lights(eye, n_lights, intensity=LIGHT_INTENSITY):
+    """The n_lights lights of the camera at `eye`, one per image (see module docstring)."""
+    back, right, up = _camera_frame(eye)
+    lights = []
+    for j in range(n_lights):
+        tilt = np.radians(65.0 if j % 2 == 0 else 100.0)
+        roll = np.radians(135.0 + 360.0 * j / n_lights)
+        axis_dir = np.cos(roll) * right + np.sin(roll) * up
+        to_light = np.cos(tilt) * back + np.sin(tilt) * axis_dir
+        if j % 2 == 0:
+            lights.append(ds.directional_light(-to_light, intensity))
+        else:
+            lights.append(ds.point_light(POINT_LIGHT_DISTANCE * to_light, intensity))
+    return lights
+
+
+def degrade(image, rng, noise_std=0.0, quantize_8bit=False, clamp=True):
+    """Add Gaussian noise (std noise_std), clip to [0, 1] when clamping, round to 8 bits."""
+    image = np.asarray(image, np.float64)
+    if noise_std > 0:
+        image = image + rng.normal(0.0, noise_std, image.shape)
+    if clamp or quantize_8bit:
+        image = np.clip(image, 0.0, 1.0)
+    if quantize_8bit:
+        image = np.round(image * 255.0) / 255.0
+    return image.astype(np.float32)
+
+
+def _check_counts(n_views, n_lights, size, noise_std):
+    for name, value in (("n_views", n_views), ("n_lights", n_lights), ("size", size)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name}: got {value!r}; expected a positive integer")
+    if not (np.isfinite(noise_std) and noise_std >= 0):
+        raise ValueError(f"noise_std: got {noise_std!r}; expected a number >= 0")
+
+
+def make_dataset(shape="icosphere", material=None, *, n_views=3, n_lights=2, size=128,
+                 seed=0, quantize_8bit=False, noise_std=0.0, shading="phong",
+                 settings=None) -> Dataset:
+    """A Dataset of n_views * n_lights images (size x size) of `shape` ('icosphere',
+    'torus', 'box', a mesh file path or a Mesh) with `material` (random from `seed` when None),
+    laid out as in the module docstring. settings: RenderSettings (default: `shading`
+    with clamping). The true material is the dataset's `truth`."""
+    _check_counts(n_views, n_lights, size, noise_std)
+    rng = np.random.default_rng(seed)
+    material = random_material(rng) if material is None else material
+    settings = ds.RenderSettings(shading=shading) if settings is None else settings
+    mesh, model, info = shape_mesh(shape)
+    blank = np.zeros((size, size, 3), np.float32)
+    views = []
+    for eye in camera_eyes(n_views):
+        camera = ds.look_at(eye, (0.0, 0.0, 0.0), width=size, height=size, fov_y=40.0)
+        views += [View(camera, [light], blank) for light in view_lights(eye, n_lights)]
+    dataset = Dataset(mesh, views, model=model, global_ambient=GLOBAL_AMBIENT,
+                      settings=settings, truth=material)
+    images = [np.asarray(ds.render(view_scene(dataset, i, material), settings))[..., :3]
+              for i in range(len(views))]
+    views = [View(v.camera, v.lights, degrade(img, rng, noise_std, quantize_8bit,
+                                              settings.clamp))
+             for v, img in zip(views, images, strict=True)]
+    info.update(seed=seed, quantize_8bit=quantize_8bit, noise_std=noise_std,
+                n_views=n_views, n_lights=n_lights)
+    return Dataset(mesh, views, model=model, global_ambient=GLOBAL_AMBIENT, settings=settings,
+                   truth=material, info=info)

@@ -1,0 +1,40 @@
+"""fitting: recover Blinn-Phong materials (and optionally lights) from images.
+
+The forward model is diffshade's lighting core: targets are rendered with
+`diffshade.render`, and a fit evaluates `diffshade.shade` on cached pixels. Start with
+`fit(dataset, FitSpec())`; see docs/fitting.md.
+"""
+
+from fitting.cache import FitData, ViewSamples, build_cache, pixel_parts, predict
+from fitting.data import Dataset, View, view_scene
+from fitting.fit import FIT_METHODS, FitResult, fit, format_summary, relative_errors
+from fitting.gauss_newton import levenberg_marquardt
+from fitting.linear import box_least_squares, normal_equations, solve_linear
+from fitting.loss import LOSSES, RenderData, make_loss, make_render_loss, render_data, residuals
+from fitting.params import (
+    DEFAULT_INIT,
+    FitSpec,
+    from_values,
+    material_values,
+    param_labels,
+    to_lights,
+    to_material,
+    to_unconstrained,
+    to_values,
+    value_names,
+    values_to_lights,
+    values_to_material,
+)
+from fitting.step import make_optimizer, make_step
+from fitting.uncertainty import IdentifiabilityWarning, UncertaintyReport, uncertainty
+
+__all__ = [
+    "DEFAULT_INIT", "FIT_METHODS", "LOSSES", "Dataset", "FitData", "FitResult", "FitSpec",
+    "IdentifiabilityWarning", "RenderData", "UncertaintyReport", "View", "ViewSamples",
+    "box_least_squares", "build_cache", "fit", "format_summary", "from_values",
+    "levenberg_marquardt", "make_loss", "make_optimizer", "make_render_loss", "make_step",
+    "material_values", "normal_equations", "param_labels", "pixel_parts", "predict",
+    "relative_errors", "render_data", "residuals", "solve_linear", "to_lights",
+    "to_material", "to_unconstrained", "to_values", "uncertainty", "value_names",
+    "values_to_lights", "values_to_material", "view_scene",
+]

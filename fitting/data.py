@@ -1,0 +1,100 @@
+"""The fitting data: views (camera, lights, target image, optional mask) of one object.
+
+A `Dataset` is what a fit consumes: one mesh placed by one model matrix, one global
+ambient light and one `RenderSettings`, seen in several `View`s, each with its own camera,
+lights and target image. `truth` (the material that rendered the targets, when known) lets
+a fit report its error. Inputs are validated here, at the boundary: a target whose size
+does not match its camera raises a ValueError naming the view.
+
+`view_scene` builds the diffshade `Scene` of one view for a given material: the same
+forward model renders the targets (data_synth) and the fit's full-image path.
+"""
+
+import dataclasses
+
+import numpy as np
+
+from diffshade.camera import Camera
+from diffshade.lights import LightGroups, group_lights
+from diffshade.material import Material
+from diffshade.mesh import Mesh
+from diffshade.scene import Scene, make_scene
+from diffshade.settings import RenderSettings
+
+
+@dataclasses.dataclass(frozen=True)
+class View:
+    """camera: Camera; lights: LightGroups (a list of lights is grouped); target: [H, W, 3]
+    float linear colours; mask: [H, W] bool, True where the pixel counts (None: all)."""
+
+    camera: Camera
+    lights: LightGroups
+    target: np.ndarray
+    mask: np.ndarray | None = None
+
+    def __post_init__(self):
+        object.__setattr__(self, "lights", group_lights(self.lights))
+        object.__setattr__(self, "target", np.asarray(self.target, np.float32))
+        if self.mask is not None:
+            object.__setattr__(self, "mask", np.asarray(self.mask, bool))
+
+
+@dataclasses.dataclass(frozen=True)
+class Dataset:
+    """mesh: Mesh; views: tuple of View; model: [4, 4] model-to-world matrix (None:
+    identity); global_ambient: [3] or scalar; settings: RenderSettings the targets were
+    rendered with (the fit renders with the same ones, clamping included); truth: the
+    Material that made the targets, or None; local_viewer, two_sided: as in make_scene;
+    info: free-form description (how the data were made)."""
+
+    mesh: Mesh
+    views: tuple
+    model: np.ndarray | None = None
+    global_ambient: object = 0.2
+    settings: RenderSettings = RenderSettings()
+    truth: Material | None = None
+    local_viewer: bool = False
+    two_sided: bool = False
+    info: dict = dataclasses.field(default_factory=dict, compare=False)
+
+    def __post_init__(self):
+        if not isinstance(self.mesh, Mesh):
+            raise TypeError(f"mesh: got {type(self.mesh).__name__}; expected Mesh")
+        views = tuple(self.views)
+        if not views:
+            raise ValueError("views: got an empty sequence; expected at least one View")
+        for i, view in enumerate(views):
+            _check_view(i, view)
+        object.__setattr__(self, "views", views)
+        model = np.eye(4) if self.model is None else np.asarray(self.model, np.float64)
+        object.__setattr__(self, "model", model)
+        if not isinstance(self.settings, RenderSettings):
+            raise TypeError(f"settings: got {type(self.settings).__name__}; "
+                            "expected RenderSettings")
+
+
+def _check_view(i, view):
+    if not isinstance(view, View):
+        raise TypeError(f"views[{i}]: got {type(view).__name__}; expected View")
+    if not isinstance(view.camera, Camera):
+        raise TypeError(f"views[{i}].camera: got {type(view.camera).__name__}; expected Camera")
+    height, width = view.camera.height, view.camera.width
+    if view.target.shape != (height, width, 3):
+        raise ValueError(f"views[{i}].target: got shape {view.target.shape}; expected "
+                         f"({height}, {width}, 3), the size of views[{i}].camera "
+                         f"(width {width}, height {height}) with RGB channels")
+    if view.mask is not None and view.mask.shape != (height, width):
+        raise ValueError(f"views[{i}].mask: got shape {view.mask.shape}; expected "
+                         f"({height}, {width}), the size of views[{i}].camera")
+    if not np.all(np.isfinite(view.target)):
+        raise ValueError(f"views[{i}].target: contains NaN or inf; expected finite colours")
+
+
+def view_scene(dataset: Dataset, index: int, material: Material, lights=None) -> Scene:
+    """The diffshade Scene of view `index` with `material` (and `lights`, default the
+    view's own)."""
+    view = dataset.views[index]
+    return make_scene(dataset.mesh, view.camera, view.lights if lights is None else lights,
+                      material, model=dataset.model, global_ambient=dataset.global_ambient,
+                      local_viewer=dataset.local_viewer, two_sided=dataset.two_sided)
+

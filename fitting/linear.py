@@ -1,0 +1,185 @@
+"""Variable projection: the coefficients in closed form inside a 1-D search on shininess.
+
+With shininess and the lights fixed, the unclamped colour of every pixel and channel c is
+linear in the coefficients:
+
+    colour_c = ka_c * A_c + kd_c * D_c + ks_c * S_c(shininess) + emission_c
+
+where A, D, S are the ambient, diffuse and specular parts that `diffshade.shade` returns
+for unit coefficients (ka = kd = ks = 1). For a given shininess the best coefficients are
+a bound-constrained linear least-squares problem, solved exactly: normal equations
+(p x p, p <= 9) accumulated on the device, and a small primal active-set method for the
+box [0, upper] on the host (float64). Coefficients held fixed move to the right-hand side.
+
+Clamping makes a saturated pixel non-linear: a target at 1 (or at 0) only says the
+unclamped colour is >= 1 (<= 0). Such pixel-channels (target >= 1 - 1e-6 or <= 1e-6 when
+the settings clamp) are left out of the linear solve; the exact clamped model is restored
+by the Levenberg-Marquardt polish that follows in `fit` (Gouraud's per-vertex clamp is
+likewise only exact after the polish).
+
+The outer problem in log-shininess is 1-D: evaluated on a log grid (so that a flat or
+multi-modal profile cannot trap it), then refined by Brent's bounded method around the
+best grid point. This removes the ks-shininess ridge that slows plain gradient descent.
+"""
+
+import dataclasses
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from fitting.cache import FitData, pixel_parts
+from fitting.params import COEFFICIENTS, FitSpec
+
+SATURATION_EPS = 1e-6
+
+
+def _unit_material(base, spec, log_shininess):
+    ones = jnp.ones(3, base.ka.dtype)
+    has_specular = spec.ks is not None or base.ks is not None
+    shininess = jnp.exp(log_shininess) if spec.shininess else base.shininess
+    return dataclasses.replace(base, ka=ones, kd=ones, ks=ones if has_specular else None,
+                               shininess=shininess, emission=base.emission)
+
+
+def _selection(spec: FitSpec):
+    """[p, 3 channels, 3 parts] 0/1: which (channel, part) each fitted coefficient scales
+    (an 'rgb' coefficient one channel, a 'grey' one all three)."""
+    rows = []
+    for k, name in enumerate(COEFFICIENTS):
+        channels = {"rgb": [[c] for c in range(3)], "grey": [[0, 1, 2]]}.get(getattr(spec, name),
+                                                                           [])
+        for chosen in channels:
+            row = np.zeros((3, 3))
+            row[chosen, k] = 1.0
+            rows.append(row)
+    return np.array(rows).reshape(-1, 3, 3)
+
+
+def _offset(parts, spec, base):
+    """[N, 3]: emission plus the parts of the coefficients held fixed."""
+    offset = parts.emission
+    for name, part in (("ka", parts.ambient), ("kd", parts.diffuse), ("ks", parts.specular)):
+        if getattr(spec, name) is None and getattr(base, name) is not None:
+            offset = offset + getattr(base, name) * part
+    return offset
+
+
+def _usable(target, settings):
+    """[N, 3] float: 1 where the pixel-channel is linear in the coefficients."""
+    if not settings.clamp:
+        return jnp.ones_like(target)
+    return ((target > SATURATION_EPS) & (target < 1.0 - SATURATION_EPS)).astype(target.dtype)
+
+
+@partial(jax.jit, static_argnames=("spec",))
+def normal_equations(log_shininess, data: FitData, spec: FitSpec):
+    """At shininess exp(log_shininess): G = X^T X [p, p], b = X^T y [p], c = y^T y and n
+    (the number of usable pixel-channels), for the design X whose columns are the parts
+    scaled by each fitted coefficient, and y = target - emission - fixed parts."""
+    material = _unit_material(data.material, spec, log_shininess)
+    gram, rhs, sq, count = 0.0, 0.0, 0.0, 0.0
+    for samples, lights in zip(data.views, data.lights, strict=True):
+        parts = pixel_parts(material, lights, data.global_ambient, samples, data.settings)
+        w = _usable(samples.target, data.settings)
+        y = samples.target - _offset(parts, spec, data.material)
+        stacked = jnp.stack([parts.ambient, parts.diffuse, parts.specular])
+        # per channel, the 3 x 3 Gram of the parts: 9x less work than the design matrix
+        gram = gram + jnp.einsum("knc,lnc->ckl", stacked * w, stacked)
+        rhs = rhs + jnp.einsum("knc,nc->ck", stacked, w * y)
+        sq, count = sq + jnp.sum(w * y * y), count + jnp.sum(w)
+    select = jnp.asarray(_selection(spec), y.dtype)
+    return (jnp.einsum("ick,jcl,ckl->ij", select, select, gram),
+            jnp.einsum("ick,ck->i", select, rhs), sq, count)
+
+
+def box_least_squares(gram, rhs, lower, upper, max_iter=100):
+    """argmin_x x^T G x - 2 b^T x subject to lower <= x <= upper (G [p, p] symmetric
+    positive semi-definite, b [p]): a primal active-set method, exact for p this small."""
+    p = len(rhs)
+    if p == 0:
+        return np.zeros(0)
+    x = np.clip(np.linalg.lstsq(gram, rhs, rcond=None)[0], lower, upper)
+    state = np.where(x <= lower, -1, np.where(x >= upper, 1, 0))
+    for _ in range(max_iter):
+        free = state == 0
+        target = x.copy()
+        if free.any():
+            sub_rhs = rhs[free] - gram[np.ix_(free, ~free)] @ x[~free]
+            target[free] = np.linalg.lstsq(gram[np.ix_(free, free)], sub_rhs, rcond=None)[0]
+        step = target - x
+        if np.max(np.abs(step), initial=0.0) <= 1e-14:
+            grad = gram @ x - rhs
+            wrong_side = np.where(state == -1, -grad, np.where(state == 1, grad, 0.0))
+            worst = int(np.argmax(wrong_side))
+            if wrong_side[worst] <= 1e-12 * max(np.abs(rhs).max(), 1e-30):
+                return x
+            state[worst] = 0
+            continue
+        x, state = _advance(x, step, state, lower, upper)
+    return x
+
+
+def _advance(x, step, state, lower, upper):
+    """Move along `step` until the first bound is hit; pin that variable there."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        reach = np.where(step < 0, (lower - x) / step, np.where(step > 0, (upper - x) / step,
+                                                                 np.inf))
+    reach = np.where(state == 0, reach, np.inf)
+    blocking = int(np.argmin(reach))
+    if reach[blocking] >= 1.0:
+        return x + step, state
+    x = x + reach[blocking] * step
+    x[blocking] = lower if step[blocking] < 0 else upper
+    state = state.copy()
+    state[blocking] = -1 if step[blocking] < 0 else 1
+    return x, state
+
+
+def _solve(log_shininess, data, spec):
+    """(coefficients [p], mean squared residual) at shininess exp(log_shininess)."""
+    gram, rhs, sq, count = (np.asarray(a, np.float64)
+                            for a in normal_equations(log_shininess, data, spec))
+    coef = box_least_squares(gram, rhs, 0.0, spec.upper)
+    return coef, float(coef @ gram @ coef - 2 * coef @ rhs + sq) / max(float(count), 1.0)
+
+
+def _search_shininess(data, spec, shininess_range, grid_size):
+    """Best log-shininess: the best point of a log grid, refined by bounded Brent."""
+    grid = np.linspace(np.log(shininess_range[0]), np.log(shininess_range[1]), grid_size)
+    profile = np.array([_solve(g, data, spec)[1] for g in grid])
+    best = int(np.argmin(profile))
+    lo, hi = grid[max(best - 1, 0)], grid[min(best + 1, grid_size - 1)]
+    refined = minimize_scalar(lambda g: _solve(g, data, spec)[1], bounds=(lo, hi),
+                              method="bounded", options={"xatol": 1e-3})
+    return float(refined.x) if refined.fun <= profile[best] else float(grid[best])
+
+
+def _split(coef, spec, dtype):
+    values, start = {}, 0
+    for name in spec.coefficients:
+        size = 3 if getattr(spec, name) == "rgb" else 1
+        chunk = coef[start:start + size]
+        values[name] = jnp.asarray(chunk if size == 3 else chunk[0], dtype)
+        start += size
+    return values
+
+
+def solve_linear(data: FitData, spec: FitSpec, *, shininess_range=(1.0, 2000.0),
+                 grid_size=24) -> dict:
+    """Physical values of the spec's material quantities: the coefficients in closed form,
+    shininess (when fitted) by a 1-D search within `shininess_range`. Lights are held at
+    `data.lights`. Returns the values dict (see fitting.params)."""
+    lo, hi = shininess_range
+    if not (0 < lo < hi < float("inf")):
+        raise ValueError(f"shininess_range: got {shininess_range!r}; expected 0 < low < high")
+    dtype = data.material.ka.dtype
+    log_s = (_search_shininess(data, spec, shininess_range, grid_size) if spec.shininess
+             else jnp.log(jnp.maximum(data.material.shininess, 1e-6)))
+    coef, _ = _solve(log_s, data, spec)
+    values = _split(coef, spec, dtype)
+    if spec.shininess:
+        values["shininess"] = jnp.exp(jnp.asarray(log_s, dtype))
+    return values

@@ -1,0 +1,86 @@
+"""A pure, jitted optax step: step(params, opt_state, data) -> (params, opt_state, loss).
+
+`make_step(loss_fn, optimizer)` compiles once per data shape: `data` is an argument (not a
+closed-over constant), so a second call with new targets or lights reuses the executable.
+Optimizers with a line search (`optax.lbfgs`) are recognised by the value and gradient they
+keep in their state and are driven through `optax.value_and_grad_from_state`.
+
+A step whose loss or gradient is not finite is rejected: params and optimizer state are
+left unchanged (a `jnp.where` on the result, so the check costs one reduction).
+
+`make_optimizer` gives Adam with a learning rate per group (`optax.partition` over
+`param_labels`: coefficient logits and log light colours, log-shininess, light positions),
+or L-BFGS.
+"""
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from fitting.params import param_labels
+
+METHODS = ("adam", "lbfgs")
+
+
+def make_optimizer(method="adam", *, lr=0.05, lr_shininess=0.05, lr_position=0.02,
+                   memory_size=10) -> optax.GradientTransformation:
+    """'adam': Adam per group — lr for coefficient logits and log light colours,
+    lr_shininess for log-shininess, lr_position for light positions (world units);
+    'lbfgs': optax.lbfgs with its zoom line search (learning rates unused)."""
+    if method == "lbfgs":
+        return optax.lbfgs(memory_size=memory_size)
+    if method != "adam":
+        raise ValueError(f"method: got {method!r}; expected one of {METHODS}")
+    for name, value in (("lr", lr), ("lr_shininess", lr_shininess), ("lr_position", lr_position)):
+        if not (isinstance(value, (int, float)) and 0 < value < float("inf")):
+            raise ValueError(f"{name}: got {value!r}; expected a positive learning rate")
+    return optax.partition({"colour": optax.adam(lr), "shininess": optax.adam(lr_shininess),
+                            "position": optax.adam(lr_position)}, param_labels)
+
+
+def _has_linesearch(opt_state):
+    return optax.tree.get(opt_state, "value", None) is not None
+
+
+def _all_finite(tree):
+    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.bool_(True)
+
+
+def _select(ok, new, old):
+    return jax.tree.map(lambda a, b: jnp.where(ok, a, b), new, old)
+
+
+def _strong(tree):
+    """Weakly typed leaves (optax.lbfgs's init state has some) made strong: the step's
+    outputs are strong, so a weak input would compile the step a second time."""
+    return jax.tree.map(lambda x: x.astype(x.dtype) if getattr(x, "weak_type", False) else x,
+                        tree)
+
+
+def make_step(loss_fn, optimizer=None):
+    """step(params, opt_state, data) -> (params, opt_state, loss), jitted, for
+    loss_fn(params, data) -> scalar; loss is the value at the incoming params.
+    optimizer: an optax GradientTransformation (default: make_optimizer())."""
+    optimizer = make_optimizer() if optimizer is None else optimizer
+
+    def step(params, opt_state, data):
+        value_fn = lambda p: loss_fn(p, data)
+        if _has_linesearch(opt_state):
+            loss, grads = optax.value_and_grad_from_state(value_fn)(params, state=opt_state)
+            updates, new_state = optimizer.update(grads, opt_state, params, value=loss,
+                                                  grad=grads, value_fn=value_fn)
+        else:
+            loss, grads = jax.value_and_grad(value_fn)(params)
+            updates, new_state = optimizer.update(grads, opt_state, params)
+        new_params = optax.apply_updates(params, updates)
+        ok = jnp.isfinite(loss) & _all_finite(grads) & _all_finite(new_params)
+        return _select(ok, new_params, params), _select(ok, new_state, opt_state), loss
+
+    jitted = jax.jit(step)
+
+    def call(params, opt_state, data):
+        return jitted(params, _strong(opt_state), data)
+
+    call.jitted = jitted
+    return call

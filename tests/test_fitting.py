@@ -1,0 +1,422 @@
+"""Tests for fitting/: parameter maps against closed forms, the cached loss against full
+renders by diffshade.render with a numpy loss, the jitted step's compilation count,
+recovery of known materials, and standard errors against a float64 central-difference
+Jacobian of rendered images."""
+
+import dataclasses
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+import diffshade as ds
+from data_synth import make_dataset
+from fitting import (
+    DEFAULT_INIT,
+    Dataset,
+    FitSpec,
+    IdentifiabilityWarning,
+    View,
+    box_least_squares,
+    build_cache,
+    fit,
+    make_loss,
+    make_optimizer,
+    make_step,
+    material_values,
+    normal_equations,
+    param_labels,
+    relative_errors,
+    to_material,
+    to_unconstrained,
+    to_values,
+    uncertainty,
+    value_names,
+    view_scene,
+)
+from fitting.loss import mean_rho
+
+TRUTH = dict(ka=(0.35, 0.3, 0.5), kd=(0.6, 0.45, 0.3), ks=(0.4, 0.5, 0.3), shininess=35.0)
+SPHERE = ds.icosphere(2)
+
+
+def truth_material():
+    return ds.material(**TRUTH)
+
+
+@pytest.fixture(scope="module")
+def small():
+    """2 images (2 cameras x 1 directional light) of a subdivision-2 icosphere, 40 px."""
+    return make_dataset(SPHERE, truth_material(), n_views=2, n_lights=1, size=40)
+
+
+def np_sigmoid(u):
+    return 1.0 / (1.0 + np.exp(-np.asarray(u, np.float64)))
+
+
+# ---- parameters ----
+
+
+@pytest.mark.parametrize("mode, upper", [("rgb", 1.0), ("grey", 1.0), ("rgb", 2.5)])
+def test_param_maps_round_trip(mode, upper):
+    spec = FitSpec(ka=mode, kd=mode, ks=mode, upper=upper)
+    mat = ds.material(ka=(0.1, 0.2, 0.3), kd=(0.9, 0.5, 0.05), ks=(0.4, 0.4, 0.7),
+                      shininess=250.0)
+    back = to_material(to_unconstrained(mat, spec), spec, DEFAULT_INIT)
+    for name in ("ka", "kd", "ks"):
+        expected = np.asarray(getattr(mat, name))
+        expected = np.full(3, expected.mean()) if mode == "grey" else expected
+        np.testing.assert_allclose(getattr(back, name), expected, rtol=1e-5)
+    np.testing.assert_allclose(back.shininess, 250.0, rtol=1e-5)
+
+
+def test_param_map_is_sigmoid_and_exp_within_bounds():
+    spec = FitSpec(upper=2.0)
+    u = np.array([-80.0, -3.0, 0.0, 60.0], np.float32)
+    params = {"ka": jnp.asarray(u[:3]), "kd": jnp.asarray(u[1:]), "ks": jnp.asarray(u[[0, 2, 3]]),
+              "shininess": jnp.asarray(6.5)}
+    values = to_values(params, spec)
+    for name in ("ka", "kd", "ks"):
+        got = np.asarray(values[name])
+        np.testing.assert_allclose(got, 2.0 * np_sigmoid(params[name]), rtol=1e-6, atol=1e-30)
+        assert np.all((got >= 0) & (got <= 2.0))
+    np.testing.assert_allclose(values["shininess"], np.exp(6.5), rtol=1e-6)
+
+
+def test_fixed_quantities_come_from_the_base_material():
+    spec = FitSpec(ka=None, kd="grey", ks=None, shininess=False)
+    base = ds.material(ka=(0.1, 0.2, 0.3), kd=0.5, ks=(0.7, 0.6, 0.5), shininess=12.0)
+    got = to_material({"kd": jnp.asarray(0.0)}, spec, base)
+    np.testing.assert_array_equal(got.ka, base.ka)
+    np.testing.assert_array_equal(got.ks, base.ks)
+    np.testing.assert_allclose(got.kd, [0.5, 0.5, 0.5])
+    assert float(got.shininess) == 12.0
+
+
+def test_param_labels_group_shininess_positions_and_colours():
+    spec = FitSpec(ka="grey", light_colors=True, light_positions=True)
+    lights = [ds.group_lights([ds.point_light((1.0, 2.0, 3.0), 0.5),
+                               ds.directional_light((0, 0, -1), 0.8)])]
+    params = to_unconstrained(DEFAULT_INIT, spec, lights)
+    labels = param_labels(params)
+    assert labels["shininess"] == "shininess" and labels["ka"] == "colour"
+    assert labels["lights"][0]["point"] == {"color": "colour", "position": "position"}
+    assert labels["lights"][0]["directional"] == {"color": "colour"}
+    names = value_names(to_values(params, spec))
+    assert names[:4] == ["ka", "kd[r]", "kd[g]", "kd[b]"]
+    assert "lights[0].point[0].position[z]" in names and names[-1] == "shininess"
+
+
+# ---- cached loss against full renders ----
+
+
+def cup_mesh():
+    """A box without its +z side: from above the opening, its inside shows back faces."""
+    cube = ds.box((1.0, 1.0, 1.0))
+    return ds.Mesh(cube.vertices, jnp.concatenate([cube.faces[:8], cube.faces[10:]]),
+                   cube.normals)
+
+
+def cup_dataset(shading, two_sided):
+    mesh = cup_mesh()
+    model = ds.model_matrix(rotate_deg=(20.0, 30.0, 0.0))
+    settings = ds.RenderSettings(shading=shading)
+    views = []
+    for k, eye in enumerate([(0.6, 1.5, 2.2), (-1.8, 0.5, 1.6)]):
+        camera = ds.look_at(eye, (0, 0, 0), width=36, height=32)
+        lights = ds.group_lights([ds.directional_light((-0.3, -1.0, -0.5), 0.7),
+                                  ds.point_light((1.5, 2.0, 2.0), 0.5)])
+        mask = np.ones((32, 36), bool)
+        mask[:, : 10 * k] = False
+        views.append(View(camera, lights, np.zeros((32, 36, 3)), mask if k else None))
+    blank = Dataset(mesh, views, model=model, global_ambient=0.3, settings=settings,
+                    two_sided=two_sided)
+    targets = [np.asarray(ds.render(view_scene(blank, i, truth_material()), settings))[..., :3]
+               for i in range(len(views))]
+    views = [dataclasses.replace(v, target=t) for v, t in zip(views, targets, strict=True)]
+    return dataclasses.replace(blank, views=views)
+
+
+@pytest.mark.parametrize("shading, two_sided", [("phong", False), ("phong", True),
+                                                ("gouraud", True), ("flat", True),
+                                                ("flat_last", True)])
+def test_cached_loss_equals_full_render_loss(shading, two_sided):
+    dataset = cup_dataset(shading, two_sided)
+    guess = ds.material(ka=0.2, kd=(0.3, 0.7, 0.5), ks=0.6, shininess=9.0)
+    spec = FitSpec()
+    data = build_cache(dataset, DEFAULT_INIT, edge_margin=0)
+    cached = float(jax.jit(make_loss(spec))(to_unconstrained(guess, spec), data))
+    squares, count = 0.0, 0
+    for i, view in enumerate(dataset.views):
+        image = np.asarray(ds.render(view_scene(dataset, i, guess), dataset.settings))
+        kept = image[..., 3] > 0 if view.mask is None else (image[..., 3] > 0) & view.mask
+        np.testing.assert_array_equal(np.asarray(data.views[i].pixels), np.flatnonzero(kept))
+        diff = image[..., :3][kept].astype(np.float64) - view.target[kept]
+        squares, count = squares + np.sum(diff**2), count + diff.size
+    assert cached == pytest.approx(squares / count, rel=1e-5)
+
+
+def test_edge_margin_drops_the_silhouette(small):
+    full, inner = (build_cache(small, DEFAULT_INIT, edge_margin=m) for m in (0, 2))
+    for a, b in zip(full.views, inner.views, strict=True):
+        covered = np.zeros(40 * 40, bool)
+        covered[np.asarray(a.pixels)] = True
+        covered = covered.reshape(40, 40)
+        rows, cols = np.divmod(np.asarray(b.pixels), 40)
+        for r, c in zip(rows, cols, strict=True):  # every kept pixel is 2 steps inside
+            assert covered[r - 2:r + 3, c].all() and covered[r, c - 2:c + 3].all()
+        assert 0 < len(b.pixels) < len(a.pixels)
+
+
+@pytest.mark.parametrize("kind", ["l1", "charbonnier", "huber"])
+def test_robust_losses_match_their_formulas(kind):
+    r = np.array([[-0.3, 0.0, 0.004], [0.02, -0.001, 1.5]])
+    expected = {"l1": np.abs(r), "charbonnier": np.sqrt(r**2 + 1e-6) - 1e-3,
+                "huber": np.where(np.abs(r) <= 0.01, 0.5 * r**2, 0.01 * (np.abs(r) - 0.005))}
+    got = float(mean_rho(kind, [jnp.asarray(r)]))
+    assert got == pytest.approx(expected[kind].mean(), rel=1e-6)
+
+
+# ---- the step ----
+
+
+@pytest.mark.parametrize("method", ["adam", "lbfgs"])
+def test_step_does_not_recompile(small, method):
+    spec = FitSpec()
+    traces = []
+    loss = make_loss(spec)
+
+    def counted(params, data):
+        traces.append(1)
+        return loss(params, data)
+
+    optimizer = make_optimizer(method)
+    step = make_step(counted, optimizer)
+    data = build_cache(small, DEFAULT_INIT)
+    params = to_unconstrained(DEFAULT_INIT, spec)
+    state = optimizer.init(params)
+    params, state, first = step(params, state, data)
+    traced_once = len(traces)
+    brighter = dataclasses.replace(data, views=tuple(
+        dataclasses.replace(v, target=v.target * 1.01) for v in data.views))
+    for _ in range(3):
+        params, state, loss_value = step(params, state, brighter)
+    assert len(traces) == traced_once and step.jitted._cache_size() == 1
+    assert float(loss_value) < float(first)
+
+
+def toy_loss(params, data):
+    return jnp.sum((params["x"] - data["target"]) ** 2) * data["scale"]
+
+
+@pytest.mark.parametrize("optimizer", [make_optimizer(), optax.lbfgs()], ids=["adam", "lbfgs"])
+def test_non_finite_step_is_rejected(optimizer):
+    step = make_step(toy_loss, optimizer)
+    params = {"x": jnp.array([1.0, 2.0])}
+    state = optimizer.init(params)
+    bad = {"target": jnp.zeros(2), "scale": jnp.asarray(jnp.nan)}
+    new_params, new_state, loss = step(params, state, bad)
+    assert not np.isfinite(float(loss))
+    np.testing.assert_array_equal(new_params["x"], params["x"])
+    for a, b in zip(jax.tree.leaves(new_state), jax.tree.leaves(state), strict=True):
+        np.testing.assert_array_equal(a, b)
+    good = {"target": jnp.zeros(2), "scale": jnp.asarray(1.0)}
+    moved, _, _ = step(params, state, good)
+    assert float(jnp.sum(moved["x"] ** 2)) < 5.0
+
+
+# ---- fits ----
+
+
+def test_linear_fit_recovers_the_material(small):
+    result = fit(small)
+    assert result.method == "linear" and result.converged
+    for name, err in result.errors.items():
+        assert np.all(err < 1e-2), (name, err)
+    assert result.warnings == ()
+    assert result.loss_history[-1] <= result.loss_history[0]
+
+
+def test_partial_fit_holds_the_others_fixed(small):
+    spec = FitSpec(ka=None, kd="rgb", ks=None, shininess=True)
+    init = ds.material(ka=TRUTH["ka"], kd=0.5, ks=TRUTH["ks"], shininess=20.0)
+    result = fit(small, spec, init, with_uncertainty=False)
+    np.testing.assert_array_equal(result.material.ka, init.ka)
+    np.testing.assert_array_equal(result.material.ks, init.ks)
+    assert set(result.errors) == {"kd", "shininess"}
+    np.testing.assert_allclose(result.material.kd, TRUTH["kd"], rtol=1e-3)
+    assert float(result.material.shininess) == pytest.approx(TRUTH["shininess"], rel=1e-3)
+
+
+def test_lbfgs_fit_runs_and_lowers_the_loss(small):
+    result = fit(small, method="lbfgs", steps=10, with_uncertainty=False)
+    assert result.n_steps <= 10 and np.all(np.isfinite(result.loss_history))
+    assert result.loss < 0.2 * result.loss_history[0]
+
+
+def test_relative_errors_per_channel():
+    truth = ds.material(ka=(0.2, 0.4, 0.5), kd=0.5, ks=(0.1, 0.2, 0.4), shininess=10.0)
+    values = {"ka": np.array([0.22, 0.4, 0.45]), "kd": np.array(0.55), "shininess": np.array(9.0)}
+    errors = relative_errors(values, truth, FitSpec(kd="grey", ks=None))
+    np.testing.assert_allclose(errors["ka"], [0.1, 0.0, 0.1], rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(errors["kd"], [0.1, 0.1, 0.1], rtol=1e-6, atol=1e-7)
+    assert float(errors["shininess"]) == pytest.approx(0.1)
+
+
+def test_fit_rejects_bad_arguments(small):
+    with pytest.raises(ValueError, match="method: got 'newton'"):
+        fit(small, method="newton")
+    with pytest.raises(ValueError, match="loss: got 'l3'"):
+        fit(small, loss="l3")
+    with pytest.raises(ValueError, match="ka: got 'rg'"):
+        FitSpec(ka="rg")
+
+
+def test_target_size_mismatch_names_the_view(small):
+    views = list(small.views)
+    views[1] = dataclasses.replace(views[1], target=np.zeros((40, 41, 3)))
+    with pytest.raises(ValueError, match=r"views\[1\]\.target: got shape \(40, 41, 3\); "
+                                         r"expected \(40, 40, 3\)"):
+        dataclasses.replace(small, views=views)
+
+
+# ---- the linear solver ----
+
+
+def brute_force_box_qp(gram, rhs, lower, upper):
+    """Every pattern of (free, at lower, at upper) per variable; the best feasible one."""
+    best, best_x = np.inf, None
+    for pattern in itertools.product((0, -1, 1), repeat=len(rhs)):
+        pattern = np.array(pattern)
+        x = np.where(pattern == -1, lower, np.where(pattern == 1, upper, 0.0))
+        free = pattern == 0
+        if free.any():
+            sub = rhs[free] - gram[np.ix_(free, ~free)] @ x[~free]
+            x[free] = np.linalg.solve(gram[np.ix_(free, free)], sub)
+        if np.all(x >= lower - 1e-12) and np.all(x <= upper + 1e-12):
+            value = x @ gram @ x - 2 * rhs @ x
+            if value < best:
+                best, best_x = value, x
+    return best_x
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_box_least_squares_matches_enumeration(seed):
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(30, 4))
+    gram, rhs = a.T @ a, a.T @ rng.normal(size=30) * 3
+    np.testing.assert_allclose(box_least_squares(gram, rhs, 0.0, 1.0),
+                               brute_force_box_qp(gram, rhs, 0.0, 1.0), atol=1e-9)
+
+
+def test_normal_equations_match_the_rendered_parts(small):
+    """G and b against a design matrix built in numpy from diffshade.render_parts images."""
+    spec = FitSpec(ka="grey", kd="rgb", ks=None)
+    base = ds.material(ka=0.3, kd=0.5, ks=(0.2, 0.3, 0.4), shininess=20.0)
+    data = build_cache(small, base)
+    gram, rhs, _, _ = (np.asarray(a, np.float64)
+                       for a in normal_equations(jnp.log(35.0), data, spec))
+    unit = ds.material(ka=1.0, kd=1.0, ks=1.0, shininess=35.0)
+    design, target = [], []
+    for i, view in enumerate(small.views):
+        parts = ds.render_parts(view_scene(small, i, unit), small.settings)
+        pixels = np.asarray(data.views[i].pixels)
+        a, d, s = (np.asarray(p, np.float64).reshape(-1, 3)[pixels]
+                   for p in (parts.ambient, parts.diffuse, parts.specular))
+        observed = view.target.reshape(-1, 3)[pixels].astype(np.float64)
+        y = observed - s * np.asarray(base.ks)
+        for c in range(3):
+            usable = (observed[:, c] > 1e-6) & (observed[:, c] < 1 - 1e-6)
+            columns = [a[:, c]] + [d[:, c] * (k == c) for k in range(3)]
+            design.append(np.stack(columns, 1)[usable])
+            target.append(y[usable, c])
+    design, target = np.concatenate(design), np.concatenate(target)
+    np.testing.assert_allclose(gram, design.T @ design, rtol=2e-5)
+    np.testing.assert_allclose(rhs, design.T @ target, rtol=2e-5)
+
+
+# ---- uncertainty ----
+
+
+def test_standard_errors_match_central_differences():
+    with jax.enable_x64(True):
+        settings = ds.RenderSettings(clamp=False)
+        dataset = make_dataset(SPHERE, truth_material(), n_views=2, n_lights=1, size=32,
+                               settings=settings, noise_std=0.01, seed=4)
+        spec = FitSpec(kd="grey")
+        data = build_cache(dataset, DEFAULT_INIT)
+        values = material_values(dataset.truth, spec)
+        report = uncertainty(values, data, spec, warn=False)
+
+        names = value_names(values)
+        flat = np.concatenate([np.atleast_1d(np.asarray(values[k], np.float64))
+                               for k in ("ka", "kd", "ks", "shininess")])
+
+        def rendered_residuals(theta):
+            mat = ds.material(ka=theta[0:3], kd=theta[3], ks=theta[4:7], shininess=theta[7])
+            out = []
+            for i, view in enumerate(dataset.views):
+                image = np.asarray(ds.render(view_scene(dataset, i, mat), settings))
+                pixels = np.asarray(data.views[i].pixels)
+                out.append((image[..., :3].reshape(-1, 3)[pixels]
+                            - view.target.reshape(-1, 3)[pixels]).reshape(-1))
+            return np.concatenate(out)
+
+        steps = 1e-6 * np.maximum(np.abs(flat), 1.0)
+        jac = np.stack([(rendered_residuals(flat + h * e) - rendered_residuals(flat - h * e))
+                        / (2 * h) for h, e in zip(steps, np.eye(len(flat)), strict=True)], 1)
+        r = rendered_residuals(flat)
+        sigma2 = r @ r / (len(r) - len(flat))
+        expected = np.sqrt(np.diag(sigma2 * np.linalg.inv(jac.T @ jac)))
+    assert names == ["ka[r]", "ka[g]", "ka[b]", "kd", "ks[r]", "ks[g]", "ks[b]", "shininess"]
+    assert report.sigma2 == pytest.approx(sigma2, rel=1e-9)
+    np.testing.assert_allclose(report.std_errors, expected, rtol=1e-5)
+    assert report.warnings == ()
+
+
+def test_rounding_bound_covers_the_error_of_8bit_targets(small):
+    quantized = make_dataset(SPHERE, truth_material(), n_views=2, n_lights=1, size=40,
+                             quantize_8bit=True)
+    result = fit(quantized)
+    report = result.uncertainty
+    error = np.abs(report.values - np.concatenate(
+        [np.ravel(np.asarray(TRUTH[k], np.float64)) for k in ("ka", "kd", "ks", "shininess")]))
+    assert np.all(error <= report.rounding_bound)
+    assert np.max(error / report.std_errors) > 5  # the rounding is not independent noise
+    assert report.notes and report.notes[0].startswith("targets are 8-bit")
+    assert fit(small).uncertainty.rounding_bound is None
+
+
+def single_light_dataset(light_from_camera, ks):
+    mat = ds.material(ka=0.3, kd=0.5, ks=ks, shininess=30.0)
+    eye = np.array([0.0, 0.5, 3.0])
+    camera = ds.look_at(eye, (0, 0, 0), width=32, height=32)
+    direction = -eye if light_from_camera else np.array([-2.0, -0.4, -1.0])
+    blank = View(camera, [ds.directional_light(direction, 0.8)], np.zeros((32, 32, 3)))
+    dataset = Dataset(SPHERE, [blank], global_ambient=0.4, truth=mat)
+    target = np.asarray(ds.render(view_scene(dataset, 0, mat), dataset.settings))[..., :3]
+    return dataclasses.replace(dataset, views=[dataclasses.replace(blank, target=target)])
+
+
+@pytest.mark.parametrize("light_from_camera, ks, expected", [
+    (True, 0.4, ["ka and kd are confounded"]),
+    (False, 0.0, ["ks and shininess are not determined", "shininess have no effect"]),
+    (False, 0.4, []),
+])
+def test_identifiability_warnings(light_from_camera, ks, expected):
+    dataset = single_light_dataset(light_from_camera, ks)
+    spec = FitSpec()
+    values = material_values(dataset.truth, spec)
+    data = build_cache(dataset, DEFAULT_INIT)
+    if expected:
+        with pytest.warns(IdentifiabilityWarning):
+            report = uncertainty(values, data, spec)
+    else:
+        report = uncertainty(values, data, spec)
+    for start in expected:
+        assert any(w.startswith(start) or start in w for w in report.warnings), report.warnings
+    if not expected:
+        assert report.warnings == ()
