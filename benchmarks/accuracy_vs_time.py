@@ -1,0 +1,271 @@
+"""What accuracy costs in time: rendering and fitting settings against ground truth.
+
+    python benchmarks/accuracy_vs_time.py                 # the full study (tens of minutes)
+    python benchmarks/accuracy_vs_time.py --quick         # seconds; CI runs this
+    python benchmarks/accuracy_vs_time.py --plots docs/img  # also draw the PNG plots
+
+Rendering error is measured against an analytic sphere (diffshade.analytic: the exact
+ray-sphere intersection, shaded with the exact normal by the same lighting core),
+supersampled 8x8 per pixel, so tessellation, interpolation, resolution and rasterization
+errors are all visible. Errors are in 1/255 units: RMSE over the image, the maximum
+absolute error, and the RMSE inside the highlights (pixels where the reference's specular
+part exceeds 0.05). Times are steady-state medians after warm-up, compile reported
+separately; 'fwd+bwd' is the gradient of an MSE loss with respect to the material.
+"""
+
+import argparse
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import print_table, time_call, write_results  # noqa: E402
+
+import diffshade as ds  # noqa: E402
+from diffshade.analytic import render_analytic_sphere  # noqa: E402
+from diffshade.render import render_supersampled  # noqa: E402
+
+REFERENCE_SUPERSAMPLE = 8
+HIGHLIGHT_THRESHOLD = 0.05
+
+
+def sphere_scene(subdivisions, size):
+    """The study's scene: a unit icosphere, a directional and a point light, a glossy red."""
+    return ds.make_scene(
+        ds.icosphere(subdivisions),
+        ds.look_at((0.4, 0.3, 3.2), (0.0, 0.0, 0.0), width=size, height=size, fov_y=40.0),
+        [ds.directional_light((-1.0, -1.0, -1.0), 0.8),
+         ds.point_light((2.0, 2.5, 2.0), 0.6, attenuation=(1.0, 0.05, 0.01))],
+        ds.material(ka=0.2, kd=(0.7, 0.3, 0.2), ks=0.5, shininess=60.0))
+
+
+def reference(size):
+    """(analytic RGBA [H, W, 4], highlight mask [H, W]) for the study's scene."""
+    scene = sphere_scene(1, size)
+    settings = ds.RenderSettings()
+    ref = np.asarray(render_analytic_sphere(scene, settings, supersample=REFERENCE_SUPERSAMPLE))
+    glossy = ds.replace(scene, material=ds.material(ka=0.0, kd=0.0, ks=0.5, shininess=60.0),
+                        global_ambient=jnp.zeros(3))
+    spec = np.asarray(render_analytic_sphere(glossy, settings, supersample=REFERENCE_SUPERSAMPLE))
+    return ref, spec[..., :3].max(-1) > HIGHLIGHT_THRESHOLD
+
+
+def errors(image, ref, highlight):
+    """RMSE, max abs and highlight RMSE of the RGB channels, in 1/255 units."""
+    diff = np.asarray(image, np.float64)[..., :3] - ref[..., :3]
+    return {"rmse_255": 255 * float(np.sqrt(np.mean(diff ** 2))),
+            "max_255": 255 * float(np.abs(diff).max()),
+            "highlight_rmse_255": 255 * float(np.sqrt(np.mean(diff[highlight] ** 2)))}
+
+
+def timed(render_fn, scene, target, repeats):
+    """Compile and steady-state times of the forward render and of fwd+bwd (material)."""
+    fwd = jax.jit(render_fn)
+
+    def loss(material):
+        image = render_fn(ds.replace(scene, material=material))
+        return jnp.mean((image[..., :3] - target) ** 2)
+    grad = jax.jit(jax.grad(loss))
+    compile_s, fwd_s, _ = time_call(fwd, scene, repeats=repeats)
+    _, grad_s, _ = time_call(grad, scene.material, repeats=repeats)
+    return {"compile_s": compile_s, "fwd_ms": 1e3 * fwd_s, "fwd_bwd_ms": 1e3 * grad_s}
+
+
+def mesh_rows(levels, modes, sizes, repeats):
+    rows = []
+    for size in sizes:
+        ref, highlight = reference(size)
+        target = jnp.asarray(ref[..., :3], jnp.float32)
+        for level in levels:
+            scene = sphere_scene(level, size)
+            for mode in modes:
+                settings = ds.RenderSettings(shading=mode)
+                image = ds.render(scene, settings)
+                row = {"study": "mesh", "subdivisions": level, "shading": mode, "size": size}
+                row.update(errors(image, ref, highlight))
+                row.update(timed(lambda s, st=settings: ds.render(s, st), scene, target, repeats))
+                rows.append(row)
+    return rows
+
+
+def supersample_rows(level, sizes, factors, repeats):
+    rows = []
+    for size in sizes:
+        ref, highlight = reference(size)
+        target = jnp.asarray(ref[..., :3], jnp.float32)
+        scene = sphere_scene(level, size)
+        settings = ds.RenderSettings(shading="phong")
+        edge = _silhouette(ref)
+        for factor in factors:
+            image = np.asarray(render_supersampled(scene, settings, factor))
+            row = {"study": "supersample", "subdivisions": level, "shading": "phong",
+                   "size": size, "factor": factor,
+                   "silhouette_rmse_255": 255 * float(np.sqrt(np.mean(
+                       (image[..., :3] - ref[..., :3])[edge] ** 2)))}
+            row.update(errors(image, ref, highlight))
+            row.update(timed(lambda s, f=factor, st=settings: render_supersampled(s, st, f), scene,
+                             target, repeats))
+            rows.append(row)
+    return rows
+
+
+def _silhouette(ref):
+    """Pixels partly covered by the exact sphere: [H, W] bool."""
+    return (ref[..., 3] > 0.0) & (ref[..., 3] < 1.0)
+
+
+def soft_rows(level, size, sigmas, gammas, ks, repeats):
+    ref, highlight = reference(size)
+    target = jnp.asarray(ref[..., :3], jnp.float32)
+    scene = sphere_scene(level, size)
+    hard = np.asarray(ds.render(scene, ds.RenderSettings(shading="phong")))
+    rows = []
+    for sigma in sigmas:
+        for gamma in gammas:
+            for k in ks:
+                settings = ds.RenderSettings(shading="phong", raster="soft", sigma=sigma,
+                                             gamma=gamma, faces_per_pixel=k)
+                image = np.asarray(ds.render(scene, settings))
+                row = {"study": "soft", "subdivisions": level, "size": size, "sigma": sigma,
+                       "gamma": gamma, "K": k,
+                       "vs_hard_rmse_255": 255 * float(np.sqrt(np.mean(
+                           (image[..., :3] - hard[..., :3]) ** 2)))}
+                row.update(errors(image, ref, highlight))
+                row.update(timed(lambda s, st=settings: ds.render(s, st), scene, target, repeats))
+                rows.append(row)
+    return rows
+
+
+def precision_rows(level, sizes, repeats):
+    rows = []
+    for x64 in (False, True):
+        with jax.enable_x64(x64):
+            for size in sizes:
+                ref, highlight = reference(size)
+                scene = sphere_scene(level, size)
+                target = jnp.asarray(ref[..., :3])
+                settings = ds.RenderSettings(shading="phong")
+                row = {"study": "precision", "subdivisions": level, "size": size,
+                       "dtype": "float64" if x64 else "float32"}
+                row.update(errors(ds.render(scene, settings), ref, highlight))
+                row.update(timed(lambda s, st=settings: ds.render(s, st), scene, target, repeats))
+                rows.append(row)
+    return rows
+
+
+def pareto(rows, error_key="rmse_255", time_key="fwd_ms"):
+    """Mark rows on the Pareto front of (time, error): no other row is both faster and
+    more accurate."""
+    for row in rows:
+        row["pareto"] = not any(o[time_key] <= row[time_key] and o[error_key] <= row[error_key]
+                                and (o[time_key], o[error_key]) != (row[time_key],
+                                                                    row[error_key])
+                                for o in rows)
+    return rows
+
+
+def cheapest_within(rows, bound_255, error_key="rmse_255", time_key="fwd_ms"):
+    """The fastest row whose error is within `bound_255`, or None."""
+    ok = [r for r in rows if r[error_key] <= bound_255]
+    return min(ok, key=lambda r: r[time_key]) if ok else None
+
+
+MESH_COLUMNS = [("subdivisions", "subdiv", "{}"), ("shading", "shading", "{}"),
+                ("size", "size", "{}"), ("rmse_255", "rmse/255", "{:.2f}"),
+                ("max_255", "max/255", "{:.1f}"), ("highlight_rmse_255", "hilite/255", "{:.2f}"),
+                ("fwd_ms", "fwd ms", "{:.1f}"), ("fwd_bwd_ms", "fwd+bwd ms", "{:.1f}"),
+                ("compile_s", "compile s", "{:.1f}")]
+
+
+def configs(quick):
+    if quick:
+        return {"levels": (1, 3, 5), "modes": ("phong",), "sizes": (48,), "ss_sizes": (48,),
+                "factors": (1, 2), "sigmas": (0.5,), "gammas": (1e-4,), "ks": (4,),
+                "precision_sizes": (48,), "repeats": 2}
+    return {"levels": (1, 2, 3, 4, 5, 6), "modes": ("flat", "gouraud", "phong"),
+            "sizes": (64, 128, 256, 512), "ss_sizes": (128, 256), "factors": (1, 2, 4),
+            "sigmas": (0.1, 0.5, 2.0), "gammas": (1e-4, 1e-2), "ks": (4, 8, 16),
+            "precision_sizes": (128, 256), "repeats": 5}
+
+
+def run(quick=False, fitting_study=None):
+    """All rendering studies (and the fitting study when given): a dict of row lists."""
+    c = configs(quick)
+    results = {
+        "mesh": pareto(mesh_rows(c["levels"], c["modes"], c["sizes"], c["repeats"])),
+        "supersample": supersample_rows(5, c["ss_sizes"], c["factors"], c["repeats"]),
+        "soft": soft_rows(4, c["ss_sizes"][0], c["sigmas"], c["gammas"], c["ks"],
+                          c["repeats"]),
+        "precision": precision_rows(5, c["precision_sizes"], c["repeats"]),
+    }
+    if fitting_study is not None:
+        results["fitting"] = fitting_study(quick)
+    return results
+
+
+def report(results):
+    print("\n== mesh: subdivision x shading x resolution vs the analytic sphere")
+    print_table(results["mesh"], MESH_COLUMNS + [("pareto", "pareto", "{}")])
+    print("\n== supersampling (anti-aliased silhouettes)")
+    print_table(results["supersample"], [("size", "size", "{}"), ("factor", "factor", "{}"),
+                                         ("silhouette_rmse_255", "silhouette/255", "{:.2f}")]
+                + MESH_COLUMNS[3:])
+    print("\n== soft rasterization (Phong): against the hard image and the analytic sphere")
+    print_table(results["soft"], [("sigma", "sigma px2", "{}"), ("gamma", "gamma", "{}"),
+                                  ("K", "K", "{}"), ("vs_hard_rmse_255", "vs hard/255",
+                                                     "{:.2f}")] + MESH_COLUMNS[3:])
+    print("\n== float32 vs float64")
+    print_table(results["precision"], [("dtype", "dtype", "{}")] + MESH_COLUMNS[2:])
+    if "fitting" in results:
+        report_fitting(results["fitting"])
+    for bound in (1.0, 2.0):
+        best = cheapest_within(results["mesh"] + results["supersample"], bound)
+        text = ("none" if best is None else
+                f"{best['study']} subdiv {best['subdivisions']} {best['shading']} "
+                f"{best['size']}px x{best.get('factor', 1)} ({best['fwd_ms']:.1f} ms)")
+        print(f"cheapest setting within {bound}/255 RMSE of the analytic sphere: {text}")
+
+
+def report_fitting(rows):
+    by = lambda study: [r for r in rows if r["study"] == study]
+    print("\n== fitting: parameter error (max relative, all coefficients and shininess)")
+    print_table(by("steps") + by("method"), [("study", "study", "{}"),
+                                             ("method", "method", "{}"),
+                                             ("steps", "steps", "{}"),
+                                             ("wall_s", "wall s", "{:.2f}"),
+                                             ("max_rel_error", "max rel err", "{:.2e}")])
+    print_table(by("scaling"), [("size", "size", "{}"), ("views", "views", "{}"),
+                                ("quantized", "8-bit", "{}"), ("wall_s", "wall s", "{:.2f}"),
+                                ("compile_s", "compile s", "{:.1f}"),
+                                ("max_rel_error", "max rel err", "{:.2e}")])
+    print_table(by("cache"), [("path", "loss path", "{}"), ("step_ms", "step ms", "{:.2f}"),
+                              ("compile_s", "compile s", "{:.2f}")])
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="a seconds-long subset (CI)")
+    parser.add_argument("--out", default="benchmarks/results/accuracy_vs_time.json")
+    parser.add_argument("--plots", default=None, help="folder for the PNG plots")
+    parser.add_argument("--no-fitting", action="store_true", help="skip the fitting study")
+    args = parser.parse_args(argv)
+    study = None
+    if not args.no_fitting:
+        from accuracy_fitting import fitting_study
+        study = fitting_study
+    results = run(args.quick, study)
+    report(results)
+    write_results(args.out, {"benchmark": "accuracy_vs_time", "quick": args.quick,
+                             "reference_supersample": REFERENCE_SUPERSAMPLE, **results})
+    if args.plots:
+        from accuracy_plots import draw_all
+        draw_all(results, args.plots)
+    return results
+
+
+if __name__ == "__main__":
+    main()
+
