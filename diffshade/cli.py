@@ -158,3 +158,7 @@ def main(argv=None) -> int:
     except _USER_ERRORS as err:
         print(f"diffshade: error: {_one_line(err)}", file=sys.stderr)
         return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

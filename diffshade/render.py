@@ -96,7 +96,9 @@ def _by_side(sides, front, select):
 
 def _gouraud(scene, proj, frags, settings):
     sides = _vertex_sides(scene, proj, settings)
-    return _by_side(sides, frags.front, lambda a: interpolate(a, scene.mesh.faces, frags))
+    parts, colour = _by_side(sides, frags.front, lambda a: interpolate(a, scene.mesh.faces, frags))
+    # the interpolated clamped colours can exceed 1 by a rounding error; keep [0, 1] exact
+    return parts, clamp01(colour) if settings.clamp else colour
 
 
 def _flat_last(scene, proj, frags, settings):

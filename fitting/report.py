@@ -1,0 +1,185 @@
+"""The files of a fit result, and the table printed at its end.
+
+`write_result(out_dir, dataset, result, init, extra)` writes, each file atomically
+(diffshade.io), in this order so that the parameters are on disk first:
+
+    material.mtl   the fitted material as a Wavefront MTL (Ka, Kd, Ks, Ns, Ke)
+    result.json    `result_dict`: the FitResult's values, standard errors, warnings and
+                   loss history, the full fitted and initial materials, the truth and the
+                   relative errors when the dataset has a truth (absent otherwise), and
+                   the caller's `extra` keys
+    loss.png       the loss history (matplotlib, Agg canvas, log y)
+    view_000.png   per view: target | initial | fitted | ERROR_GAIN x |fitted - target|,
+                   rendered with diffshade.render, separated by grey bars
+
+`comparison_table(result, truth)` is the true-versus-recovered table (with standard
+errors), one row per fitted scalar.
+"""
+
+import math
+import os
+
+import numpy as np
+
+from diffshade.io import write_json, write_png, write_text
+from diffshade.render import render
+from fitting.checkpoint import material_dict
+from fitting.data import view_scene
+
+ERROR_GAIN = 10.0
+PANEL_GAP = 2
+MTL_NS_LIMIT = 1000.0
+
+
+def panel(target, initial, fitted, gain=ERROR_GAIN):
+    """[H, W, 3] images -> [H, 4 W + 3 PANEL_GAP, 3]: target | initial | fitted |
+    gain * |fitted - target| (clipped to 1)."""
+    error = np.clip(gain * np.abs(np.asarray(fitted) - np.asarray(target)), 0.0, 1.0)
+    gap = np.full((np.shape(target)[0], PANEL_GAP, 3), 0.5)
+    parts = [np.asarray(target), gap, np.asarray(initial), gap, np.asarray(fitted), gap, error]
+    return np.concatenate([np.asarray(p, np.float64)[..., :3] for p in parts], axis=1)
+
+
+def loss_curve(history, title=""):
+    """The loss per step on a log axis, as an RGB image [h, w, 3] in [0, 1]."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
+
+    history = np.asarray(history, np.float64)
+    positive = history[history > 0]
+    floor = positive.min() if positive.size else 1e-30
+    fig = Figure(figsize=(6.0, 4.0), dpi=100)
+    canvas = FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    ax.semilogy(np.arange(history.size), np.maximum(history, floor), marker="." if
+                history.size < 50 else None)
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.set_xlabel("step")
+    ax.set_ylabel("loss")
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    canvas.draw()
+    return np.asarray(canvas.buffer_rgba(), np.float64)[..., :3] / 255.0
+
+
+def _rgb_line(key, value):
+    return f"{key} " + " ".join(f"{float(x):.6f}" for x in np.broadcast_to(value, (3,)))
+
+
+def mtl_text(material, name="diffshade_fit", comment=""):
+    """Wavefront MTL text of a Material: Ka, Kd, Ks (0 without specular), Ns (the Blinn-
+    Phong exponent, written as fitted), Ke when it emits, illum 2 (1 without specular)."""
+    shininess = float(material.shininess)
+    lines = ["# diffshade: Blinn-Phong material, linear RGB, OpenGL 1.x lighting",
+             f"# Ns is the specular exponent as fitted; many OBJ viewers clamp Ns to "
+             f"[0, {MTL_NS_LIMIT:g}] (OpenGL's fixed pipeline to 128)"]
+    if shininess > MTL_NS_LIMIT:
+        lines.append(f"# note: Ns = {shininess:.6g} > {MTL_NS_LIMIT:g}: a viewer that clamps "
+                     "it shows a broader highlight than the fit")
+    lines += [f"# {comment}"] if comment else []
+    specular = material.ks is not None
+    lines += [f"newmtl {name}", _rgb_line("Ka", material.ka), _rgb_line("Kd", material.kd),
+              _rgb_line("Ks", material.ks if specular else 0.0), f"Ns {shininess:.6f}"]
+    if material.emission is not None:
+        lines.append(_rgb_line("Ke", material.emission))
+    lines.append(f"illum {2 if specular else 1}")
+    return "\n".join(lines) + "\n"
+
+
+def _finite_only(obj, path, replaced):
+    """obj with every non-finite float replaced by None (JSON has no NaN); the paths of
+    the replaced values are appended to `replaced`."""
+    if isinstance(obj, dict):
+        return {k: _finite_only(v, f"{path}.{k}" if path else str(k), replaced)
+                for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite_only(v, f"{path}[{i}]", replaced) for i, v in enumerate(obj)]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        replaced.append(path)
+        return None
+    return obj
+
+
+def result_dict(result, init, truth, extra=None) -> dict:
+    """result.json's content: FitResult.as_dict() (without 'errors' when there is no truth),
+    'material' (the full fitted material), 'initial', 'truth' (when known) and `extra`.
+    Non-finite numbers become null and are listed in 'notes'."""
+    out = dict(extra or {})
+    out |= {k: v for k, v in result.as_dict().items() if not (k == "errors" and v is None)}
+    out["material"] = material_dict(result.material)
+    out["initial"] = material_dict(init)
+    if truth is not None:
+        out["truth"] = material_dict(truth)
+    replaced = []
+    out = _finite_only(out, "", replaced)
+    if replaced:
+        out["notes"] = out.get("notes", []) + [
+            f"non-finite values written as null: {', '.join(replaced)}"]
+    return out
+
+
+def _rows(result, truth):
+    """(label, true or None, fitted, standard error or None, relative error or None)."""
+    se = result.uncertainty.as_dict() if result.uncertainty else {}
+    for name, value in result.values.items():
+        fitted = np.atleast_1d(np.asarray(value, np.float64))
+        true = None if truth is None else np.atleast_1d(np.asarray(getattr(truth, name),
+                                                                   np.float64))
+        errors = (np.atleast_1d(result.errors[name]) if result.errors and name in result.errors
+                  else None)
+        count = max(fitted.size, 1 if true is None else true.size)
+        for c in range(count):
+            label = name if count == 1 else f"{name}[{'rgb'[c]}]"
+            std = se.get(label, se.get(name, (None, None)))[1]
+            yield (label, None if true is None else true[min(c, true.size - 1)],
+                   fitted[min(c, fitted.size - 1)], std,
+                   None if errors is None else errors[min(c, errors.size - 1)])
+
+
+def _cell(value, fmt, width):
+    return f"{'' if value is None else format(value, fmt):>{width}}"
+
+
+def comparison_table(result, truth=None, status="") -> str:
+    """The true-versus-recovered table: one row per fitted scalar with the true value, the
+    fitted value, its standard error and the relative error (true and error columns only
+    when `truth` is known); warnings and notes below."""
+    steps = f"{result.n_steps} step{'' if result.n_steps == 1 else 's'}"
+    head = (f"method {result.method}: loss {result.loss:.4g} after {steps}, "
+            f"{result.wall_time:.2f} s{', ' + status if status else ''}")
+    known = truth is not None
+    lines = [head, f"{'parameter':<12}" + (f"{'true':>11}" if known else "")
+             + f"{'fitted':>11}{'± s.e.':>11}" + (f"{'rel. error':>12}" if known else "")]
+    for label, true, fitted, std, error in _rows(result, truth):
+        lines.append(f"{label:<12}" + (_cell(true, ".5g", 11) if known else "")
+                     + _cell(fitted, ".5g", 11) + _cell(std, ".2g", 11)
+                     + (_cell(None if error is None else 100 * error, ".3g", 11) + "%"
+                        if known and error is not None else ""))
+    notes = result.uncertainty.notes if result.uncertainty else ()
+    return "\n".join(lines + [f"warning: {w}" for w in result.warnings]
+                     + [f"note: {n}" for n in notes])
+
+
+def _render_rgb(dataset, index, material):
+    return np.asarray(render(view_scene(dataset, index, material), dataset.settings))[..., :3]
+
+
+def write_result(out_dir, dataset, result, init, extra=None, title="") -> list:
+    """Write the result files (module docstring) into out_dir; returns their paths."""
+    out_dir = os.fspath(out_dir)
+    names = [f"view_{i:03d}.png" for i in range(len(dataset.views))]
+    files = {"material": "material.mtl", "loss_curve": "loss.png", "views": names}
+    extra = dict(extra or {}) | {"files": files, "error_gain": ERROR_GAIN}
+    paths = [write_text(os.path.join(out_dir, files["material"]),
+                        mtl_text(result.material, comment=title)),
+             write_json(os.path.join(out_dir, "result.json"),
+                        result_dict(result, init, dataset.truth, extra)),
+             write_png(os.path.join(out_dir, files["loss_curve"]),
+                       loss_curve(result.loss_history, title))]
+    for i, name in enumerate(names):
+        image = panel(dataset.views[i].target, _render_rgb(dataset, i, init),
+                      _render_rgb(dataset, i, result.material))
+        paths.append(write_png(os.path.join(out_dir, name), image))
+    return paths
