@@ -3,10 +3,7 @@ marked. Used by accuracy_vs_time.py --plots and notebooks/03_accuracy_vs_time.ip
 
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.figure import Figure
 
 MARKERS = {"flat": "s", "gouraud": "^", "phong": "o"}
 
@@ -83,11 +80,11 @@ def draw_all(results, folder):
     if "fitting" in results:
         panels.append(("fitting", lambda ax: plot_fitting(ax, results["fitting"])))
     for name, draw in panels:
-        fig, ax = plt.subplots(figsize=(6, 4.5), dpi=120)
-        draw(ax)
+        # a bare Figure needs no GUI backend (scripts, CI, notebooks alike)
+        fig = Figure(figsize=(6, 4.5), dpi=120)
+        draw(fig.add_subplot())
         fig.tight_layout()
         path = folder / f"accuracy_{name}.png"
         fig.savefig(path)
-        plt.close(fig)
         paths.append(str(path))
     return paths
