@@ -94,10 +94,33 @@ def signed_dist2(clip, faces, ids, inside, width, height):
     scr = jnp.take(_screen_positions(clip, width, height), jnp.take(faces, ids, axis=0), axis=0)
     ys, xs = jnp.meshgrid(jnp.arange(height) + 0.5, jnp.arange(width) + 0.5, indexing="ij")
     p = jnp.stack([xs, ys], -1).astype(clip.dtype)[:, :, None, :]
-    d2 = jnp.minimum(jnp.minimum(_segment_dist2(p, scr[..., 0, :], scr[..., 1, :]),
-                                 _segment_dist2(p, scr[..., 1, :], scr[..., 2, :])),
-                     _segment_dist2(p, scr[..., 2, :], scr[..., 0, :]))
+    d01 = _segment_dist2(p, scr[..., 0, :], scr[..., 1, :])
+    d12 = _segment_dist2(p, scr[..., 1, :], scr[..., 2, :])
+    d20 = _segment_dist2(p, scr[..., 2, :], scr[..., 0, :])
+    # where, not jnp.minimum: under jit(grad) XLA may recompute an operand with other
+    # rounding, and jax 0.10's min rule (bitwise operand == result) then drops its gradient
+    d2 = _pick_min(_pick_min(d01, d12), d20)
     return jnp.where(inside, d2, -d2)
+
+
+def _pick_min(a, b):
+    return jnp.where(a <= b, a, b)
+
+
+def _clamped_bary(edge, w):
+    """Soft mode's barycentrics: clamp to the triangle in *screen* space, then correct for
+    perspective. edge: [..., 3] homogeneous edge functions; w: [..., 3] vertex clip W.
+
+    Screen-space barycentrics are proportional to edge_i * w_i; clamping the
+    perspective-correct ones instead goes wrong where the pixel's ray meets the triangle's
+    plane behind the eye (they all flip sign there). Returns (bary [..., 3], inside [...]).
+    """
+    screen = edge * w
+    screen = safe_div(screen, (screen[..., 0] + screen[..., 1] + screen[..., 2])[..., None])
+    inside = jnp.all(screen >= 0, -1)
+    screen = jnp.maximum(screen, 0.0)
+    persp = safe_div(screen, w)
+    return safe_div(persp, (persp[..., 0] + persp[..., 1] + persp[..., 2])[..., None]), inside
 
 
 def fragments_from_ids(proj: Projected, faces, face_ids, dropped, soft=False) -> Fragments:
@@ -116,10 +139,8 @@ def fragments_from_ids(proj: Projected, faces, face_ids, dropped, soft=False) ->
     bary = safe_div(edge, (edge[..., 0] + edge[..., 1] + edge[..., 2])[..., None])
     dist = None
     if soft:
-        inside = jnp.all(bary >= 0, -1)
+        bary, inside = _clamped_bary(edge, jnp.take(proj.clip[:, 3], jnp.take(faces, ids, axis=0)))
         dist = jnp.where(valid, signed_dist2(proj.clip, faces, ids, inside, width, height), 0.0)
-        bary = jnp.maximum(bary, 0.0)
-        bary = safe_div(bary, (bary[..., 0] + bary[..., 1] + bary[..., 2])[..., None])
     bary = jnp.where(valid[..., None], bary, 0.0)
     depth = dot(bary, jnp.take(proj.depth, jnp.take(faces, ids, axis=0), axis=0))
     return Fragments(face_ids, bary, depth, valid & (jnp.take(det, ids) > 0), dropped, dist)
