@@ -39,11 +39,30 @@ class Camera:
     projection: str = "perspective"
 
 
+def _floats(name, value, expected):
+    """value as a float64 array, or ValueError "name: got value; expected ..." (a string,
+    None or a ragged sequence is not a number)."""
+    try:
+        if isinstance(value, (str, bytes)) or value is None:
+            raise TypeError(type(value).__name__)
+        return np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: got {value!r}; expected {expected}") from None
+
+
 def _vec3(name, value):
-    arr = np.asarray(value, dtype=np.float64)
+    arr = _floats(name, value, "3 finite numbers")
     if arr.shape != (3,) or not np.all(np.isfinite(arr)):
         raise ValueError(f"{name}: got {value!r}; expected 3 finite numbers")
     return arr
+
+
+def _scalar(name, value, expected):
+    """value as a finite float, or ValueError naming `name`."""
+    arr = _floats(name, value, expected)
+    if arr.shape != () or not np.isfinite(arr):
+        raise ValueError(f"{name}: got {value!r}; expected {expected}")
+    return float(arr)
 
 
 def _positive_int(name, value):
@@ -56,6 +75,8 @@ def _check_look_at(eye, target, up):
     forward = target - eye
     if np.linalg.norm(forward) < 1e-12:
         raise ValueError(f"eye, target: both are {eye.tolist()}; expected distinct points")
+    if np.linalg.norm(up) < 1e-12:
+        raise ValueError(f"up: got {up.tolist()}; expected a non-zero vector")
     scale = np.linalg.norm(forward) * np.linalg.norm(up) + 1e-300
     sin = np.linalg.norm(np.cross(forward, up)) / scale
     if sin < 1e-6:
@@ -71,11 +92,12 @@ def look_at(eye, target, up=(0.0, 1.0, 0.0), *, width=256, height=256, fov_y=45.
     width, height = _positive_int("width", width), _positive_int("height", height)
     if projection not in PROJECTIONS:
         raise ValueError(f"projection: got {projection!r}; expected one of {PROJECTIONS}")
-    if not (np.isfinite(fov_y) and 0.0 < fov_y < 180.0):
+    if not 0.0 < _scalar("fov_y", fov_y, "degrees in (0, 180)") < 180.0:
         raise ValueError(f"fov_y: got {fov_y!r}; expected degrees in (0, 180)")
-    if not (np.isfinite(near) and np.isfinite(far) and 0.0 < near < far):
+    expected = "a finite number with 0 < near < far"
+    if not 0.0 < _scalar("near", near, expected) < _scalar("far", far, expected):
         raise ValueError(f"near, far: got near={near!r}, far={far!r}; expected 0 < near < far")
-    if not (np.isfinite(ortho_height) and ortho_height > 0):
+    if not _scalar("ortho_height", ortho_height, "a positive number") > 0:
         raise ValueError(f"ortho_height: got {ortho_height!r}; expected a positive number")
     arr = partial(jnp.asarray, dtype=float_dtype())
     return Camera(arr(eye), arr(target), arr(up), arr(fov_y), arr(near), arr(far),

@@ -14,6 +14,7 @@ Conventions: positions are world-space points; a `direction` is the direction th
 """
 
 import dataclasses
+from collections.abc import Iterable
 
 import jax
 import jax.numpy as jnp
@@ -82,13 +83,27 @@ class LightGroups:
 
 
 def _array(name, value, shape, *, nonneg=False):
-    arr = np.asarray(value, dtype=np.float64)
+    kind = "non-negative " if nonneg else ""
+    error = ValueError(f"{name}: got {value!r}; expected {kind}finite numbers of shape {shape}")
+    try:  # a string, None or a ragged sequence is not a number
+        if isinstance(value, (str, bytes)) or value is None:
+            raise error
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise error from None
     if shape == (3,) and arr.shape == ():
         arr = np.full(3, float(arr))
     if arr.shape != shape or not np.all(np.isfinite(arr)) or (nonneg and np.any(arr < 0)):
-        kind = "non-negative " if nonneg else ""
-        raise ValueError(f"{name}: got {value!r}; expected {kind}finite numbers of shape {shape}")
+        raise error
     return jnp.asarray(arr, dtype=float_dtype())
+
+
+def _scalar(name, value, expected):
+    """value as a finite float, or ValueError "name: got value; expected ..."."""
+    try:
+        return float(_array(name, value, ()))
+    except ValueError:
+        raise ValueError(f"{name}: got {value!r}; expected {expected}") from None
 
 
 def _direction(name, value):
@@ -100,7 +115,7 @@ def _direction(name, value):
 
 def _colours(color, ambient, diffuse, specular):
     """OpenGL colours: `color` sets diffuse = specular; explicit keywords win."""
-    base = 1.0 if color is None else color
+    base = 1.0 if color is None else _array("color", color, (3,), nonneg=True)
     diffuse = base if diffuse is None else diffuse
     specular = base if specular is None else specular
     return (_array("ambient", ambient, (3,), nonneg=True),
@@ -138,10 +153,12 @@ def point_light(position, color=None, *, ambient=0.0, diffuse=None, specular=Non
 def spot_light(position, direction, color=None, *, cutoff=30.0, exponent=0.0, ambient=0.0,
                diffuse=None, specular=None, attenuation=(1.0, 0.0, 0.0)) -> SpotLight:
     """A positional light limited to the cone of half-angle `cutoff` degrees around `direction`."""
-    if not (np.isfinite(cutoff) and (0.0 <= cutoff <= 90.0 or cutoff == 180.0)):
-        raise ValueError(f"cutoff: got {cutoff!r}; expected degrees in [0, 90], or 180 (no cone)")
-    if not (np.isfinite(exponent) and 0.0 <= exponent <= 128.0):
-        raise ValueError(f"exponent: got {exponent!r}; expected a number in [0, 128]")
+    cone, power = "degrees in [0, 90], or 180 (no cone)", "a number in [0, 128]"
+    angle = _scalar("cutoff", cutoff, cone)
+    if not (0.0 <= angle <= 90.0 or angle == 180.0):
+        raise ValueError(f"cutoff: got {cutoff!r}; expected {cone}")
+    if not 0.0 <= _scalar("exponent", exponent, power) <= 128.0:
+        raise ValueError(f"exponent: got {exponent!r}; expected {power}")
     dt = float_dtype()
     return SpotLight(_array("position", position, (3,)), _direction("direction", direction),
                      *_colours(color, ambient, diffuse, specular), _attenuation(attenuation),
@@ -156,6 +173,9 @@ def group_lights(lights) -> LightGroups:
     """Stack a list of single lights by type into `LightGroups` (absent types are None)."""
     if isinstance(lights, LightGroups):
         return lights
+    if type(lights) in _GROUP_OF or isinstance(lights, str) or not isinstance(lights, Iterable):
+        raise TypeError(f"lights: got {type(lights).__name__}; expected a list of lights "
+                        "or a LightGroups")
     groups = {name: [] for name in _GROUP_OF.values()}
     for i, light in enumerate(lights):
         if type(light) not in _GROUP_OF:

@@ -27,11 +27,21 @@ class Material:
     emission: jax.Array | None = None
 
 
+def _floats(value):
+    """value as a float64 array, or None when it is not numbers (a string, None, ragged)."""
+    if isinstance(value, (str, bytes)) or value is None:
+        return None
+    try:
+        return np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        return None
+
+
 def _coefficient(name, value):
-    arr = np.asarray(value, dtype=np.float64)
-    if arr.shape == ():
+    arr = _floats(value)
+    if arr is not None and arr.shape == ():
         arr = np.full(3, float(arr))
-    if arr.shape != (3,) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
+    if arr is None or arr.shape != (3,) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
         raise ValueError(f"{name}: got {value!r}; expected a non-negative finite number "
                          "or 3 of them (RGB)")
     return jnp.asarray(arr, dtype=float_dtype())
@@ -40,7 +50,8 @@ def _coefficient(name, value):
 def material(ka=0.2, kd=0.8, ks=None, shininess=0.0, emission=None) -> Material:
     """Build a validated Material. shininess must be finite and >= 0 (OpenGL caps it at 128;
     diffshade does not, so that sharp highlights can be fitted)."""
-    if not (np.ndim(shininess) == 0 and np.isfinite(shininess) and shininess >= 0):
+    exponent = _floats(shininess)
+    if exponent is None or exponent.shape != () or not (np.isfinite(exponent) and exponent >= 0):
         raise ValueError(f"shininess: got {shininess!r}; expected a finite number >= 0")
     return Material(
         ka=_coefficient("ka", ka),

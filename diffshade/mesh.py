@@ -115,9 +115,17 @@ def _is_real(value):
     return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
+def _as_array(values, name, expected):
+    """np.asarray(values), or ValueError naming `name` for a ragged sequence."""
+    try:
+        return np.asarray(values)
+    except ValueError:
+        raise ValueError(f"{name}: got a ragged sequence; expected {expected}") from None
+
+
 def _check_points(values, name):
     """values as a finite [N, 3] float64 numpy array, or ValueError naming `name`."""
-    arr = np.asarray(values)
+    arr = _as_array(values, name, "[N, 3] real numbers")
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"{name}: shape {arr.shape}; expected [N, 3]")
     if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
@@ -130,13 +138,14 @@ def _check_points(values, name):
 
 def _check_faces(faces, num_vertices):
     """faces as an [F, 3] int32 numpy array of indices into num_vertices, F >= 1."""
-    arr = np.asarray(faces)
+    arr = _as_array(faces, "faces", "[F, 3] integer vertex indices")
     if arr.ndim != 2 or arr.shape[1] != 3 or arr.shape[0] == 0:
         raise ValueError(f"faces: shape {arr.shape}; expected [F, 3] with F >= 1")
     if np.issubdtype(arr.dtype, np.floating):
         bad = np.flatnonzero(~np.isfinite(arr) | (arr != np.floor(arr)))
         if bad.size:
-            raise ValueError(f"faces: value {arr.flat[bad[0]]} is not an integer index")
+            raise ValueError(f"faces: value {arr.flat[bad[0]]} is not an integer; "
+                             "expected integer vertex indices")
     elif not np.issubdtype(arr.dtype, np.integer):
         raise ValueError(f"faces: dtype {arr.dtype}; expected integer vertex indices")
     bad = np.flatnonzero((arr < 0) | (arr >= num_vertices))
@@ -388,7 +397,8 @@ def load_mesh(path, *, weighting="angle", crease_angle=None):
         tm = trimesh.load(path, force="mesh", process=True)
     # trimesh's loaders raise many exception types; all mean "cannot read this file".
     except Exception as err:
-        raise ValueError(f"path: cannot read mesh file {path!r}: {err}") from err
+        raise ValueError(f"path: cannot read mesh file {path!r}: {err}; expected a mesh file "
+                         "trimesh reads (OBJ, PLY, STL, GLB, ...)") from err
     if not isinstance(tm, trimesh.Trimesh) or len(tm.faces) == 0:
         raise ValueError(f"path: mesh file {path!r} has no faces; expected triangles")
     return mesh_from_trimesh(tm, weighting=weighting, crease_angle=crease_angle)

@@ -45,8 +45,15 @@ def safe_sqrt(x):
 
 
 def safe_norm(v, keepdims=False):
-    """Euclidean norm of v: [..., 3] float, finite gradient at v = 0 (where it returns 0)."""
-    return safe_sqrt(dot(v, v, keepdims))
+    """Euclidean norm of v: [..., 3] float, finite gradient at v = 0 (where it returns 0).
+
+    The cut-off is |v| <= tiny, as in safe_normalize: a threshold on the squared norm
+    (safe_sqrt's) would zero every vector shorter than sqrt(tiny), e.g. 1e-6 in float32,
+    and so the edges' cross products, face areas and vertex normals of a small mesh.
+    """
+    sq = dot(v, v, keepdims)
+    ok = sq > tiny(v.dtype) ** 2
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
 
 
 def safe_normalize(v, fallback=None):

@@ -43,17 +43,29 @@ class Scene:
     two_sided: bool = False
 
 
+def _floats(value):
+    """value as a float64 array, or None when it is not numbers (a string, ragged...)."""
+    if isinstance(value, (str, bytes)):
+        return None
+    try:
+        return np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        return None
+
+
 def _rgb(name, value):
-    arr = np.asarray(value, dtype=np.float64)
-    if arr.shape == ():
+    arr = _floats(value)
+    if arr is not None and arr.shape == ():
         arr = np.full(3, float(arr))
-    if arr.shape != (3,) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
+    if arr is None or arr.shape != (3,) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
         raise ValueError(f"{name}: got {value!r}; expected a non-negative number or 3 of them")
     return jnp.asarray(arr, dtype=float_dtype())
 
 
 def _model_matrix(value):
-    arr = np.eye(4) if value is None else np.asarray(value, dtype=np.float64)
+    arr = np.eye(4) if value is None else _floats(value)
+    if arr is None:
+        raise ValueError(f"model: got {value!r}; expected a finite 4x4 matrix")
     if arr.shape != (4, 4) or not np.all(np.isfinite(arr)):
         raise ValueError(f"model: got an array of shape {arr.shape}; expected a finite 4x4 matrix")
     if abs(np.linalg.det(arr[:3, :3])) < 1e-12:
@@ -66,9 +78,12 @@ def make_scene(mesh: Mesh, camera: Camera, lights=(), material: Material | None 
                local_viewer=False, two_sided=False) -> Scene:
     """Build a validated Scene. `lights` is a list of lights or a LightGroups; the defaults
     follow OpenGL (global ambient 0.2, infinite viewer, one-sided lighting)."""
-    for name, value, kind in (("mesh", mesh, Mesh), ("camera", camera, Camera)):
+    for name, value, kind in (("mesh", mesh, Mesh), ("camera", camera, Camera),
+                              ("material", material, (Material, type(None))),
+                              ("back_material", back_material, (Material, type(None)))):
         if not isinstance(value, kind):
-            raise TypeError(f"{name}: got {type(value).__name__}; expected {kind.__name__}")
+            expected = kind.__name__ if isinstance(kind, type) else "Material or None"
+            raise TypeError(f"{name}: got {type(value).__name__}; expected {expected}")
     return Scene(
         mesh=mesh, material=make_material() if material is None else material,
         lights=group_lights(lights), camera=camera, model=_model_matrix(model),

@@ -20,6 +20,9 @@ SHADING_MODES = ("phong", "gouraud", "flat", "flat_last")
 SPECULAR_MODELS = ("blinn", "phong")
 SPOT_EDGES = ("hard", "smooth")
 RASTER_MODES = ("hard", "soft")
+# sigma, gamma and spot_softness divide float32 values: below ~1e-38 their reciprocal
+# overflows and the soft blend (or the smooth spot edge) turns into inf - inf = NaN
+MIN_SCALE = 1e-30
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,9 +47,17 @@ class RenderSettings:
         k = self.faces_per_pixel
         if isinstance(k, bool) or not isinstance(k, int) or k < 1:
             raise ValueError(f"faces_per_pixel: got {k!r}; expected an integer >= 1")
+        for name in ("clamp", "cull_backfaces"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name}: got {getattr(self, name)!r}; expected True or False")
         for name in ("spot_softness", "sigma", "gamma"):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and 0 < value < float("inf")):
-                raise ValueError(f"{name}: got {value!r}; expected a positive finite number")
-        if not 0 < self.soft_threshold < 0.5:
+            if not (_is_number(value) and MIN_SCALE <= value < float("inf")):
+                raise ValueError(f"{name}: got {value!r}; expected a finite number >= "
+                                 f"{MIN_SCALE:g} (float32 must hold its reciprocal)")
+        if not (_is_number(self.soft_threshold) and 0 < self.soft_threshold < 0.5):
             raise ValueError(f"soft_threshold: got {self.soft_threshold!r}; expected (0, 0.5)")
+
+
+def _is_number(value):
+    return isinstance(value, (int, float)) and not isinstance(value, bool)

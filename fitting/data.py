@@ -34,7 +34,7 @@ class View:
 
     def __post_init__(self):
         object.__setattr__(self, "lights", group_lights(self.lights))
-        object.__setattr__(self, "target", np.asarray(self.target, np.float32))
+        object.__setattr__(self, "target", _float_array("target", self.target))
         if self.mask is not None:
             object.__setattr__(self, "mask", np.asarray(self.mask, bool))
 
@@ -66,11 +66,31 @@ class Dataset:
         for i, view in enumerate(views):
             _check_view(i, view)
         object.__setattr__(self, "views", views)
-        model = np.eye(4) if self.model is None else np.asarray(self.model, np.float64)
-        object.__setattr__(self, "model", model)
+        model = np.eye(4) if self.model is None else _float_array("model", self.model)
+        if model.shape != (4, 4) or not np.all(np.isfinite(model)):
+            raise ValueError(f"model: got an array of shape {model.shape}; expected a finite "
+                             "4x4 model-to-world matrix")
+        object.__setattr__(self, "model", model.astype(np.float64))
+        ambient = _float_array("global_ambient", self.global_ambient)
+        if ambient.shape not in ((), (3,)) or not np.all(np.isfinite(ambient)) or np.any(
+                ambient < 0):
+            raise ValueError(f"global_ambient: got {self.global_ambient!r}; expected a "
+                             "non-negative number or 3 of them")
+        if self.truth is not None and not isinstance(self.truth, Material):
+            raise TypeError(f"truth: got {type(self.truth).__name__}; expected a Material "
+                            "(diffshade.material(...)) or None")
         if not isinstance(self.settings, RenderSettings):
             raise TypeError(f"settings: got {type(self.settings).__name__}; "
                             "expected RenderSettings")
+
+
+def _float_array(name, value):
+    """np.asarray(value, float) with a clear error for text or ragged input."""
+    try:
+        return np.asarray(value, np.float32 if name == "target" else np.float64)
+    except (TypeError, ValueError) as err:
+        kind = "ragged nested lists" if "inhomogeneous" in str(err) else repr(value)
+        raise ValueError(f"{name}: got {kind}; expected an array of numbers") from None
 
 
 def _check_view(i, view):

@@ -1,0 +1,459 @@
+"""Bad input gets a clear error at the API boundary (issue 5): a ValueError, TypeError or
+FileNotFoundError raised by diffshade itself (never by JAX, nor numpy's own message)
+whose text names the argument, shows the value and says what was expected; through the
+command line, one line on stderr, exit status 2, no traceback and no output file.
+
+Each row of the tables below is (call, exception type, argument name, value as shown);
+"expected" must follow in the message.
+"""
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import diffshade as ds
+import fitting
+from data_synth import make_dataset
+from diffshade import cli
+
+NAN, INF = float("nan"), float("inf")
+TRIANGLE = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]
+FACE = [[0, 1, 2]]
+
+
+def assert_clear(info, name, value):
+    """The raised error names `name`, shows `value` and says what was expected."""
+    err = info.value
+    assert isinstance(err, (ValueError, TypeError, FileNotFoundError)), type(err)
+    assert not type(err).__module__.startswith(("jax", "jaxlib", "numpy")), type(err)
+    message = str(err)
+    assert name in message and value in message and "expected" in message, message
+
+
+def camera(**kw):
+    return ds.look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), **{"width": 8, "height": 8, **kw})
+
+
+# ------------------------------------------------------------------------------ meshes
+
+MESHES = {
+    "nan_vertex": (lambda: ds.mesh_from_arrays([[NAN, 0, 0], *TRIANGLE[1:]], FACE),
+                   "vertices", "nan"),
+    "inf_vertex": (lambda: ds.mesh_from_arrays([TRIANGLE[0], [1, INF, 0], TRIANGLE[2]], FACE),
+                   "vertices", "inf"),
+    "face_out_of_range": (lambda: ds.mesh_from_arrays(TRIANGLE, [[0, 1, 3]]), "faces", "3"),
+    "face_negative": (lambda: ds.mesh_from_arrays(TRIANGLE, [[0, -1, 2]]), "faces", "-1"),
+    "vertices_n_by_2": (lambda: ds.mesh_from_arrays([[0, 0], [1, 0], [0, 1]], FACE),
+                        "vertices", "(3, 2)"),
+    "faces_n_by_2": (lambda: ds.mesh_from_arrays(TRIANGLE, [[0, 1]]), "faces", "(1, 2)"),
+    "faces_1d": (lambda: ds.mesh_from_arrays(TRIANGLE, [0, 1, 2]), "faces", "(3,)"),
+    "no_faces": (lambda: ds.mesh_from_arrays(TRIANGLE, np.zeros((0, 3), int)), "faces",
+                 "(0, 3)"),
+    "faces_not_integral": (lambda: ds.mesh_from_arrays(TRIANGLE, [[0, 1, 1.5]]), "faces", "1.5"),
+    "vertices_complex": (lambda: ds.mesh_from_arrays(np.array(TRIANGLE, complex), FACE),
+                         "vertices", "complex"),
+    "faces_complex": (lambda: ds.mesh_from_arrays(TRIANGLE, np.array(FACE, complex)), "faces",
+                      "complex"),
+    "vertices_strings": (lambda: ds.mesh_from_arrays([["a", "b", "c"]] * 3, FACE), "vertices",
+                         "<U1"),
+    "faces_strings": (lambda: ds.mesh_from_arrays(TRIANGLE, [["0", "1", "2"]]), "faces", "<U1"),
+    "faces_bool": (lambda: ds.mesh_from_arrays(TRIANGLE, [[True, False, True]]), "faces",
+                   "bool"),
+    "vertices_ragged": (lambda: ds.mesh_from_arrays([[0, 0, 0], [1, 0], [0, 1, 0]], FACE),
+                        "vertices", "ragged"),
+    "vertices_none": (lambda: ds.mesh_from_arrays(None, FACE), "vertices", "()"),
+    "normals_nan": (lambda: ds.mesh_from_arrays(TRIANGLE, FACE, [[0, 0, NAN]] * 3), "normals",
+                    "nan"),
+    "icosphere_subdivisions": (lambda: ds.icosphere(-1), "subdivisions", "-1"),
+    "icosphere_radius": (lambda: ds.icosphere(1, radius=0.0), "radius", "0.0"),
+    "box_size": (lambda: ds.box((1.0, -1.0, 1.0)), "size", "-1.0"),
+    "model_matrix_nan": (lambda: ds.model_matrix(scale=(1.0, NAN, 1.0)), "scale", "nan"),
+}
+
+
+@pytest.mark.parametrize("call, name, value", MESHES.values(), ids=MESHES)
+def test_bad_mesh_input_raises_a_clear_value_error(call, name, value):
+    with pytest.raises(ValueError) as info:
+        call()
+    assert_clear(info, name, value)
+
+
+# ------------------------------------------------------------------- material and camera
+
+MATERIALS = {
+    "shininess_negative": (dict(shininess=-1.0), "shininess", "-1.0"),
+    "shininess_nan": (dict(shininess=NAN), "shininess", "nan"),
+    "shininess_inf": (dict(shininess=INF), "shininess", "inf"),
+    "shininess_text": (dict(shininess="shiny"), "shininess", "'shiny'"),
+    "shininess_rgb": (dict(shininess=[1.0, 2.0, 3.0]), "shininess", "[1.0, 2.0, 3.0]"),
+    "ka_negative": (dict(ka=-0.1), "ka", "-0.1"),
+    "kd_nan_channel": (dict(kd=[0.5, NAN, 0.5]), "kd", "nan"),
+    "ks_negative_channel": (dict(ks=[0.5, -1.0, 0.5]), "ks", "-1.0"),
+    "emission_inf": (dict(emission=INF), "emission", "inf"),
+    "kd_text": (dict(kd="red"), "kd", "'red'"),
+    "kd_two_channels": (dict(kd=[0.5, 0.5]), "kd", "[0.5, 0.5]"),
+}
+
+
+@pytest.mark.parametrize("kwargs, name, value", MATERIALS.values(), ids=MATERIALS)
+def test_bad_material_raises_a_clear_value_error(kwargs, name, value):
+    with pytest.raises(ValueError) as info:
+        ds.material(**kwargs)
+    assert_clear(info, name, value)
+
+
+CAMERAS = {
+    "width_zero": (dict(width=0), "width", "0"),
+    "height_negative": (dict(height=-5), "height", "-5"),
+    "width_fractional": (dict(width=2.5), "width", "2.5"),
+    "width_text": (dict(width="8"), "width", "'8'"),
+    "width_bool": (dict(width=True), "width", "True"),
+    "eye_equals_target": (dict(eye=(1.0, 2.0, 3.0), target=(1.0, 2.0, 3.0)), "eye, target",
+                          "[1.0, 2.0, 3.0]"),
+    "up_parallel": (dict(up=(0.0, 0.0, 2.0)), "up", "[0.0, 0.0, 2.0]"),
+    "up_zero": (dict(up=(0.0, 0.0, 0.0)), "up", "[0.0, 0.0, 0.0]"),
+    "near_equals_far": (dict(near=10.0, far=10.0), "near, far", "near=10.0, far=10.0"),
+    "near_beyond_far": (dict(near=20.0, far=10.0), "near, far", "near=20.0, far=10.0"),
+    "near_zero": (dict(near=0.0), "near, far", "near=0.0"),
+    "near_negative": (dict(near=-1.0), "near, far", "near=-1.0"),
+    "near_none": (dict(near=None), "near", "None"),
+    "far_inf": (dict(far=INF), "far", "inf"),
+    "fov_zero": (dict(fov_y=0.0), "fov_y", "0.0"),
+    "fov_180": (dict(fov_y=180.0), "fov_y", "180.0"),
+    "fov_negative": (dict(fov_y=-10.0), "fov_y", "-10.0"),
+    "fov_nan": (dict(fov_y=NAN), "fov_y", "nan"),
+    "fov_text": (dict(fov_y="wide"), "fov_y", "'wide'"),
+    "fov_pair": (dict(fov_y=[45.0, 50.0]), "fov_y", "[45.0, 50.0]"),
+    "eye_nan": (dict(eye=(0.0, NAN, 3.0)), "eye", "nan"),
+    "eye_two_numbers": (dict(eye=(0.0, 3.0)), "eye", "(0.0, 3.0)"),
+    "eye_text": (dict(eye="here"), "eye", "'here'"),
+    "projection": (dict(projection="fisheye"), "projection", "'fisheye'"),
+    "ortho_height": (dict(ortho_height=0.0), "ortho_height", "0.0"),
+}
+
+
+@pytest.mark.parametrize("kwargs, name, value", CAMERAS.values(), ids=CAMERAS)
+def test_bad_camera_raises_a_clear_value_error(kwargs, name, value):
+    args = {"eye": (0.0, 0.0, 3.0), "target": (0.0, 0.0, 0.0), "width": 8, "height": 8, **kwargs}
+    with pytest.raises(ValueError) as info:
+        ds.look_at(args.pop("eye"), args.pop("target"), **args)
+    assert_clear(info, name, value)
+
+
+# ---------------------------------------------------------------------------- lights
+
+LIGHTS = {
+    "attenuation_constant_zero": (lambda: ds.point_light((0, 0, 1), attenuation=(0, 0, 1)),
+                                  "attenuation", "(0, 0, 1)"),
+    "attenuation_negative": (lambda: ds.point_light((0, 0, 1), attenuation=(1, -1, 0)),
+                             "attenuation", "(1, -1, 0)"),
+    "attenuation_nan": (lambda: ds.spot_light((0, 0, 1), (0, 0, -1), attenuation=(1, NAN, 0)),
+                        "attenuation", "nan"),
+    "attenuation_text": (lambda: ds.point_light((0, 0, 1), attenuation="none"), "attenuation",
+                         "'none'"),
+    "directional_zero_direction": (lambda: ds.directional_light((0, 0, 0)), "direction",
+                                   "(0, 0, 0)"),
+    "spot_zero_direction": (lambda: ds.spot_light((0, 0, 1), (0.0, 0.0, 0.0)), "direction",
+                            "(0.0, 0.0, 0.0)"),
+    "spot_cutoff_120": (lambda: ds.spot_light((0, 0, 1), (0, 0, -1), cutoff=120.0), "cutoff",
+                        "120.0"),
+    "spot_cutoff_negative": (lambda: ds.spot_light((0, 0, 1), (0, 0, -1), cutoff=-1.0),
+                             "cutoff", "-1.0"),
+    "spot_cutoff_text": (lambda: ds.spot_light((0, 0, 1), (0, 0, -1), cutoff="wide"), "cutoff",
+                         "'wide'"),
+    "spot_exponent_200": (lambda: ds.spot_light((0, 0, 1), (0, 0, -1), exponent=200.0),
+                          "exponent", "200.0"),
+    "spot_exponent_nan": (lambda: ds.spot_light((0, 0, 1), (0, 0, -1), exponent=NAN),
+                          "exponent", "nan"),
+    "colour_negative": (lambda: ds.point_light((0, 0, 1), -1.0), "color", "-1.0"),
+    "colour_text": (lambda: ds.point_light((0, 0, 1), "white"), "color", "'white'"),
+    "specular_nan": (lambda: ds.directional_light((0, 0, -1), specular=NAN), "specular", "nan"),
+    "position_nan": (lambda: ds.point_light((0, NAN, 1)), "position", "nan"),
+    "position_two_numbers": (lambda: ds.point_light((0, 1)), "position", "(0, 1)"),
+    "ambient_text": (lambda: ds.ambient_light("grey"), "color", "'grey'"),
+}
+
+
+@pytest.mark.parametrize("call, name, value", LIGHTS.values(), ids=LIGHTS)
+def test_bad_light_raises_a_clear_value_error(call, name, value):
+    with pytest.raises(ValueError) as info:
+        call()
+    assert_clear(info, name, value)
+
+
+# ----------------------------------------------------------------- scene and settings
+
+SCENES = {
+    "mesh_not_a_mesh": (dict(mesh="sphere.obj"), TypeError, "mesh", "str"),
+    "camera_not_a_camera": (dict(camera=(0, 0, 3)), TypeError, "camera", "tuple"),
+    "material_not_a_material": (dict(material="red"), TypeError, "material", "str"),
+    "back_material_not_a_material": (dict(back_material={"kd": 0.5}), TypeError,
+                                     "back_material", "dict"),
+    "lights_one_light": (dict(lights=ds.point_light((0, 0, 2))), TypeError, "lights",
+                         "PointLight"),
+    "lights_none": (dict(lights=None), TypeError, "lights", "NoneType"),
+    "lights_text": (dict(lights="sun"), TypeError, "lights", "str"),
+    "lights_junk_item": (dict(lights=[ds.ambient_light(0.1), "sun"]), TypeError, "lights[1]",
+                         "str"),
+    "model_singular": (dict(model=np.diag([1.0, 0.0, 1.0, 1.0])), ValueError, "model",
+                       "singular"),
+    "model_nan": (dict(model=np.full((4, 4), NAN)), ValueError, "model", "(4, 4)"),
+    "model_3x3": (dict(model=np.eye(3)), ValueError, "model", "(3, 3)"),
+    "model_text": (dict(model="identity"), ValueError, "model", "'identity'"),
+    "global_ambient_negative": (dict(global_ambient=-1.0), ValueError, "global_ambient",
+                                "-1.0"),
+    "background_nan": (dict(background=[0.0, NAN, 0.0]), ValueError, "background", "nan"),
+    "background_text": (dict(background="black"), ValueError, "background", "'black'"),
+}
+
+
+@pytest.mark.parametrize("kwargs, error, name, value", SCENES.values(), ids=SCENES)
+def test_bad_scene_raises_a_clear_error(kwargs, error, name, value):
+    args = {"mesh": ds.icosphere(0), "camera": camera(), **kwargs}
+    with pytest.raises(error) as info:
+        ds.make_scene(args.pop("mesh"), args.pop("camera"), **args)
+    assert_clear(info, name, value)
+
+
+SETTINGS = {
+    "shading": (dict(shading="toon"), "shading", "'toon'"),
+    "raster": (dict(raster="wireframe"), "raster", "'wireframe'"),
+    "specular": (dict(specular="cook-torrance"), "specular", "'cook-torrance'"),
+    "spot_edge": (dict(spot_edge=None), "spot_edge", "None"),
+    "faces_per_pixel_zero": (dict(faces_per_pixel=0), "faces_per_pixel", "0"),
+    "faces_per_pixel_float": (dict(faces_per_pixel=2.5), "faces_per_pixel", "2.5"),
+    "sigma_zero": (dict(sigma=0.0), "sigma", "0.0"),
+    "sigma_negative": (dict(sigma=-1.0), "sigma", "-1.0"),
+    "sigma_nan": (dict(sigma=NAN), "sigma", "nan"),
+    "sigma_inf": (dict(sigma=INF), "sigma", "inf"),
+    # 1/gamma overflows float32 below ~3e-39: the soft blend would be inf - inf = NaN
+    "gamma_below_float32": (dict(gamma=1e-40), "gamma", "1e-40"),
+    "gamma_text": (dict(gamma="small"), "gamma", "'small'"),
+    "spot_softness_zero": (dict(spot_softness=0.0), "spot_softness", "0.0"),
+    "soft_threshold": (dict(soft_threshold=0.7), "soft_threshold", "0.7"),
+    "soft_threshold_text": (dict(soft_threshold="x"), "soft_threshold", "'x'"),
+    "clamp_text": (dict(clamp="no"), "clamp", "'no'"),
+    "cull_backfaces_int": (dict(cull_backfaces=1), "cull_backfaces", "1"),
+}
+
+
+@pytest.mark.parametrize("kwargs, name, value", SETTINGS.values(), ids=SETTINGS)
+def test_bad_render_settings_raise_a_clear_value_error(kwargs, name, value):
+    with pytest.raises(ValueError) as info:
+        ds.RenderSettings(**kwargs)
+    assert_clear(info, name, value)
+
+
+# ----------------------------------------------------------------------------- files
+
+
+def test_missing_or_unreadable_mesh_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match="mesh file not found: .*missing.obj"):
+        ds.load_mesh(tmp_path / "missing.obj")
+    with pytest.raises(FileNotFoundError, match="mesh file not found"):
+        ds.load_mesh(tmp_path)  # a folder is not a mesh file
+    for name, content in [("garbage.obj", b"this is not a mesh\x00\x01"), ("empty.obj", b""),
+                          ("points.obj", b"v 0 0 0\nv 1 0 0\n"),
+                          ("truncated.ply", b"ply\nformat ascii 1.0\nelement vertex 3\n"),
+                          ("bad_index.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 7\n")]:
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(ValueError) as info:
+            ds.load_mesh(tmp_path / name)
+        assert_clear(info, "path", name)
+
+
+def test_missing_or_unreadable_image_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match="image file not found: .*missing.png"):
+        ds.read_image(tmp_path / "missing.png")
+    with pytest.raises(FileNotFoundError, match="image file not found"):
+        ds.read_image(tmp_path)
+    (tmp_path / "junk.png").write_bytes(b"not a png")
+    with pytest.raises(ValueError, match="junk.png"):
+        ds.read_image(tmp_path / "junk.png")
+
+
+# ---------------------------------------------------------------- scene files and CLI
+
+GOOD = {"mesh": {"builtin": {"icosphere": {"subdivisions": 0}}},
+        "camera": {"eye": [0, 0, 3], "target": [0, 0, 0], "width": 8, "height": 8}}
+
+
+def with_camera(**changes):
+    return json.dumps({**GOOD, "camera": {**GOOD["camera"], **changes}})
+
+
+# file name -> (contents, text that must appear after the file name in the message)
+BAD_FILES = {
+    "truncated.json": ('{"mesh": {"builtin": {"icosphere": {}}}, "camera": {"eye": [0,',
+                       "line 1, column"),
+    "no_camera.json": (json.dumps({"mesh": GOOD["mesh"]}), "camera: missing; expected"),
+    "no_mesh.json": (json.dumps({"camera": GOOD["camera"]}), "mesh: missing; expected"),
+    "empty.json": ("", "line 1, column 1: invalid JSON"),
+    "array.json": ("[1, 2, 3]", "top level: got [1, 2, 3]; expected an object"),
+    "width_text.json": (with_camera(width="abc"), 'camera.width: got "abc"; expected'),
+    "width_zero.json": (with_camera(width=0), "camera.width: got 0; expected"),
+    "near_far.json": (with_camera(near=10, far=1), "camera.near, camera.far: got near=10"),
+    "eye_nan.json": (with_camera(eye=[0, "NaN", 3]), "camera.eye: got"),
+    "eye_is_target.json": (with_camera(eye=[0, 0, 0]), "camera.eye, camera.target"),
+    "up_parallel.json": (with_camera(up=[0, 0, 1]), "camera.up: [0.0, 0.0, 1.0] is parallel"),
+    "shininess.json": (json.dumps({**GOOD, "material": {"shininess": -5}}),
+                       "material.shininess: got -5; expected"),
+    "typo.json": (json.dumps({**GOOD, "materail": {}}), 'materail: unknown key; did you mean'),
+    "faces.json": (json.dumps({**GOOD, "mesh": {"vertices": [[0, 0, 0], [1, 0, 0], [0, 1, 0]],
+                                                "faces": [[0, 1, 5]]}}),
+                   "mesh.faces: index 5 out of range"),
+    "missing_mesh.json": (json.dumps({**GOOD, "mesh": {"path": "nowhere.obj"}}),
+                          "mesh.path: mesh file 'nowhere.obj' not found"),
+    "garbage_mesh.json": (json.dumps({**GOOD, "mesh": {"path": "garbage.obj"}}),
+                          "mesh.path: mesh file"),
+    "binary.json": (b"\xff\xfe\x00garbage", "byte 0: not UTF-8 text"),
+}
+
+
+def write_bad(tmp_path, name):
+    """The bad scene file `name` in tmp_path (and the garbage mesh it may refer to)."""
+    contents, _ = BAD_FILES[name]
+    (tmp_path / "garbage.obj").write_bytes(b"not a mesh at all\n")
+    path = tmp_path / name
+    if isinstance(contents, bytes):
+        path.write_bytes(contents)
+    else:
+        path.write_text(contents.replace('"NaN"', "NaN"))  # JSON's NaN extension
+    return path
+
+
+@pytest.mark.parametrize("name", BAD_FILES)
+def test_bad_scene_file_raises_a_value_error_naming_file_and_key(tmp_path, name):
+    with pytest.raises(ValueError) as info:
+        ds.load_scene(write_bad(tmp_path, name))
+    assert isinstance(info.value, ds.SceneFileError)
+    assert f"{name}: {BAD_FILES[name][1]}" in str(info.value)
+
+
+def test_missing_scene_file_raises_file_not_found(tmp_path):
+    with pytest.raises(FileNotFoundError, match="scene file not found: .*missing.json"):
+        ds.load_scene(tmp_path / "missing.json")
+
+
+def one_error_line(capsys):
+    out, err = capsys.readouterr()
+    lines = err.splitlines()
+    assert out == "" and len(lines) == 1 and lines[0].startswith("diffshade: error: "), err
+    assert "Traceback" not in err
+    return lines[0]
+
+
+@pytest.mark.parametrize("name", [*BAD_FILES, "missing.json"])
+def test_cli_render_of_a_bad_scene_prints_one_line_and_writes_nothing(tmp_path, capsys, name):
+    scene = tmp_path / name if name == "missing.json" else write_bad(tmp_path, name)
+    before = set(os.listdir(tmp_path))
+    assert cli.main(["render", str(scene), "-o", str(tmp_path / "out" / "img.png")]) == 2
+    line = one_error_line(capsys)
+    assert name in line
+    assert set(os.listdir(tmp_path)) == before  # no image, no output folder, no temporary
+
+
+@pytest.mark.parametrize("size", ["0x8", "8x0", "-5x8", "2.5x8", "8"])
+def test_cli_render_rejects_a_bad_size(tmp_path, capsys, size):
+    argv = ["render", "--builtin", "box", "-o", str(tmp_path / "img.png"), f"--size={size}"]
+    assert cli.main(argv) == 2
+    assert f"got '{size}'; expected WxH" in one_error_line(capsys)
+    assert os.listdir(tmp_path) == []
+
+
+def test_console_script_reports_a_truncated_scene_without_traceback(tmp_path):
+    scene, out = write_bad(tmp_path, "truncated.json"), tmp_path / "img.png"
+    done = subprocess.run([sys.executable, "-m", "diffshade", "render", str(scene), "-o",
+                           str(out)], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2 and done.stdout == ""
+    assert done.stderr.splitlines() == [
+        f"diffshade: error: {scene}: line 1, column 63: invalid JSON: Expecting value"]
+    assert not out.exists()
+
+
+# ------------------------------------------------------------------ fitting datasets
+
+
+def view(target_shape=(12, 16, 3), **kw):
+    """A View of a 16 x 12 camera with a target of `target_shape`."""
+    return fitting.View(camera(width=16, height=12), [ds.directional_light((0, 0, -1))],
+                        np.zeros(target_shape), **kw)
+
+
+DATASETS = {
+    "target_size": (lambda: fitting.Dataset(MESH, [view((16, 16, 3))]), ValueError,
+                    "views[0].target", "(16, 16, 3)"),
+    "target_transposed": (lambda: fitting.Dataset(MESH, [view(), view((16, 12, 3))]),
+                          ValueError, "views[1].target", "(16, 12, 3)"),
+    "target_rgba": (lambda: fitting.Dataset(MESH, [view((12, 16, 4))]), ValueError,
+                    "views[0].target", "(12, 16, 4)"),
+    "target_grey": (lambda: fitting.Dataset(MESH, [view((12, 16))]), ValueError,
+                    "views[0].target", "(12, 16)"),
+    "target_nan": (lambda: fitting.Dataset(MESH, [fitting.View(
+        camera(width=16, height=12), [], np.full((12, 16, 3), NAN))]), ValueError,
+        "views[0].target", "NaN"),
+    "target_text": (lambda: fitting.View(camera(), [], "target.png"), ValueError, "target",
+                    "'target.png'"),
+    "target_ragged": (lambda: fitting.View(camera(), [], [[0.0, 0.0], [0.0]]), ValueError,
+                      "target", "ragged"),
+    "mask_size": (lambda: fitting.Dataset(MESH, [view(mask=np.ones((16, 16), bool))]),
+                  ValueError, "views[0].mask", "(16, 16)"),
+    "no_views": (lambda: fitting.Dataset(MESH, []), ValueError, "views", "empty"),
+    "view_not_a_view": (lambda: fitting.Dataset(MESH, [view(), "view.png"]), TypeError,
+                        "views[1]", "str"),
+    "mesh_not_a_mesh": (lambda: fitting.Dataset("sphere.obj", [view()]), TypeError, "mesh",
+                        "str"),
+    "camera_not_a_camera": (lambda: fitting.Dataset(MESH, [fitting.View(
+        "camera", [], np.zeros((12, 16, 3)))]), TypeError, "views[0].camera", "str"),
+    "settings_not_settings": (lambda: fitting.Dataset(MESH, [view()], settings="phong"),
+                              TypeError, "settings", "str"),
+    "model_3x3": (lambda: fitting.Dataset(MESH, [view()], model=np.eye(3)), ValueError,
+                  "model", "(3, 3)"),
+    "model_text": (lambda: fitting.Dataset(MESH, [view()], model="identity"), ValueError,
+                   "model", "'identity'"),
+    "truth_not_a_material": (lambda: fitting.Dataset(MESH, [view()], truth={"kd": 0.5}),
+                             TypeError, "truth", "dict"),
+    "global_ambient_negative": (lambda: fitting.Dataset(MESH, [view()], global_ambient=-1.0),
+                                ValueError, "global_ambient", "-1.0"),
+}
+MESH = ds.icosphere(0)
+
+
+@pytest.mark.parametrize("call, error, name, value", DATASETS.values(), ids=DATASETS)
+def test_bad_fitting_data_raises_a_clear_error(call, error, name, value):
+    with pytest.raises(error) as info:
+        call()
+    assert_clear(info, name, value)
+
+
+FITS = {
+    "dataset": (lambda d: fitting.fit("data/"), TypeError, "dataset", "str"),
+    "spec": (lambda d: fitting.fit(d, spec="all"), TypeError, "spec", "str"),
+    "method": (lambda d: fitting.fit(d, method="newton"), ValueError, "method", "'newton'"),
+    "steps": (lambda d: fitting.fit(d, steps=-1), ValueError, "steps", "-1"),
+    "loss": (lambda d: fitting.fit(d, loss="l3"), ValueError, "loss", "'l3'"),
+}
+
+
+@pytest.mark.parametrize("call, error, name, value", FITS.values(), ids=FITS)
+def test_bad_fit_arguments_raise_a_clear_error(call, error, name, value):
+    with pytest.raises(error) as info:
+        call(fitting.Dataset(MESH, [view()]))
+    assert_clear(info, name, value)
+
+
+def test_fit_without_truth_works_and_reports_no_errors():
+    truth = ds.material(ka=0.3, kd=(0.6, 0.4, 0.2), ks=0.4, shininess=30.0)
+    known = make_dataset(ds.icosphere(1), truth, n_views=1, n_lights=2, size=24)
+    result = fitting.fit(dataclasses.replace(known, truth=None), with_uncertainty=False)
+    assert result.errors is None and result.as_dict()["errors"] is None
+    assert "%" not in result.summary()
+    for name in ("ka", "kd", "ks", "shininess"):
+        np.testing.assert_allclose(result.values[name], np.broadcast_to(getattr(truth, name),
+                                                                        np.shape(result.values[name])),
+                                   rtol=1e-3, err_msg=name)
