@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffshade.numerics import float_dtype, safe_normalize
+from diffshade.numerics import float_dtype, representable, safe_normalize
 
 PROJECTIONS = ("perspective", "orthographic")
 
@@ -52,7 +52,7 @@ def _floats(name, value, expected):
 
 def _vec3(name, value):
     arr = _floats(name, value, "3 finite numbers")
-    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+    if arr.shape != (3,) or not np.all(representable(arr)):
         raise ValueError(f"{name}: got {value!r}; expected 3 finite numbers")
     return arr
 
@@ -60,7 +60,7 @@ def _vec3(name, value):
 def _scalar(name, value, expected):
     """value as a finite float, or ValueError naming `name`."""
     arr = _floats(name, value, expected)
-    if arr.shape != () or not np.isfinite(arr):
+    if arr.shape != () or not representable(arr):
         raise ValueError(f"{name}: got {value!r}; expected {expected}")
     return float(arr)
 

@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffshade.numerics import float_dtype
+from diffshade.numerics import float_dtype, representable
 
 
 def _pytree(cls):
@@ -93,7 +93,7 @@ def _array(name, value, shape, *, nonneg=False):
         raise error from None
     if shape == (3,) and arr.shape == ():
         arr = np.full(3, float(arr))
-    if arr.shape != shape or not np.all(np.isfinite(arr)) or (nonneg and np.any(arr < 0)):
+    if arr.shape != shape or not np.all(representable(arr)) or (nonneg and np.any(arr < 0)):
         raise error
     return jnp.asarray(arr, dtype=float_dtype())
 

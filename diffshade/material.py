@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffshade.numerics import float_dtype
+from diffshade.numerics import float_dtype, representable
 
 
 @jax.tree_util.register_dataclass
@@ -41,7 +41,7 @@ def _coefficient(name, value):
     arr = _floats(value)
     if arr is not None and arr.shape == ():
         arr = np.full(3, float(arr))
-    if arr is None or arr.shape != (3,) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
+    if arr is None or arr.shape != (3,) or not np.all(representable(arr)) or np.any(arr < 0):
         raise ValueError(f"{name}: got {value!r}; expected a non-negative finite number "
                          "or 3 of them (RGB)")
     return jnp.asarray(arr, dtype=float_dtype())
@@ -51,7 +51,7 @@ def material(ka=0.2, kd=0.8, ks=None, shininess=0.0, emission=None) -> Material:
     """Build a validated Material. shininess must be finite and >= 0 (OpenGL caps it at 128;
     diffshade does not, so that sharp highlights can be fitted)."""
     exponent = _floats(shininess)
-    if exponent is None or exponent.shape != () or not (np.isfinite(exponent) and exponent >= 0):
+    if exponent is None or exponent.shape != () or not (representable(exponent) and exponent >= 0):
         raise ValueError(f"shininess: got {shininess!r}; expected a finite number >= 0")
     return Material(
         ka=_coefficient("ka", ka),

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import trimesh
 
-from diffshade.numerics import safe_norm, safe_normalize, tiny
+from diffshade.numerics import representable, safe_norm, safe_normalize, tiny
 
 __all__ = [
     "Mesh", "box", "face_areas", "face_normals", "icosphere", "load_mesh", "mesh_from_arrays",
@@ -130,7 +130,7 @@ def _check_points(values, name):
         raise ValueError(f"{name}: shape {arr.shape}; expected [N, 3]")
     if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
         raise ValueError(f"{name}: dtype {arr.dtype}; expected real numbers")
-    bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
+    bad = np.flatnonzero(~representable(arr, np.float32).all(axis=1))
     if bad.size:
         raise ValueError(f"{name}: row {bad[0]} is {arr[bad[0]].tolist()}; expected finite")
     return arr.astype(np.float64)
@@ -254,7 +254,7 @@ def _split_creases(verts, tris, weighting, crease_angle):
 
 
 def _check_positive(value, name):
-    if not (_is_real(value) and math.isfinite(value) and value > 0):
+    if not (_is_real(value) and representable(value, np.float32) and value > 0):
         raise ValueError(f"{name}: {value!r}; expected a finite number > 0")
 
 
@@ -344,14 +344,27 @@ def _grid_faces(rows, cols):
     return np.stack([a, b, c, a, c, d], axis=-1).reshape(-1, 3)
 
 
+def _three_numbers(value):
+    """value as a float64 [3] array, or None (text, ragged, another shape, or not finite
+    in float32)."""
+    if isinstance(value, (str, bytes)):
+        return None
+    try:
+        arr = np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        return None
+    return arr if arr.shape == (3,) and np.all(representable(arr, np.float32)) else None
+
+
 def box(size=(1.0, 1.0, 1.0)):
     """Axis-aligned box Mesh centred at the origin with side lengths size: 3 floats > 0.
 
     24 vertices (4 per side, so each side has its own flat normal), 12 faces CCW outward.
     """
-    half = np.asarray(size, np.float64) / 2.0
-    if half.shape != (3,) or not np.all(np.isfinite(half) & (half > 0)):
+    sides = _three_numbers(size)
+    if sides is None or not np.all(sides > 0):
         raise ValueError(f"size: {size!r}; expected 3 finite numbers > 0")
+    half = sides / 2.0
     square = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
     corners, normals = [], []
     for axis, sign in itertools.product(range(3), (1.0, -1.0)):
@@ -448,7 +461,7 @@ def model_matrix(translate=(0.0, 0.0, 0.0), rotate_deg=(0.0, 0.0, 0.0), scale=(1
     """
     args = {"translate": translate, "rotate_deg": rotate_deg, "scale": scale}
     for name, value in args.items():
-        if np.shape(value) != (3,) or not np.all(np.isfinite(value)):
+        if _three_numbers(value) is None:
             raise ValueError(f"{name}: {value!r}; expected 3 finite numbers")
     rx, ry, rz = np.radians(np.asarray(rotate_deg, np.float64))
     matrix = np.eye(4)

@@ -9,6 +9,7 @@ so the discarded branch never produces inf/NaN that would leak into the gradient
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 def tiny(dtype) -> float:
@@ -91,6 +92,16 @@ def safe_pow(base, exponent):
 def clamp01(x):
     """Clip to [0, 1]; the gradient is 1 inside and 0 outside (no straight-through trick)."""
     return jnp.clip(x, 0.0, 1.0)
+
+
+def representable(values, dtype=None):
+    """[...] bool: finite once stored as `dtype` (default: the default float dtype).
+
+    Builders check their input with this rather than np.isfinite: 1e39 is finite in
+    float64 but overflows float32 to inf, which no safe helper can recover from.
+    """
+    limit = np.finfo(float_dtype() if dtype is None else dtype).max
+    return np.abs(np.asarray(values, np.float64)) <= limit  # False for NaN and inf
 
 
 def float_dtype():

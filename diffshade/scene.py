@@ -18,7 +18,7 @@ from diffshade.lights import LightGroups, group_lights
 from diffshade.material import Material
 from diffshade.material import material as make_material
 from diffshade.mesh import Mesh
-from diffshade.numerics import float_dtype
+from diffshade.numerics import float_dtype, representable
 
 
 @partial(jax.tree_util.register_dataclass,
@@ -57,7 +57,7 @@ def _rgb(name, value):
     arr = _floats(value)
     if arr is not None and arr.shape == ():
         arr = np.full(3, float(arr))
-    if arr is None or arr.shape != (3,) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
+    if arr is None or arr.shape != (3,) or not np.all(representable(arr)) or np.any(arr < 0):
         raise ValueError(f"{name}: got {value!r}; expected a non-negative number or 3 of them")
     return jnp.asarray(arr, dtype=float_dtype())
 
@@ -66,7 +66,7 @@ def _model_matrix(value):
     arr = np.eye(4) if value is None else _floats(value)
     if arr is None:
         raise ValueError(f"model: got {value!r}; expected a finite 4x4 matrix")
-    if arr.shape != (4, 4) or not np.all(np.isfinite(arr)):
+    if arr.shape != (4, 4) or not np.all(representable(arr)):
         raise ValueError(f"model: got an array of shape {arr.shape}; expected a finite 4x4 matrix")
     if abs(np.linalg.det(arr[:3, :3])) < 1e-12:
         raise ValueError("model: the upper 3x3 block is singular; expected an invertible transform")

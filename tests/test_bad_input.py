@@ -46,6 +46,9 @@ MESHES = {
                    "vertices", "nan"),
     "inf_vertex": (lambda: ds.mesh_from_arrays([TRIANGLE[0], [1, INF, 0], TRIANGLE[2]], FACE),
                    "vertices", "inf"),
+    # finite in float64, but a float32 mesh would hold inf
+    "vertex_beyond_float32": (lambda: ds.mesh_from_arrays([[0, 0, 1e39], *TRIANGLE[1:]], FACE),
+                              "vertices", "1e+39"),
     "face_out_of_range": (lambda: ds.mesh_from_arrays(TRIANGLE, [[0, 1, 3]]), "faces", "3"),
     "face_negative": (lambda: ds.mesh_from_arrays(TRIANGLE, [[0, -1, 2]]), "faces", "-1"),
     "vertices_n_by_2": (lambda: ds.mesh_from_arrays([[0, 0], [1, 0], [0, 1]], FACE),
@@ -73,6 +76,9 @@ MESHES = {
     "icosphere_radius": (lambda: ds.icosphere(1, radius=0.0), "radius", "0.0"),
     "box_size": (lambda: ds.box((1.0, -1.0, 1.0)), "size", "-1.0"),
     "model_matrix_nan": (lambda: ds.model_matrix(scale=(1.0, NAN, 1.0)), "scale", "nan"),
+    "model_matrix_text": (lambda: ds.model_matrix(rotate_deg=("x", 0, 0)), "rotate_deg", "'x'"),
+    "box_text": (lambda: ds.box("big"), "size", "'big'"),
+    "radius_beyond_float32": (lambda: ds.icosphere(1, radius=1e39), "radius", "1e+39"),
 }
 
 
@@ -89,6 +95,7 @@ MATERIALS = {
     "shininess_negative": (dict(shininess=-1.0), "shininess", "-1.0"),
     "shininess_nan": (dict(shininess=NAN), "shininess", "nan"),
     "shininess_inf": (dict(shininess=INF), "shininess", "inf"),
+    "shininess_beyond_float32": (dict(shininess=1e39), "shininess", "1e+39"),
     "shininess_text": (dict(shininess="shiny"), "shininess", "'shiny'"),
     "shininess_rgb": (dict(shininess=[1.0, 2.0, 3.0]), "shininess", "[1.0, 2.0, 3.0]"),
     "ka_negative": (dict(ka=-0.1), "ka", "-0.1"),
@@ -130,6 +137,7 @@ CAMERAS = {
     "fov_text": (dict(fov_y="wide"), "fov_y", "'wide'"),
     "fov_pair": (dict(fov_y=[45.0, 50.0]), "fov_y", "[45.0, 50.0]"),
     "eye_nan": (dict(eye=(0.0, NAN, 3.0)), "eye", "nan"),
+    "eye_beyond_float32": (dict(eye=(0.0, 0.0, 1e39)), "eye", "1e+39"),
     "eye_two_numbers": (dict(eye=(0.0, 3.0)), "eye", "(0.0, 3.0)"),
     "eye_text": (dict(eye="here"), "eye", "'here'"),
     "projection": (dict(projection="fisheye"), "projection", "'fisheye'"),
@@ -174,6 +182,7 @@ LIGHTS = {
     "colour_text": (lambda: ds.point_light((0, 0, 1), "white"), "color", "'white'"),
     "specular_nan": (lambda: ds.directional_light((0, 0, -1), specular=NAN), "specular", "nan"),
     "position_nan": (lambda: ds.point_light((0, NAN, 1)), "position", "nan"),
+    "position_beyond_float32": (lambda: ds.point_light((0, 0, 1e39)), "position", "1e+39"),
     "position_two_numbers": (lambda: ds.point_light((0, 1)), "position", "(0, 1)"),
     "ambient_text": (lambda: ds.ambient_light("grey"), "color", "'grey'"),
 }
@@ -246,6 +255,23 @@ SETTINGS = {
 def test_bad_render_settings_raise_a_clear_value_error(kwargs, name, value):
     with pytest.raises(ValueError) as info:
         ds.RenderSettings(**kwargs)
+    assert_clear(info, name, value)
+
+
+RENDERS = {
+    "scene_is_a_mesh": (lambda scene: ds.render(ds.icosphere(0)), "scene", "Mesh"),
+    "scene_is_a_path": (lambda scene: ds.render("scene.json"), "scene", "str"),
+    "settings_is_text": (lambda scene: ds.render(scene, "phong"), "settings", "str"),
+    "settings_is_a_dict": (lambda scene: ds.render(scene, {"shading": "phong"}), "settings",
+                           "dict"),
+    "parts_settings_is_text": (lambda scene: ds.render_parts(scene, "flat"), "settings", "str"),
+}
+
+
+@pytest.mark.parametrize("call, name, value", RENDERS.values(), ids=RENDERS)
+def test_render_rejects_what_is_not_a_scene_or_settings(call, name, value):
+    with pytest.raises(TypeError) as info:
+        call(ds.make_scene(ds.icosphere(0), camera()))
     assert_clear(info, name, value)
 
 
