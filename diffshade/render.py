@@ -12,6 +12,7 @@ that are clockwise on screen, as OpenGL does.
 """
 
 import dataclasses
+import functools
 from functools import partial
 
 import jax
@@ -23,6 +24,7 @@ from diffshade.interpolate import gather_faces, interpolate
 from diffshade.numerics import clamp01, safe_normalize
 from diffshade.project import Projected, project
 from diffshade.raster import Fragments, face_edge_coefficients, rasterize
+from diffshade.scene import Scene
 from diffshade.settings import RenderSettings
 from diffshade.shading import ShadingParts, shade
 
@@ -131,8 +133,28 @@ def shade_fragments(scene, proj: Projected, frags: Fragments, settings):
     return _SHADERS[settings.shading](scene, proj, frags, settings)
 
 
+def check_arguments(scene, settings):
+    """Raise a clear TypeError unless scene is a Scene and settings a RenderSettings
+    (checked before jit: a dict as a static argument fails while being hashed)."""
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene: got {type(scene).__name__}; expected Scene "
+                        "(diffshade.make_scene)")
+    if not isinstance(settings, RenderSettings):
+        raise TypeError(f"settings: got {type(settings).__name__}; expected RenderSettings")
+
+
+def _checked(jitted):
+    """The public entry point of a jitted renderer: arguments checked, then the call."""
+    @functools.wraps(jitted)
+    def entry(scene, settings=DEFAULT_SETTINGS, *args, **kwargs):
+        check_arguments(scene, settings)
+        return jitted(scene, settings, *args, **kwargs)
+    entry._cache_size = jitted._cache_size
+    return entry
+
+
 @partial(jax.jit, static_argnames=("settings",))
-def rasterize_scene(scene, settings=DEFAULT_SETTINGS) -> Fragments:
+def _rasterize_scene(scene, settings=DEFAULT_SETTINGS) -> Fragments:
     """Project and rasterize the scene's mesh (cache the result when geometry is fixed)."""
     return rasterize(project(scene), scene.mesh.faces, scene.camera, settings)
 
@@ -142,8 +164,12 @@ def blend(scene, colours, frags: Fragments, settings):
     if settings.raster == "hard":
         return hard_blend(colours, frags, scene.background)
     cam = scene.camera
-    return soft_blend(colours, frags, scene.background, cam.near, cam.far, settings.sigma,
-                      settings.gamma)
+    image = soft_blend(colours, frags, scene.background, cam.near, cam.far, settings.sigma,
+                       settings.gamma)
+    if not settings.clamp:
+        return image
+    # the weights sum to 1 only up to rounding: keep a blend of clamped colours in [0, 1]
+    return jnp.concatenate([clamp01(image[..., :3]), image[..., 3:]], -1)
 
 
 def render_fragments(scene, frags: Fragments, settings=DEFAULT_SETTINGS):
@@ -153,13 +179,13 @@ def render_fragments(scene, frags: Fragments, settings=DEFAULT_SETTINGS):
 
 
 @partial(jax.jit, static_argnames=("settings",))
-def render(scene, settings=DEFAULT_SETTINGS):
+def _render(scene, settings=DEFAULT_SETTINGS):
     """Render the scene: [H, W, 4] RGBA (alpha = coverage) over scene.background."""
     return render_fragments(scene, rasterize_scene(scene, settings), settings)
 
 
 @partial(jax.jit, static_argnames=("settings",))
-def render_parts(scene, settings=DEFAULT_SETTINGS) -> ShadingParts:
+def _render_parts(scene, settings=DEFAULT_SETTINGS) -> ShadingParts:
     """The unclamped ambient, diffuse, specular and emission images, each [H, W, 3]
     (zero where no face covers the pixel)."""
     frags = rasterize_scene(scene, settings)
@@ -174,10 +200,16 @@ def downsample(image, factor: int):
 
 
 @partial(jax.jit, static_argnames=("settings", "factor"))
-def render_supersampled(scene, settings=DEFAULT_SETTINGS, factor: int = 2):
+def _render_supersampled(scene, settings=DEFAULT_SETTINGS, factor: int = 2):
     """Anti-aliased render: render at factor x the camera's resolution, then box-filter
     down: [H, W, 4]."""
     cam = dataclasses.replace(scene.camera, width=scene.camera.width * factor,
                               height=scene.camera.height * factor)
     big = render(dataclasses.replace(scene, camera=cam), settings)
     return downsample(big, factor)
+
+
+rasterize_scene = _checked(_rasterize_scene)
+render = _checked(_render)
+render_parts = _checked(_render_parts)
+render_supersampled = _checked(_render_supersampled)

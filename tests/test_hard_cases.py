@@ -529,6 +529,16 @@ def test_catalogue(dtype):
     assert not found, f"{len(found)} failures ({dtype}):\n" + "\n".join(found)
 
 
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_clamped_soft_blend_stays_within_one(dtype):
+    # colours clamped to [0, 1] and a background in [0, 1]: their convex combination must
+    # be too, but the soft weights sum to 1 only up to rounding (the catalogue's checks
+    # allow 4 ulps so that they report only what is worse)
+    with jax.enable_x64(DTYPES[dtype]):
+        image = np.asarray(render(CASES["generic"].build(), RenderSettings(raster="soft")))
+    assert image[..., :3].max() <= 1.0 and image[..., 3].max() <= 1.0
+
+
 # ----------------------------------------------------------------- a 2048 x 2048 render
 
 
