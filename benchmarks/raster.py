@@ -129,7 +129,7 @@ def run_config(subdivisions, size, k, repeats, dense_pairs, dense_repeats):
     import jax
     import jax.numpy as jnp
 
-    from diffshade import RenderSettings, rasterize_scene, render
+    from diffshade import CPU_TUNING, RenderSettings, rasterize_scene, render
 
     settings = RenderSettings(raster="soft", faces_per_pixel=k, shading="phong")
     scene = make_scene(subdivisions, size)
@@ -138,7 +138,8 @@ def run_config(subdivisions, size, k, repeats, dense_pairs, dense_repeats):
     target_image = jnp.full((size, size, 4), 0.5, jnp.float32)
     params = (scene.mesh.vertices, scene.material.kd, scene.material.ks)
     out = {"subdivisions": subdivisions, "faces": int(scene.mesh.faces.shape[0]), "size": size,
-           "k": k, "baseline_rss_bytes": peak_rss_bytes(), "loadavg_1min": os.getloadavg()[0]}
+           "k": k, "baseline_rss_bytes": peak_rss_bytes(), "loadavg_1min": os.getloadavg()[0],
+           "cpu_tuning": CPU_TUNING}
     loss = loss_fn(render, settings, scene, target_image)
     out["forward_backward"] = measure(jax.value_and_grad(loss), (params,), repeats)
     out["peak_rss_bytes"] = peak_rss_bytes()

@@ -3,6 +3,12 @@
 Pipeline: project -> rasterize -> interpolate -> shade -> blend; `render` composes them.
 """
 
+from diffshade import cputune
+
+#: what diffshade.cputune changed in this process (see its docstring; before any import of
+#: a module that could start XLA)
+CPU_TUNING = cputune.apply()
+
 from diffshade.blend import hard_blend, soft_blend
 from diffshade.builtin import BUILTIN_SCENES, builtin_scene
 from diffshade.camera import Camera, look_at, projection_matrix, view_matrix

@@ -23,6 +23,7 @@ fragment that does not fit is counted in `dropped`.
 
 import numba
 import numpy as np
+from numba import prange
 
 EDGES = ((1, 2), (2, 0), (0, 1))
 
@@ -105,27 +106,37 @@ def _covered_depth(coeffs, tri, f, x, y):
     return z if -1.0 <= z <= 1.0 else np.inf
 
 
-@numba.njit(cache=True, nogil=True)
-def _search_hard(clip, faces, width, height, k, cull_backfaces):
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _search_hard(clip, faces, width, height, k, cull_backfaces, bands):
     ids = np.full((width * height, k), -1, np.int32)
     keys = np.full((width * height, k), np.inf)
-    tri, coeffs, box = np.empty((1, 3, 4)), np.empty((1, 3, 3)), np.empty(4)
-    dropped = 0
-    for f in range(faces.shape[0]):
-        det = _face_setup(clip, faces, f, tri[0], coeffs[0])
-        if not np.isfinite(det) or det == 0.0 or (cull_backfaces and det < 0.0):
-            continue
-        if not _near_clipped_bbox(tri[0], box):
-            continue
-        c0, c1 = _pixel_range(box[0], box[1], width, 0.0, False)
-        r0, r1 = _pixel_range(box[2], box[3], height, 0.0, True)
-        for row in range(r0, r1 + 1):
-            y = 1.0 - (2.0 * row + 1.0) / height
-            for col in range(c0, c1 + 1):
-                z = _covered_depth(coeffs, tri, 0, (2.0 * col + 1.0) / width - 1.0, y)
-                if z < np.inf:
-                    dropped += _insert(ids, keys, row * width + col, f, z)
-    return ids, dropped
+    dropped = np.zeros(bands, np.int64)
+    for band in prange(bands):
+        band_r0, band_r1 = _band_rows(band, bands, height)
+        tri, coeffs, box = np.empty((1, 3, 4)), np.empty((1, 3, 3)), np.empty(4)
+        for f in range(faces.shape[0]):
+            det = _face_setup(clip, faces, f, tri[0], coeffs[0])
+            if not np.isfinite(det) or det == 0.0 or (cull_backfaces and det < 0.0):
+                continue
+            if not _near_clipped_bbox(tri[0], box):
+                continue
+            c0, c1 = _pixel_range(box[0], box[1], width, 0.0, False)
+            r0, r1 = _pixel_range(box[2], box[3], height, 0.0, True)
+            for row in range(max(r0, band_r0), min(r1, band_r1) + 1):
+                y = 1.0 - (2.0 * row + 1.0) / height
+                for col in range(c0, c1 + 1):
+                    z = _covered_depth(coeffs, tri, 0, (2.0 * col + 1.0) / width - 1.0, y)
+                    if z < np.inf:
+                        dropped[band] += _insert(ids, keys, row * width + col, f, z)
+    return ids, dropped.sum()
+
+
+@numba.njit(cache=True, nogil=True)
+def _band_rows(band, bands, height):
+    """Inclusive row range of one of `bands` horizontal bands (searched in parallel: a
+    band's pixels are written by its own thread only)."""
+    step = (height + bands - 1) // bands
+    return band * step, min(height, (band + 1) * step) - 1
 
 
 @numba.njit(cache=True, nogil=True)
@@ -166,8 +177,8 @@ def _soft_fragment(scr, inv_len, zndc, px, py, radius_px):
 
 
 @numba.njit(cache=True, nogil=True)
-def _blend_logit(z_ndc, signed_d2, soft):
-    """log D + zt / gamma of soft_blend, from NDC depth: the fragment's weight in the blend.
+def _depth_logit(z_ndc, soft):
+    """zt / gamma of soft_blend from NDC depth: the depth part of a fragment's blend logit.
 
     soft = (sigma, gamma, near, far, perspective).
     """
@@ -176,47 +187,63 @@ def _blend_logit(z_ndc, signed_d2, soft):
         inv_depth = ((far + near) - z_ndc * (far - near)) / (2.0 * far * near)
     else:
         inv_depth = 2.0 / (z_ndc * (far - near) + (far + near))
-    zt = min(max((inv_depth - 1.0 / far) / (1.0 / near - 1.0 / far), 0.0), 1.0)
-    x = signed_d2 / sigma
-    log_d = -np.log1p(np.exp(-x)) if x >= 0.0 else x - np.log1p(np.exp(x))
-    return log_d + zt / gamma
+    return min(max((inv_depth - 1.0 / far) / (1.0 / near - 1.0 / far), 0.0), 1.0) / gamma
 
 
 @numba.njit(cache=True, nogil=True)
-def _search_soft(clip, faces, width, height, k, cull_backfaces, radius_px, soft):
+def _coverage_logit(signed_d2, sigma):
+    """log D = log_sigmoid(d2 / sigma) of soft_blend (<= 0)."""
+    x = signed_d2 / sigma
+    return -np.log1p(np.exp(-x)) if x >= 0.0 else x - np.log1p(np.exp(x))
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _search_soft(clip, faces, width, height, k, cull_backfaces, radius_px, soft, bands):
     ids = np.full((width * height, k), -1, np.int32)
     keys = np.full((width * height, k), np.inf)
-    tri, coeffs = np.empty((3, 4)), np.empty((3, 3))
-    scr, zndc, inv_len = np.empty((3, 2)), np.empty(3), np.empty(3)
-    dropped = 0
-    for f in range(faces.shape[0]):
-        det = _face_setup(clip, faces, f, tri, coeffs)
-        if not np.isfinite(det) or det == 0.0 or (cull_backfaces and det < 0.0):
-            continue
-        if min(tri[0, 2] + tri[0, 3], tri[1, 2] + tri[1, 3], tri[2, 2] + tri[2, 3]) < 0.0:
-            continue
-        for i in range(3):
-            scr[i, 0] = (tri[i, 0] / tri[i, 3] + 1.0) * width / 2.0
-            scr[i, 1] = (1.0 - tri[i, 1] / tri[i, 3]) * height / 2.0
-            zndc[i] = tri[i, 2] / tri[i, 3]
-        area2 = ((scr[1, 0] - scr[0, 0]) * (scr[2, 1] - scr[0, 1])
-                 - (scr[2, 0] - scr[0, 0]) * (scr[1, 1] - scr[0, 1]))
-        if area2 == 0.0:
-            continue
-        for i in range(3):
-            j = (i + 1) % 3
-            inv_len[i] = 1.0 / np.hypot(scr[j, 0] - scr[i, 0], scr[j, 1] - scr[i, 1])
-        c0 = int(max(np.ceil(scr[:, 0].min() - 0.5 - radius_px), 0.0))
-        c1 = int(min(np.floor(scr[:, 0].max() - 0.5 + radius_px), width - 1.0))
-        r0 = int(max(np.ceil(scr[:, 1].min() - 0.5 - radius_px), 0.0))
-        r1 = int(min(np.floor(scr[:, 1].max() - 0.5 + radius_px), height - 1.0))
-        for row in range(r0, r1 + 1):
-            for col in range(c0, c1 + 1):
-                z, sd2 = _soft_fragment(scr, inv_len, zndc, col + 0.5, row + 0.5, radius_px)
-                if z < np.inf and -1.0 <= z <= 1.0:
-                    key = -_blend_logit(z, sd2, soft)
-                    dropped += _insert(ids, keys, row * width + col, f, key)
-    return ids, dropped
+    dropped = np.zeros(bands, np.int64)
+    for band in prange(bands):
+        band_r0, band_r1 = _band_rows(band, bands, height)
+        tri, coeffs = np.empty((3, 4)), np.empty((3, 3))
+        scr, zndc, inv_len = np.empty((3, 2)), np.empty(3), np.empty(3)
+        for f in range(faces.shape[0]):
+            det = _face_setup(clip, faces, f, tri, coeffs)
+            if not np.isfinite(det) or det == 0.0 or (cull_backfaces and det < 0.0):
+                continue
+            if min(tri[0, 2] + tri[0, 3], tri[1, 2] + tri[1, 3], tri[2, 2] + tri[2, 3]) < 0.0:
+                continue
+            for i in range(3):
+                scr[i, 0] = (tri[i, 0] / tri[i, 3] + 1.0) * width / 2.0
+                scr[i, 1] = (1.0 - tri[i, 1] / tri[i, 3]) * height / 2.0
+            r0 = int(max(np.ceil(scr[:, 1].min() - 0.5 - radius_px), band_r0))
+            r1 = int(min(np.floor(scr[:, 1].max() - 0.5 + radius_px), band_r1))
+            if r0 > r1:
+                continue
+            area2 = ((scr[1, 0] - scr[0, 0]) * (scr[2, 1] - scr[0, 1])
+                     - (scr[2, 0] - scr[0, 0]) * (scr[1, 1] - scr[0, 1]))
+            if area2 == 0.0:
+                continue
+            for i in range(3):
+                j = (i + 1) % 3
+                zndc[i] = tri[i, 2] / tri[i, 3]
+                inv_len[i] = 1.0 / np.hypot(scr[j, 0] - scr[i, 0], scr[j, 1] - scr[i, 1])
+            c0 = int(max(np.ceil(scr[:, 0].min() - 0.5 - radius_px), 0.0))
+            c1 = int(min(np.floor(scr[:, 0].max() - 0.5 + radius_px), width - 1.0))
+            for row in range(r0, r1 + 1):
+                for col in range(c0, c1 + 1):
+                    z, sd2 = _soft_fragment(scr, inv_len, zndc, col + 0.5, row + 0.5, radius_px)
+                    if not (z < np.inf and -1.0 <= z <= 1.0):
+                        continue
+                    # the key is -(log D + zt / gamma) >= -zt / gamma: a full list whose
+                    # last key beats that bound rejects the fragment without the logarithm
+                    pixel = row * width + col
+                    key = -_depth_logit(z, soft)
+                    if ids[pixel, k - 1] >= 0 and key >= keys[pixel, k - 1]:
+                        dropped[band] += 1
+                        continue
+                    key -= _coverage_logit(sd2, soft[0])
+                    dropped[band] += _insert(ids, keys, pixel, f, key)
+    return ids, dropped.sum()
 
 
 def find_candidates(clip, faces, near=0.1, far=100.0, *, width, height, k,
@@ -234,11 +261,12 @@ def find_candidates(clip, faces, near=0.1, far=100.0, *, width, height, k,
     pixel; dropped: [] int32, fragments beyond the k kept).
     """
     clip = np.ascontiguousarray(clip, np.float64)
+    bands = min(height, 2 * numba.get_num_threads())
     faces = np.ascontiguousarray(faces, np.int64)
     if radius_px > 0.0:
         soft = (float(sigma), float(gamma), float(near), float(far), bool(perspective))
         ids, dropped = _search_soft(clip, faces, width, height, k, cull_backfaces, radius_px,
-                                    soft)
+                                    soft, bands)
     else:
-        ids, dropped = _search_hard(clip, faces, width, height, k, cull_backfaces)
+        ids, dropped = _search_hard(clip, faces, width, height, k, cull_backfaces, bands)
     return ids.reshape(height, width, k), np.int32(dropped)

@@ -1,11 +1,13 @@
 """rasterize: per pixel, the K nearest faces with perspective-correct barycentrics and depth.
 
 Two stages. The search (which faces cover which pixel, nearest first) is discrete and
-non-differentiable; it runs in numpy on the host through `jax.pure_callback`
+non-differentiable; it runs on the host through `jax.pure_callback` (hostcall.py)
 (candidates.py) and works under `jit` and `vmap`. Everything computed *from* the chosen
-face ids is plain JAX and differentiable with respect to vertices and camera:
-barycentrics from 2D homogeneous edge functions (equivalent to the lecture notes'
-perspective correction b_i/w_i / sum_j b_j/w_j) and the eye-space depth.
+face ids is differentiable with respect to vertices and camera: barycentrics from 2D
+homogeneous edge functions (equivalent to the lecture notes' perspective correction
+b_i/w_i / sum_j b_j/w_j), the soft signed distance and the eye-space depth. The
+per-fragment part is a `jax.custom_vjp` op whose forward and backward are compiled kernels
+(fragment_kernels.py); JAX differentiates the per-face setup feeding it.
 
 The returned `Fragments` is an ordinary pytree: cache it when geometry and camera are
 fixed and pass it back to `render_fragments` (fitting materials then never re-rasterizes).
@@ -18,9 +20,11 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 
-from diffshade.camera import pixel_centers_ndc
+from diffshade import fragment_kernels as kernels
 from diffshade.candidates import find_candidates
-from diffshade.numerics import dot, safe_div
+from diffshade.hostcall import host_call
+from diffshade.interpolate import interpolate
+from diffshade.numerics import dot, safe_div, tiny
 from diffshade.project import Projected
 
 
@@ -67,9 +71,8 @@ def search_faces(clip, faces, camera, k, settings, radius_px=0.0):
                      cull_backfaces=settings.cull_backfaces, radius_px=radius_px,
                      sigma=settings.sigma, gamma=settings.gamma,
                      perspective=camera.projection == "perspective")
-    operands = jax.lax.stop_gradient((clip, camera.near, camera.far))
-    return jax.pure_callback(search, shapes, operands[0], faces, operands[1], operands[2],
-                             vmap_method="sequential")
+    clip, near, far = jax.lax.stop_gradient((clip, camera.near, camera.far))
+    return host_call(search, shapes, clip, faces, near, far)
 
 
 def _screen_positions(clip, width, height):
@@ -79,71 +82,73 @@ def _screen_positions(clip, width, height):
     return jnp.stack([x, y], -1)
 
 
-def _segment_dist2(p, a, b):
-    """Squared distance from points p to segments ab: [..., 2] -> [...]."""
-    edge, rel = b - a, p - a
-    len2 = edge[..., 0] ** 2 + edge[..., 1] ** 2
-    t = jnp.clip(safe_div(rel[..., 0] * edge[..., 0] + rel[..., 1] * edge[..., 1], len2), 0, 1)
-    d = rel - t[..., None] * edge
-    return d[..., 0] ** 2 + d[..., 1] ** 2
+def _flat_ids(ids):
+    return ids.reshape(-1, ids.shape[-1])
 
 
-def signed_dist2(clip, faces, ids, inside, width, height):
-    """SoftRas's signed squared distance (pixels^2) from each pixel centre to its candidate
-    triangle's boundary, positive inside: [H, W, K]."""
-    scr = jnp.take(_screen_positions(clip, width, height), jnp.take(faces, ids, axis=0), axis=0)
-    ys, xs = jnp.meshgrid(jnp.arange(height) + 0.5, jnp.arange(width) + 0.5, indexing="ij")
-    p = jnp.stack([xs, ys], -1).astype(clip.dtype)[:, :, None, :]
-    d01 = _segment_dist2(p, scr[..., 0, :], scr[..., 1, :])
-    d12 = _segment_dist2(p, scr[..., 1, :], scr[..., 2, :])
-    d20 = _segment_dist2(p, scr[..., 2, :], scr[..., 0, :])
-    # where, not jnp.minimum: under jit(grad) XLA may recompute an operand with other
-    # rounding, and jax 0.10's min rule (bitwise operand == result) then drops its gradient
-    d2 = _pick_min(_pick_min(d01, d12), d20)
-    return jnp.where(inside, d2, -d2)
+def _geometry_args(corner_w, coeffs, scr, width, height, soft):
+    """The kernels' per-face and static arguments (fragment_kernels.geometry_forward)."""
+    return corner_w, coeffs, scr, width, height, soft, tiny(coeffs.dtype), kernels.chunks()
 
 
-def _pick_min(a, b):
-    return jnp.where(a <= b, a, b)
+@partial(jax.custom_vjp, nondiff_argnums=(4, 5, 6))
+def fragment_geometry(ids, corner_w, coeffs, scr, width, height, soft):
+    """Per fragment: barycentrics [H, W, K, 3] (clamped to the triangle in soft mode) and
+    the signed squared distance in pixels^2 to the triangle's boundary [H, W, K] (soft;
+    zeros in hard mode), from per-face inputs: corner_w [F, 3] clip W of the corners,
+    coeffs [F, 3, 3] edge coefficients (face_edge_coefficients), scr [F, 3, 2] corner pixel
+    positions. Forward and backward are compiled kernels (fragment_kernels.py); JAX
+    differentiates the per-face inputs."""
+    shapes = (jax.ShapeDtypeStruct(ids.shape + (3,), coeffs.dtype),
+              jax.ShapeDtypeStruct(ids.shape, coeffs.dtype))
+
+    def host(ids, corner_w, coeffs, scr):
+        return kernels.geometry_forward(
+            _flat_ids(ids), *_geometry_args(corner_w, coeffs, scr, width, height, soft))
+    return host_call(host, shapes, ids, corner_w, coeffs, scr)
 
 
-def _clamped_bary(edge, w):
-    """Soft mode's barycentrics: clamp to the triangle in *screen* space, then correct for
-    perspective. edge: [..., 3] homogeneous edge functions; w: [..., 3] vertex clip W.
+def _geometry_fwd(ids, corner_w, coeffs, scr, width, height, soft):
+    out = fragment_geometry(ids, corner_w, coeffs, scr, width, height, soft)
+    return out, (ids, corner_w, coeffs, scr)
 
-    Screen-space barycentrics are proportional to edge_i * w_i; clamping the
-    perspective-correct ones instead goes wrong where the pixel's ray meets the triangle's
-    plane behind the eye (they all flip sign there). Returns (bary [..., 3], inside [...]).
-    """
-    screen = edge * w
-    screen = safe_div(screen, (screen[..., 0] + screen[..., 1] + screen[..., 2])[..., None])
-    inside = jnp.all(screen >= 0, -1)
-    screen = jnp.maximum(screen, 0.0)
-    persp = safe_div(screen, w)
-    return safe_div(persp, (persp[..., 0] + persp[..., 1] + persp[..., 2])[..., None]), inside
+
+def _geometry_bwd(width, height, soft, residuals, cotangents):
+    ids, corner_w, coeffs, scr = residuals
+    shapes = tuple(jax.ShapeDtypeStruct(a.shape, a.dtype) for a in (coeffs, corner_w, scr))
+
+    def host(ids, corner_w, coeffs, scr, g_bary, g_dist):
+        k = ids.shape[-1]
+        return kernels.geometry_backward(
+            _flat_ids(ids), *_geometry_args(corner_w, coeffs, scr, width, height, soft),
+            g_bary.reshape(-1, k, 3), g_dist.reshape(-1, k))
+    g_coeffs, g_w, g_scr = host_call(host, shapes, ids, corner_w, coeffs, scr, *cotangents)
+    return None, g_w, g_coeffs, g_scr
+
+
+fragment_geometry.defvjp(_geometry_fwd, _geometry_bwd)
 
 
 def fragments_from_ids(proj: Projected, faces, face_ids, dropped, soft=False) -> Fragments:
     """Differentiable fragment geometry of the chosen faces (see module docstring).
 
-    soft=True: barycentrics of pixels outside a triangle are clamped to it (negative ones
-    set to 0, renormalized) and the signed squared distance `dist` is computed.
+    soft=True: barycentrics of pixels outside a triangle are clamped to it in screen space
+    (negative ones set to 0, renormalized), then corrected for perspective, and the signed
+    squared distance `dist` is computed. (Clamping the perspective-correct barycentrics
+    instead goes wrong where the pixel's ray meets the triangle's plane behind the eye:
+    they all flip sign there.)
     """
     height, width, _ = face_ids.shape
     valid = face_ids >= 0
     ids = jnp.maximum(face_ids, 0)
     coeffs, det = face_edge_coefficients(proj.clip, faces)
-    ndc = pixel_centers_ndc(width, height, proj.clip.dtype)
-    p = jnp.concatenate([ndc, jnp.ones_like(ndc[..., :1])], -1)[:, :, None, None, :]
-    edge = dot(jnp.take(coeffs, ids, axis=0), p)
-    bary = safe_div(edge, (edge[..., 0] + edge[..., 1] + edge[..., 2])[..., None])
-    dist = None
-    if soft:
-        bary, inside = _clamped_bary(edge, jnp.take(proj.clip[:, 3], jnp.take(faces, ids, axis=0)))
-        dist = jnp.where(valid, signed_dist2(proj.clip, faces, ids, inside, width, height), 0.0)
-    bary = jnp.where(valid[..., None], bary, 0.0)
-    depth = dot(bary, jnp.take(proj.depth, jnp.take(faces, ids, axis=0), axis=0))
-    return Fragments(face_ids, bary, depth, valid & (jnp.take(det, ids) > 0), dropped, dist)
+    corner_w = jnp.take(proj.clip[:, 3], faces)
+    scr = jnp.take(_screen_positions(proj.clip, width, height), faces, axis=0)
+    bary, dist = fragment_geometry(face_ids, corner_w, coeffs, scr, width, height, soft)
+    frags = Fragments(face_ids, bary, jnp.zeros(face_ids.shape, bary.dtype),
+                      valid & (jnp.take(det, ids) > 0), dropped, dist if soft else None)
+    depth = interpolate(proj.depth[:, None], faces, frags)[..., 0]
+    return dataclasses.replace(frags, depth=depth)
 
 
 def rasterize(proj: Projected, faces, camera, settings) -> Fragments:

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 
 from diffshade.blend import hard_blend, soft_blend
 from diffshade.camera import view_dir_infinite
-from diffshade.interpolate import gather_faces, interpolate
+from diffshade.interpolate import gather_faces, interpolate_tree
 from diffshade.numerics import clamp01, safe_normalize
 from diffshade.project import Projected, project
 from diffshade.raster import Fragments, face_edge_coefficients, rasterize
@@ -63,8 +63,8 @@ def _shade_points(scene, settings, points, normals, front) -> ShadingParts:
     if scene.two_sided:
         normals = jnp.where(front[..., None], normals, -normals)
         material = _pick_material(scene, front)
-    return shade(material, scene.lights, scene.global_ambient, points, normals,
-                 view_dirs(scene, points), settings)
+    normals, views = jax.lax.optimization_barrier((normals, view_dirs(scene, points)))
+    return shade(material, scene.lights, scene.global_ambient, points, normals, views, settings)
 
 
 def _colour(parts, settings):
@@ -73,8 +73,8 @@ def _colour(parts, settings):
 
 def _phong(scene, proj, frags, settings):
     faces = scene.mesh.faces
-    points = interpolate(proj.world, faces, frags)
-    normals = safe_normalize(interpolate(proj.normals, faces, frags))
+    points, normals = interpolate_tree((proj.world, proj.normals), faces, frags)
+    normals = safe_normalize(normals)
     parts = _shade_points(scene, settings, points, normals, frags.front)
     return parts, _colour(parts, settings)
 
@@ -89,8 +89,8 @@ def _vertex_sides(scene, proj, settings):
 
 
 def _by_side(sides, front, select):
-    """Combine per-side values with `select(value)`, choosing by front-facing."""
-    values = [jax.tree.map(select, side) for side in sides]
+    """Combine per-side values with `select(side)`, choosing by front-facing."""
+    values = [select(side) for side in sides]
     if len(values) == 1:
         return values[0]
     return jax.tree.map(lambda f, b: jnp.where(front[..., None], f, b), *values)
@@ -98,7 +98,8 @@ def _by_side(sides, front, select):
 
 def _gouraud(scene, proj, frags, settings):
     sides = _vertex_sides(scene, proj, settings)
-    parts, colour = _by_side(sides, frags.front, lambda a: interpolate(a, scene.mesh.faces, frags))
+    parts, colour = _by_side(sides, frags.front,
+                             lambda side: interpolate_tree(side, scene.mesh.faces, frags))
     # the interpolated clamped colours can exceed 1 by a rounding error; keep [0, 1] exact
     return parts, clamp01(colour) if settings.clamp else colour
 
@@ -106,7 +107,8 @@ def _gouraud(scene, proj, frags, settings):
 def _flat_last(scene, proj, frags, settings):
     last = scene.mesh.faces[:, 2]
     sides = _vertex_sides(scene, proj, settings)
-    return _by_side(sides, frags.front, lambda a: gather_faces(a[last], frags))
+    return _by_side(sides, frags.front,
+                    lambda side: jax.tree.map(lambda a: gather_faces(a[last], frags), side))
 
 
 def flat_samples(scene, proj: Projected):

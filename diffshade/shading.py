@@ -99,6 +99,8 @@ def _light_terms(material, light, light_dir, scale, normals, view_dirs, settings
     if material.ks is None:
         return ambient, diffuse, None
     base = _specular_base(normals, light_dir, view_dirs, settings.specular)
+    # materialize per-fragment intermediates (see shade's docstring)
+    base = jax.lax.optimization_barrier(base)
     power = safe_pow(base, jnp.asarray(material.shininess)[..., None])
     lit = jnp.where(n_dot_l > 0.0, power, 0.0)
     return ambient, diffuse, scale * material.ks * light.specular * lit
@@ -118,6 +120,10 @@ def shade(material: Material, lights: LightGroups, global_ambient, points, norma
 
     The loop over lights is unrolled at trace time (the light count is static): written
     out, the sums vectorize far better on CPU than a reduction over a small light axis.
+    Each light's direction and attenuation, and the specular base, pass through
+    `optimization_barrier`: XLA then stores them once instead of recomputing their chains
+    inside every fusion of the backward pass that reads them (XLA on CPU has no
+    multi-output fusion); this makes a soft render's backward pass ~25% faster.
     """
     shape = jnp.broadcast_shapes(points.shape, normals.shape, jnp.shape(material.kd))
     ambient_light = global_ambient
@@ -126,7 +132,8 @@ def shade(material: Material, lights: LightGroups, global_ambient, points, norma
     ambient = jnp.broadcast_to(material.ka * ambient_light, shape)
     diffuse = specular = jnp.zeros(shape, points.dtype)
     for kind, light in _lights(lights):
-        light_dir, scale = _incidence(kind, light, points, settings)
+        incidence = _incidence(kind, light, points, settings)
+        light_dir, scale = jax.lax.optimization_barrier(incidence)
         a, d, s = _light_terms(material, light, light_dir, scale, normals, view_dirs, settings)
         ambient, diffuse = ambient + a, diffuse + d
         specular = specular if s is None else specular + s

@@ -1,0 +1,49 @@
+"""host_call: `jax.pure_callback` that keeps float64 arrays float64.
+
+Under the `jax.enable_x64()` context manager (thread-local), XLA may run a callback on one
+of its own threads, where x64 is off: jax then hands the callback float64 operands
+converted to float32, silently, and rejects the float64 results it declared. host_call
+moves every float64 array across the boundary bit-cast to uint32 pairs (which no dtype
+canonicalization touches) and casts it back on the other side, so callbacks see exactly
+the arrays they were given, whichever way x64 was enabled.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def _is64(dtype):
+    return np.dtype(dtype) == np.float64
+
+
+def _pack(x):
+    """float64 [...] -> uint32 [..., 2] (other dtypes unchanged)."""
+    return jax.lax.bitcast_convert_type(x, jnp.uint32) if _is64(x.dtype) else x
+
+
+def _unpack(x, was64):
+    return np.asarray(x).view(np.float64)[..., 0] if was64 else np.asarray(x)
+
+
+def host_call(fn, result_shapes, *args):
+    """fn(*numpy arrays) -> tuple of numpy arrays shaped like result_shapes (a tuple of
+    jax.ShapeDtypeStruct); run under jit and vmap (sequentially) as pure_callback does."""
+    args = [jnp.asarray(a) for a in args]
+    args_64 = [_is64(a.dtype) for a in args]
+    outs_64 = [_is64(s.dtype) for s in result_shapes]
+    packed = tuple(jax.ShapeDtypeStruct(s.shape + (2,), np.uint32) if is64 else s
+                   for s, is64 in zip(result_shapes, outs_64, strict=True))
+
+    def host(*host_args):
+        values = [_unpack(a, is64) for a, is64 in zip(host_args, args_64, strict=True)]
+        results = fn(*values)
+        out = []
+        for r, s, is64 in zip(results, result_shapes, outs_64, strict=True):
+            r = np.ascontiguousarray(r, s.dtype).reshape(s.shape)
+            out.append(r.view(np.uint32).reshape(s.shape + (2,)) if is64 else r)
+        return tuple(out)
+    results = jax.pure_callback(host, packed, *[_pack(a) for a in args],
+                                vmap_method="sequential")
+    return tuple(jax.lax.bitcast_convert_type(r, jnp.float64) if is64 else r
+                 for r, is64 in zip(results, outs_64, strict=True))
