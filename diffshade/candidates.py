@@ -140,21 +140,22 @@ def _band_rows(band, bands, height):
 
 
 @numba.njit(cache=True, nogil=True)
-def _segment_dist2(px, py, ax, ay, bx, by):
-    """Squared distance from point p to segment ab (all in pixels)."""
-    ex, ey = bx - ax, by - ay
-    len2 = ex * ex + ey * ey
-    t = 0.0 if len2 == 0.0 else min(max(((px - ax) * ex + (py - ay) * ey) / len2, 0.0), 1.0)
-    dx, dy = px - ax - t * ex, py - ay - t * ey
+def _segment_dist2(px, py, ax, ay, ex, ey, inv_len2):
+    """Squared distance from point p to the segment from a along e (all in pixels);
+    inv_len2 = 1 / |e|^2 (0 for a point)."""
+    rx, ry = px - ax, py - ay
+    t = min(max((rx * ex + ry * ey) * inv_len2, 0.0), 1.0)
+    dx, dy = rx - t * ex, ry - t * ey
     return dx * dx + dy * dy
 
 
 @numba.njit(cache=True, nogil=True)
-def _soft_fragment(scr, inv_len, zndc, px, py, radius_px):
+def _soft_fragment(scr, edge, inv_len, zndc, px, py, radius_px):
     """(NDC depth, signed squared distance in pixels^2, positive inside) of the fragment of
     a screen triangle at pixel p; depth is +inf when the pixel is out of reach.
 
-    scr: [3, 2] vertex pixel coordinates; inv_len: [3] 1 / edge lengths; zndc: [3].
+    scr: [3, 2] vertex pixel coordinates; edge: [3, 2] scr[i + 1] - scr[i]; inv_len: [3]
+    1 / edge lengths; zndc: [3].
     Inside, depth is taken at the barycentrics (NDC z is affine in screen space); outside,
     at the clamped ones.
     """
@@ -165,9 +166,9 @@ def _soft_fragment(scr, inv_len, zndc, px, py, radius_px):
     # signed distances to the edge lines: a cheap necessary test before the exact one
     if min(b0 * inv_len[1], b1 * inv_len[2], b2 * inv_len[0]) * sign < -radius_px:
         return np.inf, 0.0
-    d2 = min(_segment_dist2(px, py, scr[0, 0], scr[0, 1], scr[1, 0], scr[1, 1]),
-             _segment_dist2(px, py, scr[1, 0], scr[1, 1], scr[2, 0], scr[2, 1]),
-             _segment_dist2(px, py, scr[2, 0], scr[2, 1], scr[0, 0], scr[0, 1]))
+    d2 = min(_segment_dist2(px, py, scr[0, 0], scr[0, 1], edge[0, 0], edge[0, 1], inv_len[0] ** 2),
+             _segment_dist2(px, py, scr[1, 0], scr[1, 1], edge[1, 0], edge[1, 1], inv_len[1] ** 2),
+             _segment_dist2(px, py, scr[2, 0], scr[2, 1], edge[2, 0], edge[2, 1], inv_len[2] ** 2))
     inside = b0 * sign >= 0.0 and b1 * sign >= 0.0 and b2 * sign >= 0.0
     if not inside and d2 > radius_px * radius_px:
         return np.inf, 0.0
@@ -205,7 +206,7 @@ def _search_soft(clip, faces, width, height, k, cull_backfaces, radius_px, soft,
     for band in prange(bands):
         band_r0, band_r1 = _band_rows(band, bands, height)
         tri, coeffs = np.empty((3, 4)), np.empty((3, 3))
-        scr, zndc, inv_len = np.empty((3, 2)), np.empty(3), np.empty(3)
+        scr, edge, zndc, inv_len = np.empty((3, 2)), np.empty((3, 2)), np.empty(3), np.empty(3)
         for f in range(faces.shape[0]):
             det = _face_setup(clip, faces, f, tri, coeffs)
             if not np.isfinite(det) or det == 0.0 or (cull_backfaces and det < 0.0):
@@ -226,12 +227,15 @@ def _search_soft(clip, faces, width, height, k, cull_backfaces, radius_px, soft,
             for i in range(3):
                 j = (i + 1) % 3
                 zndc[i] = tri[i, 2] / tri[i, 3]
-                inv_len[i] = 1.0 / np.hypot(scr[j, 0] - scr[i, 0], scr[j, 1] - scr[i, 1])
+                edge[i, 0], edge[i, 1] = scr[j, 0] - scr[i, 0], scr[j, 1] - scr[i, 1]
+                length = np.hypot(edge[i, 0], edge[i, 1])
+                inv_len[i] = 1.0 / length if length > 0.0 else 0.0
             c0 = int(max(np.ceil(scr[:, 0].min() - 0.5 - radius_px), 0.0))
             c1 = int(min(np.floor(scr[:, 0].max() - 0.5 + radius_px), width - 1.0))
             for row in range(r0, r1 + 1):
                 for col in range(c0, c1 + 1):
-                    z, sd2 = _soft_fragment(scr, inv_len, zndc, col + 0.5, row + 0.5, radius_px)
+                    z, sd2 = _soft_fragment(scr, edge, inv_len, zndc, col + 0.5, row + 0.5,
+                                            radius_px)
                     if not (z < np.inf and -1.0 <= z <= 1.0):
                         continue
                     # the key is -(log D + zt / gamma) >= -zt / gamma: a full list whose

@@ -98,16 +98,18 @@ def _chunk(chunk, chunks, npix):
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def geometry_forward(ids, corner_w, coeffs, scr, width, height, soft, tiny, chunks):
-    """bary [P, K, 3] and signed squared pixel distance [P, K] (soft; zeros in hard mode).
+def geometry_forward(ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny, chunks):
+    """bary [P, K, 3], depth [P, K] = bary . corner_z and the signed squared pixel distance
+    [P, K] (soft; zeros in hard mode).
 
-    corner_w: [F, 3] clip W per corner; coeffs: [F, 3, 3]; scr: [F, 3, 2] pixel positions.
-    Hard: b = e / sum(e). Soft: see _soft_bary; the distance is positive inside (all
-    screen-space barycentrics >= 0).
+    corner_w: [F, 3] clip W per corner; corner_z: [F, 3] eye-space depth per corner;
+    coeffs: [F, 3, 3]; scr: [F, 3, 2] pixel positions. Hard: b = e / sum(e). Soft: see
+    _soft_bary; the distance is positive inside (all screen-space barycentrics >= 0).
     """
     npix, k = ids.shape
     dtype = coeffs.dtype
     bary = np.zeros((npix, k, 3), dtype)
+    depth = np.zeros((npix, k), dtype)
     dist = np.zeros((npix, k), dtype)
     for chunk in prange(chunks):
         start, stop = _chunk(chunk, chunks, npix)
@@ -120,15 +122,14 @@ def geometry_forward(ids, corner_w, coeffs, scr, width, height, soft, tiny, chun
                 e0, e1, e2, w0, w1, w2 = _face(coeffs, corner_w, f, x, y)
                 if not soft:
                     total = e0 + e1 + e2
-                    bary[pixel, slot, 0] = _div(e0, total, tiny)
-                    bary[pixel, slot, 1] = _div(e1, total, tiny)
-                    bary[pixel, slot, 2] = _div(e2, total, tiny)
-                    continue
-                s0, s1, s2, _, _, _, b0, b1, b2 = _soft_bary(e0, e1, e2, w0, w1, w2, tiny)
+                    b0, b1, b2 = _div(e0, total, tiny), _div(e1, total, tiny), _div(e2, total, tiny)
+                else:
+                    s0, s1, s2, _, _, _, b0, b1, b2 = _soft_bary(e0, e1, e2, w0, w1, w2, tiny)
+                    d2 = _nearest_edge(px, py, scr, f, tiny)[1]
+                    dist[pixel, slot] = d2 if s0 >= 0.0 and s1 >= 0.0 and s2 >= 0.0 else -d2
                 bary[pixel, slot, 0], bary[pixel, slot, 1], bary[pixel, slot, 2] = b0, b1, b2
-                d2 = _nearest_edge(px, py, scr, f, tiny)[1]
-                dist[pixel, slot] = d2 if s0 >= 0.0 and s1 >= 0.0 and s2 >= 0.0 else -d2
-    return bary, dist
+                depth[pixel, slot] = b0 * corner_z[f, 0] + b1 * corner_z[f, 1] + b2 * corner_z[f, 2]
+    return bary, depth, dist
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -138,15 +139,30 @@ def _softmax_like_grad(g0, g1, g2, v0, v1, v2, den, tiny):
     return _div(g0 - dot, den, tiny), _div(g1 - dot, den, tiny), _div(g2 - dot, den, tiny)
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _dist_grad(acc_s, chunk, f, px, py, scr, g_m, tiny):
+    """Accumulate the gradient g_m of the nearest edge's squared distance |d|^2 into the
+    corners' screen positions: d |d|^2 = -2 d . ((1 - t) da + t db); t drops out (it
+    minimizes |d|^2 inside [0, 1] and is constant where clamped)."""
+    i, _, t, dx, dy = _nearest_edge(px, py, scr, f, tiny)
+    j = (i + 1) % 3
+    acc_s[chunk, f, i, 0] -= 2.0 * g_m * (1.0 - t) * dx
+    acc_s[chunk, f, i, 1] -= 2.0 * g_m * (1.0 - t) * dy
+    acc_s[chunk, f, j, 0] -= 2.0 * g_m * t * dx
+    acc_s[chunk, f, j, 1] -= 2.0 * g_m * t * dy
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
-def geometry_backward(ids, corner_w, coeffs, scr, width, height, soft, tiny, chunks, g_bary,
-                      g_dist):
-    """Gradients of geometry_forward: (g_coeffs [F, 3, 3], g_w [F, 3], g_scr [F, 3, 2])."""
+def geometry_backward(ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny, chunks,
+                      g_bary, g_depth, g_dist):
+    """Gradients of geometry_forward: (g_w [F, 3], g_z [F, 3], g_coeffs [F, 3, 3],
+    g_scr [F, 3, 2])."""
     npix, k = ids.shape
     nfaces = coeffs.shape[0]
     dtype = coeffs.dtype
     acc_c = np.zeros((chunks, nfaces, 3, 3), dtype)
     acc_w = np.zeros((chunks, nfaces, 3), dtype)
+    acc_z = np.zeros((chunks, nfaces, 3), dtype)
     acc_s = np.zeros((chunks, nfaces, 3, 2), dtype)
     for chunk in prange(chunks):
         start, stop = _chunk(chunk, chunks, npix)
@@ -156,17 +172,27 @@ def geometry_backward(ids, corner_w, coeffs, scr, width, height, soft, tiny, chu
                 f = ids[pixel, slot]
                 if f < 0:
                     continue
-                gb0, gb1, gb2 = (g_bary[pixel, slot, 0], g_bary[pixel, slot, 1],
-                                 g_bary[pixel, slot, 2])
-                g_d = g_dist[pixel, slot]
-                if gb0 == 0.0 and gb1 == 0.0 and gb2 == 0.0 and g_d == 0.0:
+                g_z, g_d = g_depth[pixel, slot], g_dist[pixel, slot]
+                # depth = b . corner_z: its gradient joins the barycentrics'
+                gb0 = g_bary[pixel, slot, 0] + g_z * corner_z[f, 0]
+                gb1 = g_bary[pixel, slot, 1] + g_z * corner_z[f, 1]
+                gb2 = g_bary[pixel, slot, 2] + g_z * corner_z[f, 2]
+                needs_bary = not (gb0 == 0.0 and gb1 == 0.0 and gb2 == 0.0 and g_z == 0.0)
+                if not needs_bary and (g_d == 0.0 or not soft):
                     continue  # e.g. a fragment whose blend weight underflows to 0
                 e0, e1, e2, w0, w1, w2 = _face(coeffs, corner_w, f, x, y)
+                if not needs_bary:
+                    # only the distance's gradient (the fragment still counts in alpha)
+                    total = e0 * w0 + e1 * w1 + e2 * w2
+                    inside = (_div(e0 * w0, total, tiny) >= 0.0
+                              and _div(e1 * w1, total, tiny) >= 0.0
+                              and _div(e2 * w2, total, tiny) >= 0.0)
+                    _dist_grad(acc_s, chunk, f, px, py, scr, g_d if inside else -g_d, tiny)
+                    continue
                 if not soft:
                     total = e0 + e1 + e2
-                    ge0, ge1, ge2 = _softmax_like_grad(gb0, gb1, gb2, _div(e0, total, tiny),
-                                                       _div(e1, total, tiny),
-                                                       _div(e2, total, tiny), total, tiny)
+                    b0, b1, b2 = _div(e0, total, tiny), _div(e1, total, tiny), _div(e2, total, tiny)
+                    ge0, ge1, ge2 = _softmax_like_grad(gb0, gb1, gb2, b0, b1, b2, total, tiny)
                 else:
                     s0, s1, s2, q0, q1, q2, b0, b1, b2 = _soft_bary(e0, e1, e2, w0, w1, w2, tiny)
                     # b = q / sum(q); q_i = max(s_i, 0) / w_i; s = e w / sum(e w)
@@ -184,16 +210,11 @@ def geometry_backward(ids, corner_w, coeffs, scr, width, height, soft, tiny, chu
                     acc_w[chunk, f, 0] += gt0 * e0
                     acc_w[chunk, f, 1] += gt1 * e1
                     acc_w[chunk, f, 2] += gt2 * e2
-                    # d (|d|^2) = -2 d . ((1 - t) da + t db): t drops out (it minimizes |d|^2
-                    # inside [0, 1] and is constant where clamped)
                     inside = s0 >= 0.0 and s1 >= 0.0 and s2 >= 0.0
-                    g_m = g_d if inside else -g_d
-                    i, _, t, dx, dy = _nearest_edge(px, py, scr, f, tiny)
-                    j = (i + 1) % 3
-                    acc_s[chunk, f, i, 0] -= 2.0 * g_m * (1.0 - t) * dx
-                    acc_s[chunk, f, i, 1] -= 2.0 * g_m * (1.0 - t) * dy
-                    acc_s[chunk, f, j, 0] -= 2.0 * g_m * t * dx
-                    acc_s[chunk, f, j, 1] -= 2.0 * g_m * t * dy
+                    _dist_grad(acc_s, chunk, f, px, py, scr, g_d if inside else -g_d, tiny)
+                acc_z[chunk, f, 0] += b0 * g_z
+                acc_z[chunk, f, 1] += b1 * g_z
+                acc_z[chunk, f, 2] += b2 * g_z
                 acc_c[chunk, f, 0, 0] += ge0 * x
                 acc_c[chunk, f, 0, 1] += ge0 * y
                 acc_c[chunk, f, 0, 2] += ge0
@@ -203,7 +224,7 @@ def geometry_backward(ids, corner_w, coeffs, scr, width, height, soft, tiny, chu
                 acc_c[chunk, f, 2, 0] += ge2 * x
                 acc_c[chunk, f, 2, 1] += ge2 * y
                 acc_c[chunk, f, 2, 2] += ge2
-    return acc_c.sum(0), acc_w.sum(0), acc_s.sum(0)
+    return acc_w.sum(0), acc_z.sum(0), acc_c.sum(0), acc_s.sum(0)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)

@@ -23,7 +23,6 @@ import jax.numpy as jnp
 from diffshade import fragment_kernels as kernels
 from diffshade.candidates import find_candidates
 from diffshade.hostcall import host_call
-from diffshade.interpolate import interpolate
 from diffshade.numerics import dot, safe_div, tiny
 from diffshade.project import Projected
 
@@ -86,44 +85,46 @@ def _flat_ids(ids):
     return ids.reshape(-1, ids.shape[-1])
 
 
-def _geometry_args(corner_w, coeffs, scr, width, height, soft):
+def _geometry_args(corner_w, corner_z, coeffs, scr, width, height, soft):
     """The kernels' per-face and static arguments (fragment_kernels.geometry_forward)."""
-    return corner_w, coeffs, scr, width, height, soft, tiny(coeffs.dtype), kernels.chunks()
+    return (corner_w, corner_z, coeffs, scr, width, height, soft, tiny(coeffs.dtype),
+            kernels.chunks())
 
 
-@partial(jax.custom_vjp, nondiff_argnums=(4, 5, 6))
-def fragment_geometry(ids, corner_w, coeffs, scr, width, height, soft):
-    """Per fragment: barycentrics [H, W, K, 3] (clamped to the triangle in soft mode) and
-    the signed squared distance in pixels^2 to the triangle's boundary [H, W, K] (soft;
-    zeros in hard mode), from per-face inputs: corner_w [F, 3] clip W of the corners,
-    coeffs [F, 3, 3] edge coefficients (face_edge_coefficients), scr [F, 3, 2] corner pixel
+@partial(jax.custom_vjp, nondiff_argnums=(5, 6, 7))
+def fragment_geometry(ids, corner_w, corner_z, coeffs, scr, width, height, soft):
+    """Per fragment: barycentrics [H, W, K, 3] (clamped to the triangle in soft mode), the
+    interpolated depth [H, W, K] and the signed squared distance in pixels^2 to the
+    triangle's boundary [H, W, K] (soft; zeros in hard mode), from per-face inputs:
+    corner_w [F, 3] clip W and corner_z [F, 3] eye-space depth of the corners, coeffs
+    [F, 3, 3] edge coefficients (face_edge_coefficients), scr [F, 3, 2] corner pixel
     positions. Forward and backward are compiled kernels (fragment_kernels.py); JAX
     differentiates the per-face inputs."""
-    shapes = (jax.ShapeDtypeStruct(ids.shape + (3,), coeffs.dtype),
-              jax.ShapeDtypeStruct(ids.shape, coeffs.dtype))
+    dtype = coeffs.dtype
+    shapes = (jax.ShapeDtypeStruct(ids.shape + (3,), dtype), jax.ShapeDtypeStruct(ids.shape, dtype),
+              jax.ShapeDtypeStruct(ids.shape, dtype))
 
-    def host(ids, corner_w, coeffs, scr):
-        return kernels.geometry_forward(
-            _flat_ids(ids), *_geometry_args(corner_w, coeffs, scr, width, height, soft))
-    return host_call(host, shapes, ids, corner_w, coeffs, scr)
+    def host(ids, *per_face):
+        return kernels.geometry_forward(_flat_ids(ids),
+                                        *_geometry_args(*per_face, width, height, soft))
+    return host_call(host, shapes, ids, corner_w, corner_z, coeffs, scr)
 
 
-def _geometry_fwd(ids, corner_w, coeffs, scr, width, height, soft):
-    out = fragment_geometry(ids, corner_w, coeffs, scr, width, height, soft)
-    return out, (ids, corner_w, coeffs, scr)
+def _geometry_fwd(ids, corner_w, corner_z, coeffs, scr, width, height, soft):
+    out = fragment_geometry(ids, corner_w, corner_z, coeffs, scr, width, height, soft)
+    return out, (ids, corner_w, corner_z, coeffs, scr)
 
 
 def _geometry_bwd(width, height, soft, residuals, cotangents):
-    ids, corner_w, coeffs, scr = residuals
-    shapes = tuple(jax.ShapeDtypeStruct(a.shape, a.dtype) for a in (coeffs, corner_w, scr))
+    ids, *per_face = residuals
+    shapes = tuple(jax.ShapeDtypeStruct(a.shape, a.dtype) for a in per_face)
 
-    def host(ids, corner_w, coeffs, scr, g_bary, g_dist):
+    def host(ids, corner_w, corner_z, coeffs, scr, g_bary, g_depth, g_dist):
         k = ids.shape[-1]
-        return kernels.geometry_backward(
-            _flat_ids(ids), *_geometry_args(corner_w, coeffs, scr, width, height, soft),
-            g_bary.reshape(-1, k, 3), g_dist.reshape(-1, k))
-    g_coeffs, g_w, g_scr = host_call(host, shapes, ids, corner_w, coeffs, scr, *cotangents)
-    return None, g_w, g_coeffs, g_scr
+        args = _geometry_args(corner_w, corner_z, coeffs, scr, width, height, soft)
+        return kernels.geometry_backward(_flat_ids(ids), *args, g_bary.reshape(-1, k, 3),
+                                         g_depth.reshape(-1, k), g_dist.reshape(-1, k))
+    return (None,) + host_call(host, shapes, ids, *per_face, *cotangents)
 
 
 fragment_geometry.defvjp(_geometry_fwd, _geometry_bwd)
@@ -143,12 +144,12 @@ def fragments_from_ids(proj: Projected, faces, face_ids, dropped, soft=False) ->
     ids = jnp.maximum(face_ids, 0)
     coeffs, det = face_edge_coefficients(proj.clip, faces)
     corner_w = jnp.take(proj.clip[:, 3], faces)
+    corner_z = jnp.take(proj.depth, faces)
     scr = jnp.take(_screen_positions(proj.clip, width, height), faces, axis=0)
-    bary, dist = fragment_geometry(face_ids, corner_w, coeffs, scr, width, height, soft)
-    frags = Fragments(face_ids, bary, jnp.zeros(face_ids.shape, bary.dtype),
-                      valid & (jnp.take(det, ids) > 0), dropped, dist if soft else None)
-    depth = interpolate(proj.depth[:, None], faces, frags)[..., 0]
-    return dataclasses.replace(frags, depth=depth)
+    bary, depth, dist = fragment_geometry(face_ids, corner_w, corner_z, coeffs, scr, width,
+                                          height, soft)
+    return Fragments(face_ids, bary, depth, valid & (jnp.take(det, ids) > 0), dropped,
+                     dist if soft else None)
 
 
 def rasterize(proj: Projected, faces, camera, settings) -> Fragments:
