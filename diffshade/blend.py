@@ -36,15 +36,21 @@ def normalized_inverse_depth(depth, near, far):
     return jnp.clip((inv - 1.0 / far) / (1.0 / near - 1.0 / far), 0.0, 1.0)
 
 
+def soft_weights(frags, near, far, sigma, gamma):
+    """The aggregation weights [H, W, K + 1] of soft_blend (the last is the background's):
+    a softmax of the logits log D_k + zt_k / gamma (module docstring)."""
+    zt = normalized_inverse_depth(frags.depth, near, far)
+    logits = jnp.where(frags.valid, jax.nn.log_sigmoid(frags.dist / sigma) + zt / gamma, -jnp.inf)
+    bg = jnp.full(logits.shape[:-1] + (1,), BACKGROUND_EPS / gamma, logits.dtype)
+    return jax.nn.softmax(jnp.concatenate([logits, bg], -1), axis=-1)
+
+
 def soft_blend(colours, frags, background, near, far, sigma, gamma):
     """colours: [H, W, K, 3]; background: [3]; sigma (pixels^2), gamma: floats
-    -> [H, W, 4] RGBA by SoftRas aggregation (module docstring)."""
-    x = frags.dist / sigma
-    zt = normalized_inverse_depth(frags.depth, near, far)
-    logits = jnp.where(frags.valid, jax.nn.log_sigmoid(x) + zt / gamma, -jnp.inf)
-    bg = jnp.full(logits.shape[:-1] + (1,), BACKGROUND_EPS / gamma, logits.dtype)
-    weights = jax.nn.softmax(jnp.concatenate([logits, bg], -1), axis=-1)
+    -> [H, W, 4] RGBA by SoftRas aggregation (module docstring). The colours of fragments
+    whose weight is exactly 0 do not matter (render may leave them 0)."""
+    weights = soft_weights(frags, near, far, sigma, gamma)
     rgb = jnp.sum(weights[..., :-1, None] * colours, -2) + weights[..., -1:] * background
-    log_clear = jnp.sum(jnp.where(frags.valid, jax.nn.log_sigmoid(-x), 0.0), -1)
+    log_clear = jnp.sum(jnp.where(frags.valid, jax.nn.log_sigmoid(-frags.dist / sigma), 0.0), -1)
     alpha = 1.0 - jnp.exp(log_clear)
     return jnp.concatenate([rgb, alpha[..., None]], axis=-1)

@@ -18,8 +18,9 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 
-from diffshade.blend import hard_blend, soft_blend
+from diffshade.blend import hard_blend, soft_blend, soft_weights
 from diffshade.camera import view_dir_infinite
+from diffshade.compact import on_active
 from diffshade.interpolate import gather_faces, interpolate_tree
 from diffshade.numerics import clamp01, safe_normalize
 from diffshade.project import Projected, project
@@ -71,12 +72,18 @@ def _colour(parts, settings):
     return clamp01(parts.total) if settings.clamp else parts.total
 
 
-def _phong(scene, proj, frags, settings):
+def _phong(scene, proj, frags, settings, active=None):
     faces = scene.mesh.faces
     points, normals = interpolate_tree((proj.world, proj.normals), faces, frags)
-    normals = safe_normalize(normals)
-    parts = _shade_points(scene, settings, points, normals, frags.front)
-    return parts, _colour(parts, settings)
+
+    def light(points, normals, front):
+        parts = _shade_points(scene, settings, points, safe_normalize(normals), front)
+        return parts, _colour(parts, settings)
+    if active is None:
+        return light(points, normals, frags.front)
+    height, width, k = frags.face_ids.shape
+    capacity = height * width * min(k, ACTIVE_SLOTS_PER_PIXEL)
+    return on_active(light, active, capacity, points, normals, frags.front)
 
 
 def _vertex_sides(scene, proj, settings):
@@ -130,8 +137,18 @@ DEFAULT_SETTINGS = RenderSettings()
 _SHADERS = {"phong": _phong, "gouraud": _gouraud, "flat": _flat, "flat_last": _flat_last}
 
 
-def shade_fragments(scene, proj: Projected, frags: Fragments, settings):
-    """(ShadingParts, colour) per fragment, each [H, W, K, 3], by settings.shading."""
+#: Phong shading of a soft render lights at most this many slots per pixel on average
+#: when only that many have a non-zero blend weight (diffshade.compact); else all of them
+ACTIVE_SLOTS_PER_PIXEL = 4
+
+
+def shade_fragments(scene, proj: Projected, frags: Fragments, settings, active=None):
+    """(ShadingParts, colour) per fragment, each [H, W, K, 3], by settings.shading.
+
+    active: optional [H, W, K] bool, the fragments whose colour matters; Phong shading
+    may then skip the others (their values are then 0; see diffshade.compact)."""
+    if settings.shading == "phong":
+        return _phong(scene, proj, frags, settings, active)
     return _SHADERS[settings.shading](scene, proj, frags, settings)
 
 
@@ -175,8 +192,14 @@ def blend(scene, colours, frags: Fragments, settings):
 
 
 def render_fragments(scene, frags: Fragments, settings=DEFAULT_SETTINGS):
-    """Shade and blend cached fragments: [H, W, 4] RGBA."""
-    _, colours = shade_fragments(scene, project(scene), frags, settings)
+    """Shade and blend cached fragments: [H, W, 4] RGBA. In soft mode only the fragments
+    with a non-zero blend weight need a colour (shade_fragments' `active`)."""
+    active = None
+    if settings.raster == "soft":
+        cam = scene.camera
+        weights = soft_weights(frags, cam.near, cam.far, settings.sigma, settings.gamma)
+        active = weights[..., :-1] > 0.0
+    _, colours = shade_fragments(scene, project(scene), frags, settings, active)
     return blend(scene, colours, frags, settings)
 
 
