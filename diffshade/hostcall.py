@@ -6,11 +6,20 @@ converted to float32, silently, and rejects the float64 results it declared. hos
 moves every float64 array across the boundary bit-cast to uint32 pairs (which no dtype
 canonicalization touches) and casts it back on the other side, so callbacks see exactly
 the arrays they were given, whichever way x64 was enabled.
+
+Callbacks run one at a time (a lock): XLA may start independent callbacks (say, of two
+views rendered in one jit) on two threads at once, and numba's fallback threading layer
+(workqueue, used where neither OpenMP nor TBB is installed) aborts the process on
+concurrent parallel kernels.
 """
+
+import threading
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+_LOCK = threading.Lock()
 
 
 def _is64(dtype):
@@ -37,7 +46,8 @@ def host_call(fn, result_shapes, *args):
 
     def host(*host_args):
         values = [_unpack(a, is64) for a, is64 in zip(host_args, args_64, strict=True)]
-        results = fn(*values)
+        with _LOCK:
+            results = fn(*values)
         out = []
         for r, s, is64 in zip(results, result_shapes, outs_64, strict=True):
             r = np.ascontiguousarray(r, s.dtype).reshape(s.shape)

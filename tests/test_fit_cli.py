@@ -531,8 +531,12 @@ def test_sigterm_then_resume_finishes(data_root, tmp_path, capsys):
                             steps + 25], capsys)
     assert (code, err) == (0, "")
     second = strict_json(out / "result.json")
-    assert second["interrupted"] is False and second["status"] == "budget"
-    assert second["n_steps"] == steps + 25 and len(second["loss_history"]) == steps + 26
+    # the step budget ends the resumed run, unless the fit converges first (how far the
+    # first run got before the signal depends on the machine's speed)
+    assert second["interrupted"] is False and second["status"] in ("budget", "converged")
+    n = second["n_steps"]
+    assert (n == steps + 25) if second["status"] == "budget" else (steps < n <= steps + 25)
+    assert len(second["loss_history"]) == n + 1
     np.testing.assert_array_equal(second["loss_history"][:steps + 1],
                                   first["loss_history"][:steps + 1])
     assert_no_temporaries(out)
