@@ -49,6 +49,13 @@ def _face(coeffs, corner_w, f, x, y):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
+def _hard_bary(e0, e1, e2, tiny):
+    """Hard mode's (perspective-correct) barycentrics: b = e / sum(e)."""
+    total = e0 + e1 + e2
+    return _div(e0, total, tiny), _div(e1, total, tiny), _div(e2, total, tiny)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
 def _soft_bary(e0, e1, e2, w0, w1, w2, tiny):
     """Soft mode's barycentrics: screen-space s = e w / sum(e w) clamped to >= 0, then
     corrected for perspective, b = (c / w) / sum(c / w).
@@ -121,8 +128,7 @@ def geometry_forward(ids, corner_w, corner_z, coeffs, scr, width, height, soft, 
                     continue
                 e0, e1, e2, w0, w1, w2 = _face(coeffs, corner_w, f, x, y)
                 if not soft:
-                    total = e0 + e1 + e2
-                    b0, b1, b2 = _div(e0, total, tiny), _div(e1, total, tiny), _div(e2, total, tiny)
+                    b0, b1, b2 = _hard_bary(e0, e1, e2, tiny)
                 else:
                     s0, s1, s2, _, _, _, b0, b1, b2 = _soft_bary(e0, e1, e2, w0, w1, w2, tiny)
                     d2 = _nearest_edge(px, py, scr, f, tiny)[1]
@@ -190,9 +196,9 @@ def geometry_backward(ids, corner_w, corner_z, coeffs, scr, width, height, soft,
                     _dist_grad(acc_s, chunk, f, px, py, scr, g_d if inside else -g_d, tiny)
                     continue
                 if not soft:
-                    total = e0 + e1 + e2
-                    b0, b1, b2 = _div(e0, total, tiny), _div(e1, total, tiny), _div(e2, total, tiny)
-                    ge0, ge1, ge2 = _softmax_like_grad(gb0, gb1, gb2, b0, b1, b2, total, tiny)
+                    b0, b1, b2 = _hard_bary(e0, e1, e2, tiny)
+                    ge0, ge1, ge2 = _softmax_like_grad(gb0, gb1, gb2, b0, b1, b2, e0 + e1 + e2,
+                                                       tiny)
                 else:
                     s0, s1, s2, q0, q1, q2, b0, b1, b2 = _soft_bary(e0, e1, e2, w0, w1, w2, tiny)
                     # b = q / sum(q); q_i = max(s_i, 0) / w_i; s = e w / sum(e w)

@@ -69,4 +69,3 @@ def gather_faces(face_attrs, frags):
     """face_attrs: [F, C] -> [H, W, K, C]."""
     values = jnp.take(face_attrs, jnp.maximum(frags.face_ids, 0), axis=0)
     return jnp.where(frags.valid[..., None], values, 0.0)
-

@@ -1,8 +1,8 @@
 """rasterize: per pixel, the K nearest faces with perspective-correct barycentrics and depth.
 
 Two stages. The search (which faces cover which pixel, nearest first) is discrete and
-non-differentiable; it runs on the host through `jax.pure_callback` (hostcall.py)
-(candidates.py) and works under `jit` and `vmap`. Everything computed *from* the chosen
+non-differentiable; a compiled kernel (candidates.py) runs it on the host through
+`jax.pure_callback` (hostcall.py), under `jit` and `vmap`. Everything computed *from* the chosen
 face ids is differentiable with respect to vertices and camera: barycentrics from 2D
 homogeneous edge functions (equivalent to the lecture notes' perspective correction
 b_i/w_i / sum_j b_j/w_j), the soft signed distance and the eye-space depth. The

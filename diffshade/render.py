@@ -64,8 +64,8 @@ def _shade_points(scene, settings, points, normals, front) -> ShadingParts:
     if scene.two_sided:
         normals = jnp.where(front[..., None], normals, -normals)
         material = _pick_material(scene, front)
-    normals, views = jax.lax.optimization_barrier((normals, view_dirs(scene, points)))
-    return shade(material, scene.lights, scene.global_ambient, points, normals, views, settings)
+    return shade(material, scene.lights, scene.global_ambient, points, normals,
+                 view_dirs(scene, points), settings)
 
 
 def _colour(parts, settings):
