@@ -1,0 +1,210 @@
+"""search_tiles (pure-JAX tile-binned candidate search) against the host kernel
+candidates.find_candidates, an independent implementation, in float64: face ids and
+`dropped` must be equal exactly, hard and soft, with and without back-face culling, for
+several K, image sizes that are not multiples of the tile, a mesh crossing the near plane
+and an orthographic camera; overflowing tiles count their untested (face, tile) pairs;
+traced parameters under jit, vmap over cameras and use inside grad.
+"""
+
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from diffshade import Mesh, icosphere, look_at, make_scene, model_matrix, project, torus
+from diffshade.candidates import find_candidates
+from diffshade.tile_search import search_tiles
+
+pytestmark = pytest.mark.usefixtures("x64")
+
+STATIC = ("width", "height", "k", "soft", "cull_backfaces", "perspective", "tile", "capacity")
+search = jax.jit(search_tiles, static_argnames=STATIC)
+#: (radius_px, sigma, gamma) of the soft cases: sharp, blurry with a flat depth weight, in
+#: between
+SOFT = ((1.5, 0.5, 1e-4), (2.5, 1.0, 1.0), (1.0, 0.1, 0.01))
+
+
+def sphere(width=37, height=29):
+    cam = look_at((0.4, 0.6, 3.5), (0.0, 0.0, 0.0), width=width, height=height, fov_y=45.0)
+    model = model_matrix((0.1, -0.1, 0.0), (20.0, 30.0, 10.0), (1.2, 0.8, 1.0))
+    return make_scene(icosphere(2), cam, model=model)
+
+
+def ring():
+    cam = look_at((0.3, 2.0, 2.5), (0.0, 0.0, 0.0), width=50, height=40, fov_y=45.0)
+    return make_scene(torus(), cam)
+
+
+def through_near_plane():
+    """The eye 2 from a unit sphere's centre with near = 1.2: the near plane cuts off the
+    middle of the visible cap (depths 1 to 1.5) and leaves a ring of front faces."""
+    cam = look_at((0.4, 0.5, 1.89), (0.0, 0.0, 0.0), width=40, height=33, fov_y=70.0,
+                  near=1.2)
+    return make_scene(icosphere(2), cam)
+
+
+def orthographic():
+    cam = look_at((0.4, 0.6, 3.5), (0.0, 0.0, 0.0), width=33, height=40,
+                  projection="orthographic", ortho_height=3.0)
+    return make_scene(icosphere(2), cam)
+
+
+SCENES = {"sphere": sphere, "torus": ring, "near_plane": through_near_plane,
+          "orthographic": orthographic}
+KS = {"sphere": (1, 4, 8), "torus": (4,), "near_plane": (8,), "orthographic": (1,)}
+
+
+def host(scene, k, cull, radius_px=0.0, sigma=1.0, gamma=1e-4):
+    cam = scene.camera
+    return find_candidates(np.asarray(project(scene).clip), np.asarray(scene.mesh.faces),
+                           float(cam.near), float(cam.far), width=cam.width,
+                           height=cam.height, k=k, cull_backfaces=cull, radius_px=radius_px,
+                           sigma=sigma, gamma=gamma,
+                           perspective=cam.projection == "perspective")
+
+
+def device(scene, k, cull, soft, radius_px=0.0, sigma=1.0, gamma=1e-4, tile=8, capacity=512):
+    """search_tiles, by default with small tiles and room for every face (these scenes
+    put up to a few hundred faces in a tile)."""
+    cam = scene.camera
+    ids, dropped = search(project(scene).clip, scene.mesh.faces, cam.near, cam.far, radius_px,
+                          sigma, gamma, width=cam.width, height=cam.height, k=k, soft=soft,
+                          cull_backfaces=cull, perspective=cam.projection == "perspective",
+                          tile=tile, capacity=capacity)
+    return np.asarray(ids), int(dropped)
+
+
+def assert_same(got, want):
+    np.testing.assert_array_equal(got[0], want[0])
+    assert got[1] == want[1]
+
+
+@pytest.mark.parametrize("cull", [False, True])
+@pytest.mark.parametrize("name", SCENES)
+def test_hard_equals_host(name, cull):
+    scene = SCENES[name]()
+    for k in KS[name]:
+        want = host(scene, k, cull)
+        assert (want[0] >= 0).any()
+        assert_same(device(scene, k, cull, soft=False), want)
+
+
+@pytest.mark.parametrize("cull", [False, True])
+@pytest.mark.parametrize("name", SCENES)
+def test_soft_equals_host(name, cull):
+    scene = SCENES[name]()
+    for k in KS[name]:
+        for radius, sigma, gamma in SOFT:
+            want = host(scene, k, cull, radius, sigma, gamma)
+            assert_same(device(scene, k, cull, True, radius, sigma, gamma), want)
+
+
+def test_near_plane_scene_crosses_it():
+    """The near-plane scene really has faces with corners on both sides of Z + W = 0."""
+    scene = through_near_plane()
+    clip = np.asarray(project(scene).clip)
+    side = (clip[:, 2] + clip[:, 3] >= 0)[np.asarray(scene.mesh.faces)]
+    assert (side.any(1) & ~side.all(1)).any()
+
+
+def test_k_beyond_capacity_pads_with_empty_slots():
+    """K = 8 from lists of 4 faces: the last slots stay empty (the 4 triangles of a
+    square, each pixel covered by one)."""
+    verts = jnp.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0],
+                       [-1.0, 1.0, 0.0], [0.0, 0.0, 0.0]])
+    faces = jnp.array([[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+    scene = make_scene(Mesh(verts, faces, jnp.tile(jnp.array([0.0, 0.0, 1.0]), (5, 1))),
+                       look_at((0.1, 0.2, 3.0), (0.0, 0.0, 0.0), width=21, height=18))
+    want = host(scene, 8, False)
+    assert (want[0][..., 0] >= 0).sum() > 100
+    assert_same(device(scene, 8, False, soft=False, capacity=4), want)
+
+
+def tile_pairs(scene, tile):
+    """Per tile, how many faces' screen boxes touch it: [tiles]. The torus lies in front
+    of the eye, so a face's box is its corners' NDC box (no near clipping)."""
+    cam = scene.camera
+    clip = np.asarray(project(scene).clip)[np.asarray(scene.mesh.faces)]
+    ndc = clip[..., :2] / clip[..., 3:]
+    lo, hi = ndc.min(1), ndc.max(1)
+    size = np.array([cam.width, cam.height])
+    lo, hi = np.where([True, False], lo, -hi), np.where([True, False], hi, -lo)  # rows: y down
+    first = np.maximum(np.ceil((lo + 1.0) * size / 2.0 - 0.5), 0)
+    last = np.minimum(np.floor((hi + 1.0) * size / 2.0 - 0.5), size - 1)
+    counts = []
+    for row in range(0, cam.height, tile):
+        for col in range(0, cam.width, tile):
+            start, end = np.array([col, row]), np.array([col, row]) + tile - 1
+            counts.append(np.all((first <= end) & (last >= start) & (first <= last), 1).sum())
+    return np.array(counts)
+
+
+def test_overflowing_tiles_count_their_untested_pairs():
+    """With capacity 32, crowded torus tiles lose faces: `dropped` is the host's fragment
+    count (0 at K = 8) plus the (face, tile) pairs that did not fit, and tiles that did
+    not overflow match the host exactly."""
+    scene, capacity, tile = ring(), 32, 16
+    want_ids, want_dropped = host(scene, 8, False)
+    assert want_dropped == 0
+    ids, dropped = device(scene, 8, False, soft=False, tile=tile, capacity=capacity)
+    pairs = tile_pairs(scene, tile)
+    assert pairs.max() > capacity
+    assert dropped == np.maximum(pairs - capacity, 0).sum()
+    full = np.repeat(np.repeat((pairs > capacity).reshape(3, 4), tile, 0), tile, 1)[:40, :50]
+    np.testing.assert_array_equal(ids[~full], want_ids[~full])
+    assert (ids[full] != want_ids[full]).any()
+
+
+def test_jit_with_traced_parameters_equals_eager():
+    scene = sphere()
+    cam = scene.camera
+    clip, faces = project(scene).clip, scene.mesh.faces
+    static = {"width": cam.width, "height": cam.height, "k": 4, "soft": True, "capacity": 512}
+    eager = search_tiles(clip, faces, cam.near, cam.far, 1.5, 0.5, 1e-3, **static)
+    jitted = jax.jit(partial(search_tiles, **static))
+    for radius, sigma, gamma in ((1.5, 0.5, 1e-3), (2.5, 2.0, 0.1)):
+        got = jitted(clip, faces, cam.near, cam.far, jnp.asarray(radius), jnp.asarray(sigma),
+                     jnp.asarray(gamma))
+        want = host(scene, 4, False, radius, sigma, gamma)
+        assert_same((np.asarray(got[0]), int(got[1])), want)
+    assert jitted._cache_size() == 1
+    np.testing.assert_array_equal(eager[0], host(scene, 4, False, 1.5, 0.5, 1e-3)[0])
+
+
+def test_vmap_over_cameras_equals_separate_calls():
+    scenes = [sphere(), make_scene(icosphere(2), look_at((-1.0, 0.5, 2.5), (0.1, 0.0, 0.0),
+                                                        width=37, height=29))]
+    clips = jnp.stack([project(s).clip for s in scenes])
+    cam = scenes[0].camera
+    batched = jax.vmap(lambda clip: search_tiles(
+        clip, scenes[0].mesh.faces, cam.near, cam.far, 2.0, 1.0, 1e-3, width=37, height=29,
+        k=4, soft=True, capacity=512))(clips)
+    for i, scene in enumerate(scenes):
+        want = device(scene, 4, False, True, 2.0, 1.0, 1e-3)
+        assert_same((np.asarray(batched[0][i]), int(batched[1][i])), want)
+        assert_same(want, host(scene, 4, False, 2.0, 1.0, 1e-3))
+
+
+def test_usable_inside_grad():
+    """A loss that picks faces with search_tiles differentiates through the chosen faces'
+    geometry only; the ids are constants (integer outputs)."""
+    scene = sphere()
+    cam, faces = scene.camera, scene.mesh.faces
+
+    def corner_w_sum(clip, ids):
+        corner_w = clip[faces[jnp.maximum(ids[..., 0], 0)], 3]
+        return jnp.sum(jnp.where(ids[..., :1] >= 0, corner_w, 0.0))
+
+    def loss(clip):
+        ids, _ = search_tiles(clip, faces, cam.near, cam.far, 0.0, 1.0, 1e-4,
+                              width=cam.width, height=cam.height, k=1, soft=False,
+                              capacity=512)
+        return corner_w_sum(clip, ids)
+
+    clip = project(scene).clip
+    ids = jnp.asarray(device(scene, 1, False, soft=False)[0])
+    grad = jax.jit(jax.grad(loss))(clip)
+    np.testing.assert_array_equal(grad, jax.grad(corner_w_sum)(clip, ids))
+    assert np.isfinite(grad).all() and np.abs(grad).sum() > 0
