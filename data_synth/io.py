@@ -23,7 +23,6 @@ targets rendered elsewhere can be dropped in as PNGs), and truth.json when prese
 import json
 import os
 
-import jax.numpy as jnp
 import numpy as np
 
 import diffshade as ds
@@ -110,13 +109,12 @@ def _load_view(out_dir, entry, index):
 
 
 def _load_mesh(out_dir):
-    vertices, faces, normals = (np.load(os.path.join(out_dir, f"mesh_{name}.npy"),
-                                        allow_pickle=False) for name in MESH_ARRAYS)
-    if vertices.shape != normals.shape or vertices.shape[1:] != (3,) or faces.shape[1:] != (3,):
-        raise ValueError(f"{out_dir}/mesh_*.npy: vertices {vertices.shape}, faces "
-                         f"{faces.shape}, normals {normals.shape}; expected [V, 3], [F, 3], [V, 3]")
-    return ds.Mesh(jnp.asarray(vertices, jnp.float32), jnp.asarray(faces, jnp.int32),
-                   jnp.asarray(normals, jnp.float32))
+    """The Mesh of the exact saved arrays (checked; float32 stays float32, float64 is
+    float64 under x64)."""
+    def path(name):
+        return os.path.join(out_dir, f"mesh_{name}.npy")
+    arrays = [np.load(path(name), allow_pickle=False) for name in MESH_ARRAYS]
+    return ds.check_mesh(ds.Mesh(*arrays), name=path)
 
 
 def load_dataset(out_dir) -> Dataset:

@@ -23,6 +23,7 @@ import numpy as np
 
 import diffshade as ds
 from data_synth.materials import random_material
+from diffshade.numerics import float_dtype
 from fitting.data import Dataset, View, view_scene
 
 SHAPES = ("icosphere", "torus", "box")
@@ -39,7 +40,8 @@ def _normalizing_model(vertices, rotate_deg=(0.0, 0.0, 0.0)):
     scale = 1.0 / np.max(np.linalg.norm(vertices - centre, axis=1))
     rotation = ds.model_matrix(rotate_deg=rotate_deg).astype(np.float64)
     matrix = rotation @ ds.model_matrix(translate=-centre * scale, scale=(scale,) * 3)
-    return matrix.astype(np.float32)  # what the scene stores, so that files round-trip
+    # what the scene stores (the default float dtype), so that files round-trip
+    return matrix.astype(float_dtype())
 
 
 BUILTIN_MESHES = {

@@ -30,6 +30,7 @@ from diffshade.material import Material, material
 from diffshade.mesh import (
     Mesh,
     box,
+    check_mesh,
     face_normals,
     icosphere,
     load_mesh,
@@ -66,7 +67,7 @@ __all__ = [
     "write_png",
     "AmbientLight", "Camera", "DirectionalLight", "Fragments", "LightGroups", "Material",
     "Mesh", "PointLight", "Projected", "RenderSettings", "Scene", "ShadingParts", "SpotLight",
-    "ambient_light", "box", "directional_light", "face_normals", "fragments_from_ids",
+    "ambient_light", "box", "check_mesh", "directional_light", "face_normals", "fragments_from_ids",
     "gather_faces", "group_lights", "hard_blend", "icosphere", "interpolate", "load_mesh",
     "look_at", "make_scene", "material", "mesh_from_arrays", "mesh_from_trimesh",
     "model_matrix", "point_light", "project", "projection_matrix", "rasterize",

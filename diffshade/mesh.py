@@ -1,9 +1,12 @@
 """Triangle meshes: the `Mesh` pytree, its builders, and differentiable normals.
 
-`Mesh` holds vertices [V, 3] float32, faces [F, 3] int32 (counter-clockwise = front) and
-unit vertex normals [V, 3] float32. Its constructor is cheap and unchecked, because JAX
-transforms rebuild it from tracers; the public builders validate their input and raise
-ValueError naming the argument, the value and what was expected. `face_normals`,
+`Mesh` holds vertices [V, 3] float, faces [F, 3] int32 (counter-clockwise = front) and
+unit vertex normals [V, 3] float. Its constructor is cheap and unchecked, because JAX
+transforms rebuild it from tracers; the public builders, and `check_mesh` for a Mesh
+built otherwise, validate their input with one function (`_check_arrays`) and raise
+ValueError naming the argument, the value and what was expected. Builders keep float32
+input float32 and store everything else (float64 arrays, lists, files, generated shapes)
+in the default float dtype: float64 under `jax_enable_x64`, else float32. `face_normals`,
 `face_areas`, `vertex_normals` and `transform_mesh` are pure jax.numpy, differentiable and
 jit-able, finite in value and gradient on degenerate faces and unused vertices (whose
 normals are zero). Crease splitting is numpy work done once, at construction time.
@@ -14,17 +17,27 @@ import itertools
 import math
 import numbers
 import os
+import re
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import trimesh
 
-from diffshade.numerics import representable, safe_norm, safe_normalize, tiny
+from diffshade.numerics import (
+    float_dtype,
+    float_dtype_of,
+    representable,
+    safe_norm,
+    safe_normalize,
+    tiny,
+)
 
 __all__ = [
-    "Mesh", "box", "face_areas", "face_normals", "icosphere", "load_mesh", "mesh_from_arrays",
-    "mesh_from_trimesh", "model_matrix", "torus", "transform_mesh", "vertex_normals",
+    "Mesh", "box", "check_mesh", "face_areas", "face_normals", "icosphere", "load_mesh",
+    "mesh_from_arrays", "mesh_from_trimesh", "model_matrix", "torus", "transform_mesh",
+    "vertex_normals",
 ]  # fmt: skip
 
 WEIGHTINGS = ("angle", "area", "uniform")
@@ -35,9 +48,9 @@ WEIGHTINGS = ("angle", "area", "uniform")
 class Mesh:
     """A triangle mesh; every field is a pytree leaf.
 
-    vertices: [V, 3] float32 model-space positions.
+    vertices: [V, 3] float (float32, or float64 under x64) model-space positions.
     faces: [F, 3] int32 vertex indices, counter-clockwise = front.
-    normals: [V, 3] float32 unit vertex normals (zero where undefined).
+    normals: [V, 3] float, vertices' dtype, unit vertex normals (zero where undefined).
     """
 
     vertices: jax.Array
@@ -123,38 +136,87 @@ def _as_array(values, name, expected):
         raise ValueError(f"{name}: got a ragged sequence; expected {expected}") from None
 
 
-def _check_points(values, name):
-    """values as a finite [N, 3] float64 numpy array, or ValueError naming `name`."""
+def _check_points(values, name, dtype):
+    """values as an [N, 3] float64 numpy array, finite once stored as `dtype`, or
+    ValueError naming `name`."""
     arr = _as_array(values, name, "[N, 3] real numbers")
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"{name}: shape {arr.shape}; expected [N, 3]")
     if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
         raise ValueError(f"{name}: dtype {arr.dtype}; expected real numbers")
-    bad = np.flatnonzero(~representable(arr, np.float32).all(axis=1))
+    bad = np.flatnonzero(~representable(arr, dtype).all(axis=1))
     if bad.size:
-        raise ValueError(f"{name}: row {bad[0]} is {arr[bad[0]].tolist()}; expected finite")
+        raise ValueError(f"{name}: row {bad[0]} is {arr[bad[0]].tolist()}; expected finite "
+                         f"numbers (in {np.dtype(dtype).name})")
     return arr.astype(np.float64)
 
 
-def _check_faces(faces, num_vertices):
+def _check_faces(faces, num_vertices, name):
     """faces as an [F, 3] int32 numpy array of indices into num_vertices, F >= 1."""
-    arr = _as_array(faces, "faces", "[F, 3] integer vertex indices")
+    arr = _as_array(faces, name, "[F, 3] integer vertex indices")
     if arr.ndim != 2 or arr.shape[1] != 3 or arr.shape[0] == 0:
-        raise ValueError(f"faces: shape {arr.shape}; expected [F, 3] with F >= 1")
+        raise ValueError(f"{name}: shape {arr.shape}; expected [F, 3] with F >= 1")
     if np.issubdtype(arr.dtype, np.floating):
         bad = np.flatnonzero(~np.isfinite(arr) | (arr != np.floor(arr)))
         if bad.size:
-            raise ValueError(f"faces: value {arr.flat[bad[0]]} is not an integer; "
+            raise ValueError(f"{name}: value {arr.flat[bad[0]]} is not an integer; "
                              "expected integer vertex indices")
     elif not np.issubdtype(arr.dtype, np.integer):
-        raise ValueError(f"faces: dtype {arr.dtype}; expected integer vertex indices")
+        raise ValueError(f"{name}: dtype {arr.dtype}; expected integer vertex indices")
     bad = np.flatnonzero((arr < 0) | (arr >= num_vertices))
     if bad.size:
         raise ValueError(
-            f"faces: index {arr.flat[bad[0]]:g} out of range for {num_vertices} vertices; "
+            f"{name}: index {arr.flat[bad[0]]:g} out of range for {num_vertices} vertices; "
             f"expected 0 <= index < {num_vertices}"
         )
     return arr.astype(np.int32)
+
+
+class _Checked(NamedTuple):
+    """Validated mesh data: vertices [V, 3] float64, faces [F, 3] int32, normals [V, 3]
+    float64 or None (numpy), and dtype, the float dtype the Mesh stores them in."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    normals: np.ndarray | None
+    dtype: np.dtype
+
+
+def _check_arrays(vertices, faces, normals=None, name=str):
+    """The one validation of mesh data, shared by every path that builds a Mesh (arrays,
+    mesh files, scene files, datasets): finite vertices (and normals) [V, 3], faces [F, 3]
+    of exact integers in [0, V), F >= 1. name(field) is what errors call "vertices",
+    "faces" and "normals". Raises ValueError naming the field, the value and what was
+    expected."""
+    dtype = float_dtype_of(vertices)
+    verts = _check_points(vertices, name("vertices"), dtype)
+    tris = _check_faces(faces, len(verts), name("faces"))
+    if normals is not None:
+        normals = _check_points(normals, name("normals"), dtype)
+        if normals.shape != verts.shape:
+            raise ValueError(f"{name('normals')}: shape {normals.shape}; expected "
+                             f"{verts.shape} like {name('vertices')}")
+    return _Checked(verts, tris, normals, dtype)
+
+
+def check_mesh(mesh, name=lambda field: f"mesh.{field}"):
+    """mesh (a Mesh of concrete arrays) after `_check_arrays`, with vertices and normals
+    [V, 3] in their float dtype (float32 stays float32, float64 stays float64 under x64)
+    and faces [F, 3] int32; values are kept as they are (normals are not renormalized).
+
+    For meshes built without a builder (Mesh(...) directly, a dataset's saved arrays):
+    an out-of-range face index would otherwise reach the rasterizer. name(field) names
+    the fields in errors ("mesh.vertices" by default).
+    """
+    if not isinstance(mesh, Mesh):
+        raise TypeError(f"mesh: got {type(mesh).__name__}; expected Mesh")
+    checked = _check_arrays(mesh.vertices, mesh.faces, mesh.normals, name)
+    return Mesh(*_jax_arrays(checked.vertices, checked.faces, checked.normals, checked.dtype))
+
+
+def _jax_arrays(verts, tris, normals, dtype):
+    """(vertices [V, 3] dtype, faces [F, 3] int32, normals [V, 3] dtype) as jax arrays."""
+    return jnp.asarray(verts, dtype), jnp.asarray(tris, jnp.int32), jnp.asarray(normals, dtype)
 
 
 def _check_crease(crease_angle):
@@ -168,29 +230,27 @@ def mesh_from_arrays(vertices, faces, normals=None, *, weighting="angle", crease
     normals: optional [V, 3] real, normalized here. Without them they are computed by
     `vertex_normals(weighting)`; with crease_angle (degrees) the vertices are first split
     along sharp edges (see `_split_creases`), which changes V. Float faces are accepted
-    when they hold exact integers. Raises ValueError on any bad argument.
+    when they hold exact integers. Vertices and normals are stored as float32 when
+    vertices are float32, else in the default float dtype (float64 under x64: float64
+    input keeps its precision). Raises ValueError on any bad argument.
     """
-    verts = _check_points(vertices, "vertices")
-    tris = _check_faces(faces, len(verts))
     _check_weighting(weighting)
     _check_crease(crease_angle)
+    checked = _check_arrays(vertices, faces, normals)
     if normals is not None:
-        return _mesh_with_normals(verts, tris, normals, crease_angle)
+        return _mesh_with_normals(checked, crease_angle)
     if crease_angle is not None:
-        return _split_creases(verts, tris, weighting, crease_angle)
-    vs, fs = jnp.asarray(verts, jnp.float32), jnp.asarray(tris)
+        return _split_creases(checked, weighting, crease_angle)
+    vs, fs = jnp.asarray(checked.vertices, checked.dtype), jnp.asarray(checked.faces)
     return Mesh(vs, fs, vertex_normals(vs, fs, weighting))
 
 
-def _mesh_with_normals(verts, tris, normals, crease_angle):
-    """Mesh from validated verts [V, 3], tris [F, 3] and user normals [V, 3] real."""
+def _mesh_with_normals(checked, crease_angle):
+    """Mesh from `_check_arrays` output with user normals, normalized here."""
     if crease_angle is not None:
         raise ValueError(f"crease_angle: {crease_angle!r}; expected None when normals are given")
-    given = _check_points(normals, "normals")
-    if given.shape != verts.shape:
-        raise ValueError(f"normals: shape {given.shape}; expected {verts.shape} like vertices")
-    unit = safe_normalize(jnp.asarray(given, jnp.float32))
-    return Mesh(jnp.asarray(verts, jnp.float32), jnp.asarray(tris), unit)
+    verts, tris, normals = _jax_arrays(*checked)
+    return Mesh(verts, tris, safe_normalize(normals))
 
 
 def _smooth_corner_links(faces, face_n, cos_limit):
@@ -224,8 +284,8 @@ def _components(num_nodes, a, b):
         labels = new
 
 
-def _split_creases(verts, tris, weighting, crease_angle):
-    """Mesh from validated verts [V, 3] float64 and tris [F, 3] int32, split at creases.
+def _split_creases(checked, weighting, crease_angle):
+    """Mesh from `_check_arrays` output (no normals), split at creases.
 
     A crease is an edge whose two face normals differ by more than crease_angle degrees.
     The corners of a vertex joined through smooth edges form one smoothing group and
@@ -234,7 +294,8 @@ def _split_creases(verts, tris, weighting, crease_angle):
     every face pair around a vertex, keeps a smooth fan whole even when its far sides
     differ by more than crease_angle. Vertices used by no face are dropped.
     """
-    vs, fs = jnp.asarray(verts, jnp.float32), jnp.asarray(tris)
+    verts, tris, dtype = checked.vertices, checked.faces, checked.dtype
+    vs, fs = jnp.asarray(verts, dtype), jnp.asarray(tris)
     face_n = np.asarray(face_normals(vs, fs), np.float64)
     weights = np.asarray(_corner_weights(vs, fs, weighting), np.float64).ravel()
     # float32 normals of coplanar faces differ by ~1e-7: flat regions must stay whole at 0.
@@ -247,14 +308,14 @@ def _split_creases(verts, tris, weighting, crease_angle):
     summed = np.zeros((first.size, 3))
     np.add.at(summed, inverse.ravel(), weights[:, None] * np.repeat(face_n, 3, axis=0))
     return Mesh(
-        jnp.asarray(verts[corner_vertex[first]], jnp.float32),
+        jnp.asarray(verts[corner_vertex[first]], dtype),
         jnp.asarray(inverse.reshape(-1, 3), jnp.int32),
-        safe_normalize(jnp.asarray(summed, jnp.float32)),
+        safe_normalize(jnp.asarray(summed, dtype)),
     )
 
 
 def _check_positive(value, name):
-    if not (_is_real(value) and representable(value, np.float32) and value > 0):
+    if not (_is_real(value) and representable(value) and value > 0):
         raise ValueError(f"{name}: {value!r}; expected a finite number > 0")
 
 
@@ -306,8 +367,8 @@ def icosphere(subdivisions=3, radius=1.0):
     tris = _ICOSAHEDRON_FACES
     for _ in range(subdivisions):
         verts, tris = _subdivide(verts, tris)
-    unit = jnp.asarray(verts, jnp.float32)
-    return Mesh(unit * jnp.float32(radius), jnp.asarray(tris, jnp.int32), unit)
+    unit = jnp.asarray(verts, float_dtype())
+    return Mesh(unit * radius, jnp.asarray(tris, jnp.int32), unit)
 
 
 def torus(major_radius=1.0, minor_radius=0.35, major_segments=48, minor_segments=24):
@@ -327,11 +388,9 @@ def torus(major_radius=1.0, minor_radius=0.35, major_segments=48, minor_segments
     cos_u, sin_u, cos_v, sin_v = np.cos(u), np.sin(u), np.cos(v), np.sin(v)
     normals = np.stack(np.broadcast_arrays(cos_v * cos_u, sin_v, cos_v * sin_u), -1)
     ring = np.stack(np.broadcast_arrays(cos_u, 0.0 * v, sin_u), -1) * major_radius
-    return Mesh(
-        jnp.asarray((ring + minor_radius * normals).reshape(-1, 3), jnp.float32),
-        jnp.asarray(_grid_faces(major_segments, minor_segments), jnp.int32),
-        jnp.asarray(normals.reshape(-1, 3), jnp.float32),
-    )
+    return Mesh(*_jax_arrays((ring + minor_radius * normals).reshape(-1, 3),
+                             _grid_faces(major_segments, minor_segments),
+                             normals.reshape(-1, 3), float_dtype()))
 
 
 def _grid_faces(rows, cols):
@@ -346,14 +405,14 @@ def _grid_faces(rows, cols):
 
 def _three_numbers(value):
     """value as a float64 [3] array, or None (text, ragged, another shape, or not finite
-    in float32)."""
+    in the default float dtype)."""
     if isinstance(value, (str, bytes)):
         return None
     try:
         arr = np.asarray(value, np.float64)
     except (TypeError, ValueError):
         return None
-    return arr if arr.shape == (3,) and np.all(representable(arr, np.float32)) else None
+    return arr if arr.shape == (3,) and np.all(representable(arr)) else None
 
 
 def box(size=(1.0, 1.0, 1.0)):
@@ -375,11 +434,8 @@ def box(size=(1.0, 1.0, 1.0)):
         corners.append(side)
         normals.append(np.broadcast_to(np.eye(3)[axis] * sign, (4, 3)))
     tris = (np.arange(6)[:, None, None] * 4 + np.array([[0, 1, 2], [0, 2, 3]])).reshape(-1, 3)
-    return Mesh(
-        jnp.asarray(np.concatenate(corners) * half, jnp.float32),
-        jnp.asarray(tris, jnp.int32),
-        jnp.asarray(np.concatenate(normals), jnp.float32),
-    )
+    return Mesh(*_jax_arrays(np.concatenate(corners) * half, tris, np.concatenate(normals),
+                             float_dtype()))
 
 
 def mesh_from_trimesh(tm, *, weighting="angle", crease_angle=None):
@@ -396,24 +452,102 @@ def mesh_from_trimesh(tm, *, weighting="angle", crease_angle=None):
     return mesh_from_arrays(verts, faces, weighting=weighting, crease_angle=crease_angle)
 
 
+_READABLE = "a mesh file trimesh reads (OBJ, PLY, STL, GLB, ...)"
+
+
+def _check_mesh_path(path):
+    """path as a str naming an existing file, else FileNotFoundError or ValueError."""
+    path = os.fspath(path)
+    if os.path.isdir(path):
+        raise ValueError(f"path: {path!r} is a directory; expected {_READABLE}")
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"mesh file not found: {path!r}")
+    return path
+
+
+def _obj_statements(path):
+    """(line number, tokens) of each `v` and `f` statement of an OBJ file, comments cut.
+    (trimesh reads no backslash-continued lines, so neither does this.)"""
+    with open(path, encoding="utf-8", errors="replace") as file:
+        lines = file.read().splitlines()
+    for number, line in enumerate(lines, 1):
+        tokens = line.split("#", 1)[0].split()
+        if tokens and tokens[0] in ("v", "f"):
+            yield number, tokens
+
+
+def _is_number(token):
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
+def _obj_vertex_ref(token, seen):
+    """The 1-based vertex index of an OBJ face reference "i", "i/t", "i//n" or "i/t/n"
+    (negative: relative to the `seen` vertices so far), or None if it is not one."""
+    head = token.split("/", 1)[0]
+    if not re.fullmatch(r"-?[0-9]+", head) or int(head) == 0 or -int(head) > seen:
+        return None
+    return int(head) if int(head) > 0 else seen + 1 + int(head)
+
+
+def _scan_obj(path):
+    """ValueError naming the file and line for what trimesh would drop silently or crash
+    on: a `v` line without 3 numbers, an `f` line with fewer than 3 vertex references
+    (a truncated last line), or a reference to a vertex the file does not have."""
+    seen, highest = 0, (0, 0)
+    for number, tokens in _obj_statements(path):
+        where = f"path: mesh file {path!r}, line {number}: {' '.join(tokens)[:60]!r}"
+        if tokens[0] == "v":
+            if len(tokens) < 4 or not all(map(_is_number, tokens[1:])):
+                raise ValueError(f"{where}; expected a vertex 'v x y z' with 3 numbers")
+            seen += 1
+            continue
+        refs = [_obj_vertex_ref(token, seen) for token in tokens[1:]]
+        if len(refs) < 3 or None in refs:
+            raise ValueError(f"{where}; expected a face 'f i j k ...' of at least 3 vertex "
+                             f"references i (1 <= i, or -{seen} <= i <= -1 relative)")
+        highest = max(highest, (max(refs), number))
+    if highest[0] > seen:
+        raise ValueError(f"path: mesh file {path!r}, line {highest[1]}: a face refers to "
+                         f"vertex {highest[0]}; expected at most {seen}, the vertices in the file")
+
+
+def _read_trimesh(path):
+    """trimesh.Trimesh of the file at path, its arrays checked (`_check_arrays`) before
+    trimesh's processing (which drops NaN vertices silently) and then processed: merged
+    duplicated vertices, as STL stores each triangle alone."""
+    try:
+        tm = trimesh.load(path, force="mesh", process=False)
+    # trimesh's loaders raise many exception types; all mean "cannot read this file".
+    except Exception as err:
+        raise ValueError(f"path: cannot read mesh file {path!r}: {err}; expected "
+                         f"{_READABLE}") from err
+    if not isinstance(tm, trimesh.Trimesh) or len(tm.faces) == 0:
+        raise ValueError(f"path: mesh file {path!r} has no faces; expected triangles")
+    _check_arrays(tm.vertices, tm.faces, name=lambda field: f"path: mesh file {path!r}: {field}")
+    tm.process()
+    return tm
+
+
 def load_mesh(path, *, weighting="angle", crease_angle=None):
     """Mesh from any file trimesh reads (OBJ, PLY, STL, GLB, ...); see mesh_from_trimesh.
 
-    Loaded with process=True so that duplicated vertices (STL stores each triangle alone)
-    are merged and can share a normal. Raises FileNotFoundError for a missing file and
-    ValueError for a file that cannot be parsed or has no faces.
+    Duplicated vertices are merged (STL stores each triangle alone) so that they can
+    share a normal. Vertices are stored in the default float dtype. Raises
+    FileNotFoundError for a missing file and ValueError, naming the file, for a folder,
+    a file that cannot be parsed, has no faces, a non-finite vertex or a face index out
+    of range; in an OBJ file, also for a truncated `v` or `f` line (named by its line
+    number), which trimesh would drop silently.
     """
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"mesh file not found: {path!r}")
-    try:
-        tm = trimesh.load(path, force="mesh", process=True)
-    # trimesh's loaders raise many exception types; all mean "cannot read this file".
-    except Exception as err:
-        raise ValueError(f"path: cannot read mesh file {path!r}: {err}; expected a mesh file "
-                         "trimesh reads (OBJ, PLY, STL, GLB, ...)") from err
-    if not isinstance(tm, trimesh.Trimesh) or len(tm.faces) == 0:
-        raise ValueError(f"path: mesh file {path!r} has no faces; expected triangles")
+    path = _check_mesh_path(path)
+    _check_weighting(weighting)
+    _check_crease(crease_angle)
+    if path.lower().endswith(".obj"):
+        _scan_obj(path)
+    tm = _read_trimesh(path)
     return mesh_from_trimesh(tm, weighting=weighting, crease_angle=crease_angle)
 
 
@@ -454,7 +588,7 @@ def _axis_rotation(axis, angle):
 
 
 def model_matrix(translate=(0.0, 0.0, 0.0), rotate_deg=(0.0, 0.0, 0.0), scale=(1.0, 1.0, 1.0)):
-    """Affine model matrix [4, 4] float32 = T @ Rz @ Ry @ Rx @ S.
+    """Affine model matrix [4, 4] numpy, in the default float dtype, = T @ Rz @ Ry @ Rx @ S.
 
     Applied to a point: scale first, then rotate about X, then Y, then Z (right-handed
     Euler angles rotate_deg, in degrees), then translate. Each argument is 3 numbers.
@@ -468,4 +602,4 @@ def model_matrix(translate=(0.0, 0.0, 0.0), rotate_deg=(0.0, 0.0, 0.0), scale=(1
     rotation = _axis_rotation(2, rz) @ _axis_rotation(1, ry) @ _axis_rotation(0, rx)
     matrix[:3, :3] = rotation * np.asarray(scale, np.float64)[None, :]
     matrix[:3, 3] = translate
-    return matrix.astype(np.float32)
+    return matrix.astype(float_dtype())

@@ -107,3 +107,10 @@ def representable(values, dtype=None):
 def float_dtype():
     """The default float dtype: float64 under `jax_enable_x64`, else float32."""
     return jnp.result_type(float)
+
+
+def float_dtype_of(values):
+    """The float dtype a builder stores `values` in: float32 for float32 input, else the
+    default float dtype (float64 under `jax_enable_x64`, else float32) — so float64 input
+    stays float64 under x64, and lists, integers and parsed text take the default."""
+    return jnp.dtype(jnp.float32) if getattr(values, "dtype", None) == np.float32 else float_dtype()

@@ -217,7 +217,7 @@ def _builtin_mesh(value, path):
 
 def _path_mesh(relative, path, base_dir, options):
     full = os.path.join(base_dir, relative)
-    if not os.path.isfile(full):
+    if not os.path.exists(full):  # load_mesh says what else is wrong (a folder, the content)
         raise SceneFileError(f"{path}: mesh file {relative!r} not found (looked for "
                              f"{full!r}); expected a path relative to the scene file's folder")
     return load_mesh(full, **options)

@@ -17,7 +17,7 @@ import numpy as np
 from diffshade.camera import Camera
 from diffshade.lights import LightGroups, group_lights
 from diffshade.material import Material
-from diffshade.mesh import Mesh
+from diffshade.mesh import Mesh, check_mesh
 from diffshade.scene import Scene, make_scene
 from diffshade.settings import RenderSettings
 
@@ -60,6 +60,8 @@ class Dataset:
     def __post_init__(self):
         if not isinstance(self.mesh, Mesh):
             raise TypeError(f"mesh: got {type(self.mesh).__name__}; expected Mesh")
+        # A Mesh built directly is unchecked: a bad face index would reach the rasterizer.
+        object.__setattr__(self, "mesh", check_mesh(self.mesh))
         views = tuple(self.views)
         if not views:
             raise ValueError("views: got an empty sequence; expected at least one View")

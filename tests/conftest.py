@@ -9,9 +9,9 @@ a fixture that depends on `x64`), because builders take the default float dtype 
 time. A float32 test in such a module nests `with jax.enable_x64(False):` and builds its
 scene inside that block.
 
-`mesh` builds a Mesh from plain arrays in the current default float dtype (unlike
-`mesh_from_arrays`, which always stores float32), so that closed-form tests see exactly
-the vertices and normals they wrote down.
+`mesh` builds a Mesh from plain arrays in the current default float dtype with the
+normals given as they are (`mesh_from_arrays` computes or renormalizes them), so that
+closed-form tests see exactly the vertices and normals they wrote down.
 """
 
 import jax

@@ -10,6 +10,7 @@ Each row of the tables below is (call, exception type, argument name, value as s
 import dataclasses
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -281,8 +282,9 @@ def test_render_rejects_what_is_not_a_scene_or_settings(call, name, value):
 def test_missing_or_unreadable_mesh_file(tmp_path):
     with pytest.raises(FileNotFoundError, match="mesh file not found: .*missing.obj"):
         ds.load_mesh(tmp_path / "missing.obj")
-    with pytest.raises(FileNotFoundError, match="mesh file not found"):
+    with pytest.raises(ValueError) as info:
         ds.load_mesh(tmp_path)  # a folder is not a mesh file
+    assert_clear(info, "path", "is a directory")
     for name, content in [("garbage.obj", b"this is not a mesh\x00\x01"), ("empty.obj", b""),
                           ("points.obj", b"v 0 0 0\nv 1 0 0\n"),
                           ("truncated.ply", b"ply\nformat ascii 1.0\nelement vertex 3\n"),
@@ -291,6 +293,48 @@ def test_missing_or_unreadable_mesh_file(tmp_path):
         with pytest.raises(ValueError) as info:
             ds.load_mesh(tmp_path / name)
         assert_clear(info, "path", name)
+
+
+PLY_HEADER = ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+              "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+              "end_header\n")
+OBJ_TRIANGLE = "v 0 0 0\nv 1 0 0\nv 0 1 0\n"
+# file name -> (contents, what the message shows after "path: ... <file name>")
+BAD_MESH_FILES = {
+    "face_truncated_to_one.obj": (OBJ_TRIANGLE + "v 1 1 0\nf 1 2 3\nf 1\n", "line 6: 'f 1'"),
+    "face_truncated_to_two.obj": (OBJ_TRIANGLE + "f 1 2 3\nf 3 2", "line 5: 'f 3 2'"),
+    "face_with_index_0.obj": (OBJ_TRIANGLE + "f 0 1 2\n", "line 4: 'f 0 1 2'"),
+    "face_beyond_vertices.obj": (OBJ_TRIANGLE + "f 1 2 7\n", "line 4: a face refers to vertex 7"),
+    "face_relative_too_far.obj": (OBJ_TRIANGLE + "f -1 -2 -4\n", "line 4: 'f -1 -2 -4'"),
+    "face_text.obj": (OBJ_TRIANGLE + "f 1 b 3\n", "line 4: 'f 1 b 3'"),
+    "vertex_truncated.obj": ("v 0 0 0\nv 1 0 0\nv 0 1\nf 1 2 3\n", "line 3: 'v 0 1'"),
+    "vertex_text.obj": ("v 0 0 0\nv 1 zero 0\nv 0 1 0\nf 1 2 3\n", "line 2: 'v 1 zero 0'"),
+    "vertex_nan.obj": ("v 0 0 0\nv nan 0 0\nv 0 1 0\nv 1 1 0\nf 1 2 3\nf 1 3 4\n",
+                       "vertices: row 1 is [nan, 0.0, 0.0]; expected finite"),
+    "vertex_inf.obj": (OBJ_TRIANGLE + "v 1e999 1 0\nf 1 2 3\nf 2 3 4\n", "row 3 is [inf"),
+    "vertex_nan.ply": (PLY_HEADER + "0 0 0\nnan 0 0\n0 1 0\n3 0 1 2\n", "row 1 is [nan"),
+    "face_beyond_vertices.ply": (PLY_HEADER + "0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n",
+                                 "faces: index 7 out of range for 3 vertices"),
+}
+
+
+@pytest.mark.parametrize("name", BAD_MESH_FILES)
+def test_malformed_mesh_file_is_named_with_its_line(tmp_path, name):
+    contents, shown = BAD_MESH_FILES[name]
+    (tmp_path / name).write_text(contents)
+    with pytest.raises(ValueError) as info:
+        ds.load_mesh(tmp_path / name)
+    assert_clear(info, "path", name)
+    assert str(info.value).startswith(f"path: mesh file '{tmp_path / name}'")
+    assert shown in str(info.value)
+
+
+def test_obj_comments_normals_and_relative_indices_are_not_truncation(tmp_path):
+    path = tmp_path / "ok.obj"
+    path.write_text("# a comment line\nv 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\n"
+                    "f 1//1 2//1 3//1\nf -3//1 -2//1 -1//1\n")
+    mesh = ds.load_mesh(path)
+    np.testing.assert_array_equal(np.asarray(mesh.faces), [[0, 1, 2], [0, 1, 2]])
 
 
 def test_missing_or_unreadable_image_file(tmp_path):
@@ -337,6 +381,17 @@ BAD_FILES = {
                           "mesh.path: mesh file 'nowhere.obj' not found"),
     "garbage_mesh.json": (json.dumps({**GOOD, "mesh": {"path": "garbage.obj"}}),
                           "mesh.path: mesh file"),
+    "truncated_mesh.json": (json.dumps({**GOOD, "mesh": {"path": "truncated.obj"}}),
+                            "mesh.path: mesh file"),
+    "folder_mesh.json": (json.dumps({**GOOD, "mesh": {"path": "."}}), "mesh.path: "),
+    "faces_negative.json": (json.dumps({**GOOD, "mesh": {"vertices": [[0, 0, 0], [1, 0, 0],
+                                                                      [0, 1, 0]],
+                                                         "faces": [[0, -1, 2]]}}),
+                            "mesh.faces: index -1 out of range"),
+    "vertex_nan.json": (json.dumps({**GOOD, "mesh": {"vertices": [[0, 0, 0], [1, "NaN", 0],
+                                                                  [0, 1, 0]],
+                                                     "faces": [[0, 1, 2]]}}),
+                        "mesh.vertices: row 1 is [1.0, nan, 0.0]; expected finite"),
     "binary.json": (b"\xff\xfe\x00garbage", "byte 0: not UTF-8 text"),
 }
 
@@ -345,6 +400,7 @@ def write_bad(tmp_path, name):
     """The bad scene file `name` in tmp_path (and the garbage mesh it may refer to)."""
     contents, _ = BAD_FILES[name]
     (tmp_path / "garbage.obj").write_bytes(b"not a mesh at all\n")
+    (tmp_path / "truncated.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 1 2")
     path = tmp_path / name
     if isinstance(contents, bytes):
         path.write_bytes(contents)
@@ -359,6 +415,15 @@ def test_bad_scene_file_raises_a_value_error_naming_file_and_key(tmp_path, name)
         ds.load_scene(write_bad(tmp_path, name))
     assert isinstance(info.value, ds.SceneFileError)
     assert f"{name}: {BAD_FILES[name][1]}" in str(info.value)
+
+
+@pytest.mark.parametrize("name, shown", [
+    ("truncated_mesh.json", "truncated.obj', line 5: 'f 1 2'; expected a face"),
+    ("folder_mesh.json", "is a directory; expected a mesh file"),
+])
+def test_bad_mesh_of_a_scene_file_is_named_in_full(tmp_path, name, shown):
+    with pytest.raises(ds.SceneFileError, match=re.escape(shown)):
+        ds.load_scene(write_bad(tmp_path, name))
 
 
 def test_missing_scene_file_raises_file_not_found(tmp_path):
@@ -446,6 +511,16 @@ DATASETS = {
                              TypeError, "truth", "dict"),
     "global_ambient_negative": (lambda: fitting.Dataset(MESH, [view()], global_ambient=-1.0),
                                 ValueError, "global_ambient", "-1.0"),
+    # a Mesh built directly is unchecked; a bad face index would crash the rasterizer
+    "mesh_face_out_of_range": (lambda: fitting.Dataset(ds.replace(
+        MESH, faces=MESH.faces.at[3, 1].set(12)), [view()]), ValueError, "mesh.faces", "12"),
+    "mesh_face_negative": (lambda: fitting.Dataset(ds.replace(
+        MESH, faces=MESH.faces.at[0, 0].set(-2)), [view()]), ValueError, "mesh.faces", "-2"),
+    "mesh_vertex_nan": (lambda: fitting.Dataset(ds.replace(
+        MESH, vertices=MESH.vertices.at[5, 2].set(NAN)), [view()]), ValueError,
+        "mesh.vertices", "row 5"),
+    "mesh_normals_shape": (lambda: fitting.Dataset(ds.replace(
+        MESH, normals=MESH.normals[:4]), [view()]), ValueError, "mesh.normals", "(4, 3)"),
 }
 MESH = ds.icosphere(0)
 

@@ -4,6 +4,7 @@ dataset folder round trip (including re-rendering the saved scene files)."""
 
 import json
 import os
+import re
 
 import jax
 import numpy as np
@@ -170,3 +171,21 @@ def test_mesh_file_shape(tmp_path):
 def test_make_dataset_rejects_bad_arguments(kwargs, message):
     with pytest.raises(ValueError, match=message):
         make_dataset(**kwargs)
+
+
+@pytest.mark.parametrize("name, change, shown", [
+    ("faces", lambda faces: faces.__setitem__((3, 1), 500), "mesh_faces.npy: index 500 out of "
+                                                             "range for 162 vertices"),
+    ("faces", lambda faces: faces.__setitem__((0, 0), -1), "mesh_faces.npy: index -1"),
+    ("vertices", lambda verts: verts.__setitem__((7, 2), np.nan), "mesh_vertices.npy: row 7"),
+    ("normals", lambda normals: normals.__setitem__((1, 0), np.inf), "mesh_normals.npy: row 1"),
+])
+def test_load_dataset_checks_the_saved_mesh(sphere_data, tmp_path, name, change, shown):
+    """A corrupted mesh_*.npy is refused naming the file (a bad face index used to reach
+    the rasterizer and crash it; a NaN vertex used to fit silently)."""
+    save_dataset(sphere_data, tmp_path)
+    array = np.load(tmp_path / f"mesh_{name}.npy")
+    change(array)
+    np.save(tmp_path / f"mesh_{name}.npy", array)
+    with pytest.raises(ValueError, match=re.escape(shown)):
+        load_dataset(tmp_path)

@@ -278,6 +278,14 @@ def break_dataset(folder, how):
         target = np.load(folder / "view_001.npy")
         target[5, 7, 1] = np.nan
         np.save(folder / "view_001.npy", target)
+    elif how == "face_out_of_range":
+        faces = np.load(folder / "mesh_faces.npy")
+        faces[2, 1] = 10**6
+        np.save(folder / "mesh_faces.npy", faces)
+    elif how == "nan_vertex":
+        vertices = np.load(folder / "mesh_vertices.npy")
+        vertices[4, 0] = np.nan
+        np.save(folder / "mesh_vertices.npy", vertices)
     elif how == "bad_dataset_json":
         (folder / "dataset.json").write_text("{not json")
 
@@ -289,6 +297,8 @@ def break_dataset(folder, how):
     ("nan_target", "target image of view 1 (view_001.npy) contains NaN at pixel "
                    "(row 5, column 7)"),
     ("bad_dataset_json", "dataset.json': not a JSON object"),
+    ("face_out_of_range", "mesh_faces.npy: index 1e+06 out of range for 162 vertices"),
+    ("nan_vertex", "mesh_vertices.npy: row 4 is [nan,"),
 ])
 def test_fit_rejects_a_broken_dataset(data_root, tmp_path, capsys, how, message):
     data = copy_dataset(data_root / "clean", tmp_path / "data")
