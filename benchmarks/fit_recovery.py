@@ -14,46 +14,83 @@ worst < 3 % (8-bit targets). Writes JSON (default results/fit_recovery.json).
 
     python benchmarks/fit_recovery.py [--quick] [--n 30] [--no-adam]
 
+With `--srgb`, instead, for each built-in shape (icosphere, torus, box) it compares the
+targets a user would have: linear float .npy files against 8-bit sRGB PNGs (written with
+diffshade.write_png and read back with diffshade.read_image, so decoded to linear), and
+the same PNGs wrongly read as linear; for the PNGs it also prints the rounding bound of
+the uncertainty report (relative to the true value; median and worst over the fits).
+Writes results/fit_recovery_srgb.json by default.
+
+    python benchmarks/fit_recovery.py --srgb [--n 10]
+
 Timings on a shared machine are noisy; errors are deterministic.
 """
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
+import tempfile
 import time
 import warnings
 
 import numpy as np
 
-from data_synth import make_dataset, random_material
+from data_synth import SHAPES, make_dataset, random_material
+from diffshade.io import read_image, write_png
 from fitting import DEFAULT_INIT, fit, value_names
 
 BARS = {"float": (0.005, 0.02), "8-bit": (None, 0.03)}
 
 
-def run_config(materials, warmup_material, *, quantize, method, steps, size):
-    """(per-fit errors [n, p], per-fit seconds [n], warm-up seconds, parameter names)."""
+def png_targets(dataset, color_space):
+    """The dataset with every target written as an 8-bit sRGB PNG and read back, decoded
+    as `color_space` ('srgb': right; 'linear': the mistake the PNGs' tag prevents)."""
+    views = []
+    with tempfile.TemporaryDirectory() as folder:
+        for i, view in enumerate(dataset.views):
+            path = write_png(os.path.join(folder, f"view_{i}.png"), view.target)
+            views.append(dataclasses.replace(view, target=read_image(path, color_space)))
+    return dataclasses.replace(dataset, views=views)
+
+
+def _flat(values):
+    return np.concatenate([np.ravel(np.asarray(values[k], np.float64)) for k in sorted(values)])
+
+
+def run_config(materials, warmup_material, *, quantize, method, steps, size, shape="icosphere",
+               png=None):
+    """(per-fit errors [n, p], per-fit seconds [n], warm-up seconds, parameter names, and
+    the rounding bounds relative to the truth [n, p] for PNG targets, else None).
+    png: None (float or linearly quantized targets) or the colour space the 8-bit sRGB
+    PNG targets are decoded as."""
     def one(mat):
-        dataset = make_dataset(material=mat, size=size, quantize_8bit=quantize)
+        dataset = make_dataset(shape, material=mat, size=size, quantize_8bit=quantize)
+        if png:
+            dataset = png_targets(dataset, png)
         start = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            result = fit(dataset, method=method, steps=steps, with_uncertainty=False)
+            result = fit(dataset, method=method, steps=steps, with_uncertainty=png == "srgb")
         seconds = time.perf_counter() - start
         names = value_names(result.errors)
-        return np.concatenate([np.ravel(result.errors[k]) for k in sorted(result.errors)]), \
-            seconds, names
+        truth = _flat({k: getattr(mat, k) for k in result.errors})
+        bound = result.uncertainty.rounding_bound if result.uncertainty else None
+        return _flat(result.errors), seconds, names, (
+            None if bound is None else np.broadcast_to(bound, truth.shape) / np.abs(truth))
 
-    _, warm_seconds, names = one(warmup_material)
-    errors, seconds = [], []
+    _, warm_seconds, names, _ = one(warmup_material)
+    errors, seconds, bounds = [], [], []
     for i, mat in enumerate(materials):
-        err, sec, _ = one(mat)
+        err, sec, _, bound = one(mat)
         errors.append(err)
         seconds.append(sec)
+        bounds.append(bound)
         print(f"  fit {i + 1}/{len(materials)}: worst {100 * err.max():.3f} % "
               f"({names[int(err.argmax())]}), {sec:.2f} s", file=sys.stderr)
-    return np.array(errors), np.array(seconds), warm_seconds, names
+    bounds = None if any(b is None for b in bounds) else np.array(bounds)
+    return np.array(errors), np.array(seconds), warm_seconds, names, bounds
 
 
 def passes(label, errors):
@@ -88,17 +125,64 @@ def parse_args(argv):
     parser.add_argument("--adam-steps", type=int, default=2000)
     parser.add_argument("--no-adam", action="store_true", help="skip the Adam comparison")
     parser.add_argument("--quick", action="store_true", help="5 materials, 500 Adam steps")
-    parser.add_argument("--out", default="results/fit_recovery.json")
+    parser.add_argument("--srgb", action="store_true",
+                        help="compare linear .npy with 8-bit sRGB PNG targets (docstring)")
+    parser.add_argument("--out", default=None,
+                        help="JSON output (default results/fit_recovery.json, or "
+                             "results/fit_recovery_srgb.json with --srgb)")
     args = parser.parse_args(argv)
     if args.quick:
         args.n, args.adam_steps = 5, 500
+    args.out = args.out or ("results/fit_recovery_srgb.json" if args.srgb
+                            else "results/fit_recovery.json")
     return args
+
+
+SRGB_PLAN = (("linear .npy", None), ("sRGB PNG", "srgb"), ("sRGB PNG read as linear", "linear"))
+
+
+def srgb_cell(errors, j):
+    return f"{100 * np.median(errors[:, j]):.3f} / {100 * errors[:, j].max():.3f}"
+
+
+def main_srgb(args, warmup, materials):
+    """The --srgb comparison: per shape, a table of median / worst relative error in %."""
+    out = {"n": args.n, "seed": args.seed, "size": args.size, "shapes": {}}
+    for shape in SHAPES:
+        rows = {}
+        for title, png in SRGB_PLAN:
+            print(f"{shape}, {title}:", file=sys.stderr)
+            errors, seconds, _, names, bounds = run_config(
+                materials, warmup, quantize=False, method=args.method, steps=None,
+                size=args.size, shape=shape, png=png)
+            rows[title] = {"errors": errors, "bounds": bounds, "seconds": seconds}
+        print(f"\n{shape}: {args.n} random materials, 6 images of {args.size}^2; relative "
+              "error in %, median / worst over the fits")
+        titles = [t for t, _ in SRGB_PLAN] + ["PNG rounding bound"]
+        print(f"{'parameter':<12}" + "".join(f"{t:>26}" for t in titles))
+        for j, name in enumerate(names):
+            cells = [srgb_cell(rows[t]["errors"], j) for t, _ in SRGB_PLAN]
+            cells.append(srgb_cell(rows["sRGB PNG"]["bounds"], j))
+            print(f"{name:<12}" + "".join(f"{c:>26}" for c in cells))
+        out["shapes"][shape] = {"parameters": names} | {t: {
+            "median": np.median(r["errors"], 0).tolist(), "worst": r["errors"].max(0).tolist(),
+            "median_seconds_per_fit": float(np.median(r["seconds"])),
+            "rounding_bound_median": None if r["bounds"] is None
+            else np.median(r["bounds"], 0).tolist(),
+            "rounding_bound_worst": None if r["bounds"] is None else r["bounds"].max(0).tolist()}
+            for t, r in rows.items()}
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    with open(args.out, "w", encoding="utf-8") as file:
+        json.dump(out, file, indent=2)
+    print(f"wrote {args.out}")
 
 
 def main(argv=None):
     args = parse_args(argv)
     rng = np.random.default_rng(args.seed)
     warmup, *materials = [random_material(rng) for _ in range(args.n + 1)]
+    if args.srgb:
+        return main_srgb(args, warmup, materials)
     plan = [(f"{args.method} float", "float", False, args.method, None),
             (f"{args.method} 8-bit", "8-bit", True, args.method, None)]
     if not args.no_adam:
@@ -106,8 +190,9 @@ def main(argv=None):
     configs = []
     for title, label, quantize, method, steps in plan:
         print(f"{title}:", file=sys.stderr)
-        errors, seconds, warm, names = run_config(materials, warmup, quantize=quantize,
-                                                  method=method, steps=steps, size=args.size)
+        errors, seconds, warm, names, _ = run_config(materials, warmup, quantize=quantize,
+                                                     method=method, steps=steps,
+                                                     size=args.size)
         ok = passes(label, errors)
         configs.append({"title": title, "label": label, "method": method, "steps": steps,
                         "quantize_8bit": quantize, "errors": errors, "seconds": seconds,

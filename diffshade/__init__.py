@@ -12,8 +12,9 @@ CPU_TUNING = cputune.apply()
 from diffshade.blend import hard_blend, soft_blend
 from diffshade.builtin import BUILTIN_SCENES, builtin_scene
 from diffshade.camera import Camera, look_at, projection_matrix, view_matrix
+from diffshade.color import COLOR_SPACES, linear_to_srgb, srgb_to_linear
 from diffshade.interpolate import gather_faces, interpolate
-from diffshade.io import read_image, write_json, write_npy, write_png
+from diffshade.io import image_transfer, read_image, write_json, write_npy, write_png
 from diffshade.lights import (
     AmbientLight,
     DirectionalLight,
@@ -62,7 +63,8 @@ from diffshade.settings import RenderSettings
 from diffshade.shading import ShadingParts, shade
 
 __all__ = [
-    "BUILTIN_SCENES", "SceneFileError", "builtin_scene", "load_scene", "read_image",
+    "BUILTIN_SCENES", "COLOR_SPACES", "SceneFileError", "builtin_scene", "image_transfer",
+    "linear_to_srgb", "load_scene", "read_image", "srgb_to_linear",
     "save_scene", "scene_from_dict", "scene_to_dict", "soft_blend", "write_json", "write_npy",
     "write_png",
     "AmbientLight", "Camera", "DirectionalLight", "Fragments", "LightGroups", "Material",

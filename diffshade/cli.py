@@ -60,8 +60,9 @@ def _register_render(subparsers):
     parser = subparsers.add_parser(
         "render", help="render a scene file or a built-in scene to an image",
         description="Render a JSON scene file (see docs/scene-format.md) or a built-in "
-                    "scene. OUT.png gets 8-bit RGB over the scene's background; OUT.npy "
-                    "gets float32 RGBA [H, W, 4] (alpha = coverage).")
+                    "scene. OUT.png gets 8-bit sRGB-encoded RGB over the scene's background "
+                    "(for viewing); OUT.npy gets linear float32 RGBA [H, W, 4] (alpha = "
+                    "coverage), for data (docs/color.md).")
     parser.add_argument("scene", nargs="?", metavar="SCENE.json", help="scene file")
     parser.add_argument("--builtin", choices=BUILTIN_SCENES, help="render a built-in scene")
     parser.add_argument("-o", "--output", required=True, metavar="OUT",
@@ -91,7 +92,8 @@ def _scene_and_settings(args):
 
 
 def _write(path, image, kind):
-    """PNG: the RGB channels (already composited over the background); .npy: all of them."""
+    """PNG: the RGB channels (already composited over the background), sRGB-encoded;
+    .npy: all of them, linear."""
     if kind == ".png":
         return write_png(path, image[..., :3])
     return write_npy(path, image.astype(np.float32))

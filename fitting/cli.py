@@ -2,8 +2,8 @@
 
     diffshade fit DATASET -o RESULT [--method linear|adam|lbfgs] [--steps N]
         [--fit ka,kd,ks,shininess] [--grey NAMES] [--init KA,KD,KS,N|FILE.json]
-        [--loss mse|l1|charbonnier|huber] [--tol T] [--checkpoint-every N] [--resume]
-        [--quiet]
+        [--loss mse|l1|charbonnier|huber] [--color-space srgb|linear] [--tol T]
+        [--checkpoint-every N] [--resume] [--quiet]
 
 Everything that can be wrong with the input (options, the dataset folder, its targets,
 the output path, the checkpoint to resume; fitting.inputs) is checked before anything is
@@ -31,6 +31,7 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
+from diffshade.color import COLOR_SPACES
 from fitting.cache import build_cache
 from fitting.checkpoint import (
     advance,
@@ -87,6 +88,10 @@ def register(subparsers):
     parser.add_argument("--init", metavar="KA,KD,KS,N|FILE",
                         help="start and held-fixed values (default 0.3,0.5,0.3,20)")
     parser.add_argument("--loss", choices=LOSSES, help="image loss (default mse)")
+    parser.add_argument("--color-space", choices=COLOR_SPACES,
+                        help="decode every PNG/JPEG target as this, overriding the dataset's "
+                             "'color_space' keys and the files' own tags (default: as they "
+                             "say, else srgb; .npy targets are linear; docs/color.md)")
     parser.add_argument("--tol", type=non_negative_float, default=1e-7,
                         help="stop when the relative loss change stays below this (0: never)")
     parser.add_argument("--checkpoint-every", type=positive_int, default=500, metavar="N",
@@ -102,7 +107,8 @@ def register(subparsers):
 
 def _check_agrees(args, state, checkpoint):
     """On --resume, every option given must describe the checkpoint's run."""
-    given = {"--method": (args.method, state.method), "--loss": (args.loss, state.kind)}
+    given = {"--method": (args.method, state.method), "--loss": (args.loss, state.kind),
+             "--color-space": (args.color_space, state.meta.get("color_space"))}
     for option, (value, saved) in given.items():
         if value is not None and value != saved:
             raise ValueError(f"{option}: got {value!r}; the checkpoint {checkpoint!r} was "
@@ -143,7 +149,9 @@ def _prepare(args):
     else:
         spec, method, kind = fit_spec(args.fit, args.grey), args.method or "linear", args.loss
         init = DEFAULT_INIT if args.init is None else parse_material(args.init, "--init")
-    dataset = load_checked_dataset(args.dataset)
+    if state is not None and args.color_space is None:
+        args.color_space = state.meta.get("color_space")
+    dataset = load_checked_dataset(args.dataset, args.color_space)
     fingerprint = dataset_fingerprint(dataset)
     if state is not None and state.meta.get("dataset_sha256") != fingerprint:
         raise ValueError(f"DATASET: {args.dataset!r} holds other targets than the dataset the "
@@ -208,6 +216,7 @@ def _progress(state, budget, quiet):
 def _extra(args, state, status, signum, message):
     return {"format": RESULT_FORMAT, "version": 1,
             "dataset": os.path.abspath(args.dataset), "loss_kind": state.kind,
+            "color_space": args.color_space,
             "fit": {name: getattr(state.spec, name) for name in (*COEFFICIENTS, "shininess")},
             "status": status, "interrupted": signum is not None,
             "signal": SIGNALS.get(signum), "stop_message": message or None,
@@ -246,7 +255,8 @@ def run_fit(args) -> int:
         start = time.perf_counter()
         data = build_cache(dataset, plan.init)
         state = plan.state or start_run(data, plan.spec, plan.init, plan.method, plan.kind)
-        state.meta |= {"dataset_sha256": plan.fingerprint, "steps": plan.budget}
+        state.meta |= {"dataset_sha256": plan.fingerprint, "steps": plan.budget,
+                       "color_space": args.color_space}
         if signals.received is not None:
             print(f"diffshade: interrupted by {SIGNALS[signals.received]} before the first "
                   "step; nothing written", file=sys.stderr)

@@ -175,15 +175,16 @@ def _check_targets(path, entries):
                              "expected finite colours")
 
 
-def load_checked_dataset(path):
-    """load_dataset with the CLI's checks first: the folder, dataset.json, finite targets."""
+def load_checked_dataset(path, color_space=None):
+    """load_dataset with the CLI's checks first: the folder, dataset.json, finite targets.
+    color_space: 'srgb' or 'linear' decodes every image target so (--color-space)."""
     if not os.path.exists(path):
         raise FileNotFoundError(f"DATASET: folder not found: {path!r}")
     if not os.path.isdir(path):
         raise ValueError(f"DATASET: {path!r} is a file; expected a dataset folder")
     _check_targets(path, _dataset_entries(path))
     try:
-        return load_dataset(path)
+        return load_dataset(path, color_space)
     except (KeyError, TypeError) as err:
         raise ValueError(f"DATASET: {path!r} is malformed ({err!r})") from err
 

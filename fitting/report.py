@@ -10,7 +10,8 @@
                    the caller's `extra` keys
     loss.png       the loss history (matplotlib, Agg canvas, log y)
     view_000.png   per view: target | initial | fitted | ERROR_GAIN x |fitted - target|,
-                   rendered with diffshade.render, separated by grey bars
+                   rendered with diffshade.render, separated by grey bars; computed in
+                   linear colour and written sRGB-encoded, as every PNG (docs/color.md)
 
 `comparison_table(result, truth)` is the true-versus-recovered table (with standard
 errors), one row per fitted scalar.
@@ -21,6 +22,7 @@ import os
 
 import numpy as np
 
+from diffshade.color import srgb_to_linear
 from diffshade.io import write_json, write_png, write_text
 from diffshade.render import render
 from fitting.checkpoint import material_dict
@@ -41,7 +43,7 @@ def panel(target, initial, fitted, gain=ERROR_GAIN):
 
 
 def loss_curve(history, title=""):
-    """The loss per step on a log axis, as an RGB image [h, w, 3] in [0, 1]."""
+    """The loss per step on a log axis, as a linear RGB image [h, w, 3] in [0, 1]."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.ticker import MaxNLocator
@@ -61,7 +63,8 @@ def loss_curve(history, title=""):
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
     canvas.draw()
-    return np.asarray(canvas.buffer_rgba(), np.float64)[..., :3] / 255.0
+    # The canvas holds sRGB codes (what a screen shows); write_png encodes them again.
+    return srgb_to_linear(np.asarray(canvas.buffer_rgba(), np.float64)[..., :3] / 255.0)
 
 
 def _rgb_line(key, value):

@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
+from diffshade.color import decode, encode
 from fitting.cache import FitData, pixel_parts
 from fitting.gauss_newton import jacobian_matrix
 from fitting.loss import values_residuals
@@ -167,18 +168,38 @@ def uncertainty(values: dict, data: FitData, spec: FitSpec, *, highlight_thresho
                              n, dof, float(condition), tuple(found), bound, notes)
 
 
-def _is_8bit(data):
-    codes = [np.asarray(v.target, np.float64) * 255.0 for v in data.views]
-    return all(np.all(np.abs(c - np.round(c)) < 1e-3) for c in codes)
+def _codes_8bit(values, encoding):
+    """values' 8-bit codes under `encoding`, or None when they are not all 8-bit codes."""
+    codes = encode(values, encoding) * 255.0
+    return np.round(codes) if np.all(np.abs(codes - np.round(codes)) < 1e-3) else None
+
+
+def rounding_steps(targets):
+    """Worst-case |linear target - the value before 8-bit rounding| per value of `targets`
+    (linear, [...]), or (None, None) when they are not 8-bit codes; with the encoding the
+    codes were found in: 'linear' (0.5 / 255 everywhere) or 'srgb' (half a code step,
+    mapped through the sRGB curve: from 0.5 / 255 / 12.92 in the darks to ~0.0044 at 1)."""
+    targets = np.asarray(targets, np.float64)
+    if _codes_8bit(targets, "linear") is not None:
+        return np.full(targets.shape, 0.5 / 255.0), "linear"
+    codes = _codes_8bit(targets, "srgb")
+    if codes is None:
+        return None, None
+    centre = decode(codes / 255.0, "srgb")
+    above = decode(np.minimum(codes + 0.5, 255.0) / 255.0, "srgb") - centre
+    below = centre - decode(np.maximum(codes - 0.5, 0.0) / 255.0, "srgb")
+    return np.maximum(above, below), "srgb"
 
 
 def _rounding(data, jac, inverse):
     """8-bit targets: rounding is no independent noise (a flat region rounds one way), so
     bound its effect instead: the linearized estimate moves by (J^T J)^-1 J^T delta for
-    target errors |delta| <= 0.5 / 255, at most 0.5 / 255 * the row sums of |(J^T J)^-1 J^T|."""
-    if not _is_8bit(data):
+    target errors |delta_i| <= step_i (`rounding_steps`), at most |(J^T J)^-1 J^T| @ step."""
+    targets = np.concatenate([np.asarray(v.target).reshape(-1) for v in data.views])
+    steps, encoding = rounding_steps(targets)
+    if steps is None:
         return None, ()
-    bound = 0.5 / 255.0 * np.abs(inverse @ jac.T).sum(axis=1)
-    return bound, ("targets are 8-bit: rounding errors are not independent (a flat region "
-                   "rounds one way), so the standard errors understate the error; "
-                   "rounding_bound is the worst-case shift it can cause",)
+    bound = np.abs(inverse @ jac.T) @ steps
+    return bound, (f"targets are 8-bit ({encoding}-encoded): rounding errors are not "
+                   "independent (a flat region rounds one way), so the standard errors "
+                   "understate the error; rounding_bound is the worst-case shift it can cause",)

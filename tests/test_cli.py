@@ -21,7 +21,9 @@ from diffshade.builtin import BUILTIN_SCENES, builtin_scene
 
 
 def quantized(rgb):
-    return np.round(np.clip(np.asarray(rgb, np.float64), 0.0, 1.0) * 255.0) / 255.0
+    """Linear rgb as an 8-bit sRGB PNG stores it, decoded back to linear."""
+    codes = np.round(ds.linear_to_srgb(np.clip(np.asarray(rgb, np.float64), 0.0, 1.0)) * 255)
+    return ds.srgb_to_linear(codes / 255.0)
 
 
 def one_error_line(capsys):
@@ -195,9 +197,10 @@ def test_extra_command_with_a_missing_dependency_is_not_skipped(tmp_path, monkey
 
 @pytest.mark.parametrize("channels", [1, 3, 4])
 def test_write_png_quantizes_and_read_image_scales_back(tmp_path, channels):
+    """Linear PNGs here; sRGB encoding is tested in tests/test_color.py."""
     values = np.array([-0.2, 0.0, 0.3, 0.499, 0.501, 0.9999, 1.0, 1.7])
     image = np.resize(values, (3, 5, channels))
-    path = dio.write_png(tmp_path / "a.png", image)
+    path = dio.write_png(tmp_path / "a.png", image, color_space="linear")
     stored = iio.imread(path)
     want = np.round(np.clip(image, 0, 1) * 255).astype(np.uint8)
     np.testing.assert_array_equal(stored, want[..., 0] if channels == 1 else want)

@@ -132,8 +132,9 @@ def test_png_targets_are_read_when_there_is_no_npy(sphere_data, tmp_path):
     save_dataset(sphere_data, tmp_path)
     os.remove(tmp_path / "view_001.npy")
     loaded = load_dataset(tmp_path)
-    expected = np.round(sphere_data.views[1].target * 255.0) / 255.0
-    np.testing.assert_allclose(loaded.views[1].target, expected, atol=1e-6)
+    codes = np.round(ds.linear_to_srgb(np.clip(sphere_data.views[1].target, 0, 1)) * 255.0)
+    np.testing.assert_allclose(loaded.views[1].target, ds.srgb_to_linear(codes / 255.0),
+                               atol=1e-6)  # the PNG is 8-bit sRGB
     np.testing.assert_array_equal(loaded.views[0].target, sphere_data.views[0].target)
 
 

@@ -185,7 +185,9 @@ def test_fit_panels_mtl_and_loss_curve(data_root, tmp_path, capsys):
     assert panel.shape == (SIZE, 4 * SIZE + 3 * PANEL_GAP, 3)
     tiles = [panel[:, k * (SIZE + PANEL_GAP):k * (SIZE + PANEL_GAP) + SIZE] for k in range(4)]
     target = dataset.views[1].target
-    levels = lambda x: np.round(np.clip(x, 0, 1) * 255) / 255  # noqa: E731
+    assert ds.image_transfer(out / "view_001.png") == "srgb"
+    tiles = [ds.linear_to_srgb(tile) for tile in tiles]  # compared as the file's 8-bit codes
+    levels = lambda x: np.round(ds.linear_to_srgb(np.clip(x, 0, 1)) * 255) / 255  # noqa: E731
     np.testing.assert_allclose(tiles[0], levels(target), atol=1e-6)
     scene = ds.make_scene(dataset.mesh, dataset.views[1].camera, dataset.views[1].lights,
                           ds.material(0.3, 0.5, 0.3, 20.0), model=dataset.model,
@@ -193,7 +195,7 @@ def test_fit_panels_mtl_and_loss_curve(data_root, tmp_path, capsys):
     initial = np.asarray(ds.render(scene, dataset.settings))[..., :3]
     np.testing.assert_allclose(tiles[1], levels(initial), atol=1.5 / 255)
     np.testing.assert_allclose(tiles[2], levels(target), atol=1.5 / 255)  # fit ~ truth
-    assert tiles[3].max() <= ERROR_GAIN * 1.5 / 255 + 1.5 / 255
+    assert ds.srgb_to_linear(tiles[3]).max() <= ERROR_GAIN * 1.5 / 255 + 1.5 / 255
     mtl = dict(line.split(maxsplit=1) for line in (out / "material.mtl").read_text().splitlines()
                if line and not line.startswith("#"))
     assert mtl["newmtl"] == "diffshade_fit" and mtl["illum"] == "2"
