@@ -77,4 +77,4 @@ def render_analytic_sphere(scene, settings, center=(0.0, 0.0, 0.0), radius=1.0, 
 
 
 render_analytic_sphere = jax.jit(render_analytic_sphere,
-                                 static_argnames=("settings", "radius", "supersample"))
+                                 static_argnames=("radius", "supersample"))

@@ -45,11 +45,13 @@ def soft_weights(frags, near, far, sigma, gamma):
     return jax.nn.softmax(jnp.concatenate([logits, bg], -1), axis=-1)
 
 
-def soft_blend(colours, frags, background, near, far, sigma, gamma):
-    """colours: [H, W, K, 3]; background: [3]; sigma (pixels^2), gamma: floats
+def soft_blend(colours, frags, background, near, far, sigma, gamma, weights=None):
+    """colours: [H, W, K, 3]; background: [3]; sigma (pixels^2), gamma: scalars
     -> [H, W, 4] RGBA by SoftRas aggregation (module docstring). The colours of fragments
-    whose weight is exactly 0 do not matter (render may leave them 0)."""
-    weights = soft_weights(frags, near, far, sigma, gamma)
+    whose weight is exactly 0 do not matter (render may leave them 0). weights: the
+    soft_weights, when the caller has them already."""
+    if weights is None:
+        weights = soft_weights(frags, near, far, sigma, gamma)
     rgb = jnp.sum(weights[..., :-1, None] * colours, -2) + weights[..., -1:] * background
     log_clear = jnp.sum(jnp.where(frags.valid, jax.nn.log_sigmoid(-frags.dist / sigma), 0.0), -1)
     alpha = 1.0 - jnp.exp(log_clear)

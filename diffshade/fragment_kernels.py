@@ -35,6 +35,8 @@ def _div(num, den, tiny):
 
 @numba.njit(cache=True, nogil=True)
 def _pixel_ndc(pixel, width, height):
+    # a batch of B images arrives as one of B * height rows (hostop.py)
+    pixel = pixel % (width * height)
     row, col = pixel // width, pixel % width
     return (2.0 * col + 1.0) / width - 1.0, 1.0 - (2.0 * row + 1.0) / height, col + 0.5, row + 0.5
 

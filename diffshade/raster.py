@@ -14,8 +14,6 @@ fixed and pass it back to `render_fragments` (fitting materials then never re-ra
 """
 
 import dataclasses
-import math
-from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -23,8 +21,10 @@ import jax.numpy as jnp
 from diffshade import fragment_kernels as kernels
 from diffshade.candidates import find_candidates
 from diffshade.hostcall import host_call
+from diffshade.hostop import FragmentOp
 from diffshade.numerics import dot, safe_div, tiny
 from diffshade.project import Projected
+from diffshade.tile_search import search_tiles
 
 
 @jax.tree_util.register_dataclass
@@ -55,23 +55,40 @@ def face_edge_coefficients(clip, faces):
     return coeffs, dot(coeffs[:, 0], xyw[:, 0])
 
 
-def soft_radius(settings) -> float:
+#: the JAX search's tiles (pixels a side) and faces kept per tile (tile_search.py): room
+#: for the faces near a tile of a densely tessellated mesh with the soft footprint grown
+TILE, TILE_CAPACITY = 8, 128
+
+
+def soft_radius(settings):
     """Soft footprint radius in pixels: where sigmoid(-d^2 / sigma) falls to the threshold t,
-    d^2 = sigma * ln((1 - t) / t)."""
-    t = settings.soft_threshold
-    return math.sqrt(settings.sigma * math.log((1.0 - t) / t))
+    d^2 = sigma * ln((1 - t) / t). A JAX scalar (sigma and t are data)."""
+    t = jnp.asarray(settings.soft_threshold)
+    return jnp.sqrt(settings.sigma * jnp.log((1.0 - t) / t))
 
 
-def search_faces(clip, faces, camera, k, settings, radius_px=0.0):
-    """Host-side candidate search under jit: (face_ids [H, W, k] int32, dropped [] int32)."""
+def search_faces(clip, faces, camera, k, settings, soft):
+    """The candidate search: (face_ids [H, W, k] int32, dropped [] int32), by the host
+    kernel (candidates.py) or in JAX (tile_search.py), as settings.kernels says."""
+    radius = soft_radius(settings) if soft else jnp.zeros(())
+    operands = jax.lax.stop_gradient((clip, camera.near, camera.far, radius, settings.sigma,
+                                      settings.gamma))
+    perspective = camera.projection == "perspective"
+    if not settings.use_host_kernels():
+        return search_tiles(*operands[:1], faces, *operands[1:], width=camera.width,
+                            height=camera.height, k=k, soft=soft,
+                            cull_backfaces=settings.cull_backfaces, perspective=perspective,
+                            tile=TILE, capacity=TILE_CAPACITY)
     shapes = (jax.ShapeDtypeStruct((camera.height, camera.width, k), jnp.int32),
               jax.ShapeDtypeStruct((), jnp.int32))
-    search = partial(find_candidates, width=camera.width, height=camera.height, k=k,
-                     cull_backfaces=settings.cull_backfaces, radius_px=radius_px,
-                     sigma=settings.sigma, gamma=settings.gamma,
-                     perspective=camera.projection == "perspective")
-    clip, near, far = jax.lax.stop_gradient((clip, camera.near, camera.far))
-    return host_call(search, shapes, clip, faces, near, far)
+
+    def search(clip, faces, near, far, radius, sigma, gamma):
+        return find_candidates(clip, faces, near, far, width=camera.width,
+                               height=camera.height, k=k, cull_backfaces=settings.cull_backfaces,
+                               radius_px=float(radius), sigma=float(sigma), gamma=float(gamma),
+                               perspective=perspective)
+    clip, near, far, radius, sigma, gamma = operands
+    return host_call(search, shapes, clip, faces, near, far, radius, sigma, gamma)
 
 
 def _screen_positions(clip, width, height):
@@ -81,56 +98,97 @@ def _screen_positions(clip, width, height):
     return jnp.stack([x, y], -1)
 
 
-def _flat_ids(ids):
-    return ids.reshape(-1, ids.shape[-1])
+def _pixel_grid(height, width, dtype):
+    """Per pixel [H, W, 1]: NDC x, NDC y and pixel-centre coordinates px, py."""
+    rows = jnp.arange(height, dtype=dtype)[:, None, None]
+    cols = jnp.arange(width, dtype=dtype)[None, :, None]
+    x = jnp.broadcast_to((2.0 * cols + 1.0) / width - 1.0, (height, width, 1))
+    y = jnp.broadcast_to(1.0 - (2.0 * rows + 1.0) / height, (height, width, 1))
+    return x, y, jnp.broadcast_to(cols + 0.5, x.shape), jnp.broadcast_to(rows + 0.5, x.shape)
 
 
-def _geometry_args(corner_w, corner_z, coeffs, scr, width, height, soft):
+def _normalized(v):
+    """v / sum(v) over the last axis of 3 (0 where the sum is ~0)."""
+    return safe_div(v, (v[..., 0] + v[..., 1] + v[..., 2])[..., None])
+
+
+def _segment_dist2(px, py, a, b):
+    """Squared distance from (px, py) [...] to the segments ab ([..., 2] each): [...]."""
+    ex, ey = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
+    rx, ry = px - a[..., 0], py - a[..., 1]
+    t = jnp.clip(safe_div(rx * ex + ry * ey, ex * ex + ey * ey), 0.0, 1.0)
+    dx, dy = rx - t * ex, ry - t * ey
+    return dx * dx + dy * dy
+
+
+def _pick_min(a, b):
+    # where, not jnp.minimum: under jit(grad) XLA may recompute an operand with other
+    # rounding, and jax 0.10's min rule (bitwise operand == result) then drops its gradient
+    return jnp.where(a <= b, a, b)
+
+
+def _geometry_native(ids, corner_w, corner_z, coeffs, scr, *, width, height, soft):
+    """fragment_geometry in jax.numpy: the same arithmetic as the kernels
+    (fragment_kernels.geometry_forward)."""
+    valid = ids >= 0
+    f = jnp.maximum(ids, 0)
+    x, y, px, py = _pixel_grid(height, width, coeffs.dtype)
+    c = jnp.take(coeffs, f, axis=0)
+    edge = c[..., 0] * x[..., None] + c[..., 1] * y[..., None] + c[..., 2]
+    dist = jnp.zeros(ids.shape, coeffs.dtype)
+    if not soft:
+        bary = _normalized(edge)
+    else:
+        w = jnp.take(corner_w, f, axis=0)
+        screen = _normalized(edge * w)
+        bary = _normalized(safe_div(jnp.maximum(screen, 0.0), w))
+        s = jnp.take(scr, f, axis=0)
+        d2 = _pick_min(_pick_min(_segment_dist2(px, py, s[..., 0, :], s[..., 1, :]),
+                                 _segment_dist2(px, py, s[..., 1, :], s[..., 2, :])),
+                       _segment_dist2(px, py, s[..., 2, :], s[..., 0, :]))
+        dist = jnp.where(valid, jnp.where(jnp.all(screen >= 0.0, -1), d2, -d2), 0.0)
+    bary = jnp.where(valid[..., None], bary, 0.0)
+    return bary, dot(bary, jnp.take(corner_z, f, axis=0)), dist
+
+
+def _geometry_avals(ids, corner_w, corner_z, coeffs, scr, **params):
+    dtype = coeffs.dtype
+    return (jax.ShapeDtypeStruct(ids.shape + (3,), dtype), jax.ShapeDtypeStruct(ids.shape, dtype),
+            jax.ShapeDtypeStruct(ids.shape, dtype))
+
+
+def _kernel_args(corner_w, corner_z, coeffs, scr, width, height, soft):
     """The kernels' per-face and static arguments (fragment_kernels.geometry_forward)."""
     return (corner_w, corner_z, coeffs, scr, width, height, soft, tiny(coeffs.dtype),
             kernels.chunks())
 
 
-@partial(jax.custom_vjp, nondiff_argnums=(5, 6, 7))
-def fragment_geometry(ids, corner_w, corner_z, coeffs, scr, width, height, soft):
-    """Per fragment: barycentrics [H, W, K, 3] (clamped to the triangle in soft mode), the
-    interpolated depth [H, W, K] and the signed squared distance in pixels^2 to the
-    triangle's boundary [H, W, K] (soft; zeros in hard mode), from per-face inputs:
-    corner_w [F, 3] clip W and corner_z [F, 3] eye-space depth of the corners, coeffs
-    [F, 3, 3] edge coefficients (face_edge_coefficients), scr [F, 3, 2] corner pixel
-    positions. Forward and backward are compiled kernels (fragment_kernels.py); JAX
-    differentiates the per-face inputs."""
-    dtype = coeffs.dtype
-    shapes = (jax.ShapeDtypeStruct(ids.shape + (3,), dtype), jax.ShapeDtypeStruct(ids.shape, dtype),
-              jax.ShapeDtypeStruct(ids.shape, dtype))
-
-    def host(ids, *per_face):
-        return kernels.geometry_forward(_flat_ids(ids),
-                                        *_geometry_args(*per_face, width, height, soft))
-    return host_call(host, shapes, ids, corner_w, corner_z, coeffs, scr)
+def _geometry_forward(ids, *per_face, width, height, soft):
+    k = ids.shape[-1]
+    return kernels.geometry_forward(ids.reshape(-1, k),
+                                    *_kernel_args(*per_face, width, height, soft))
 
 
-def _geometry_fwd(ids, corner_w, corner_z, coeffs, scr, width, height, soft):
-    out = fragment_geometry(ids, corner_w, corner_z, coeffs, scr, width, height, soft)
-    return out, (ids, corner_w, corner_z, coeffs, scr)
+def _geometry_backward(ids, corner_w, corner_z, coeffs, scr, g_bary, g_depth, g_dist, *,
+                       width, height, soft):
+    k = ids.shape[-1]
+    args = _kernel_args(corner_w, corner_z, coeffs, scr, width, height, soft)
+    return kernels.geometry_backward(ids.reshape(-1, k), *args, g_bary.reshape(-1, k, 3),
+                                     g_depth.reshape(-1, k), g_dist.reshape(-1, k))
 
 
-def _geometry_bwd(width, height, soft, residuals, cotangents):
-    ids, *per_face = residuals
-    shapes = tuple(jax.ShapeDtypeStruct(a.shape, a.dtype) for a in per_face)
-
-    def host(ids, corner_w, corner_z, coeffs, scr, g_bary, g_depth, g_dist):
-        k = ids.shape[-1]
-        args = _geometry_args(corner_w, corner_z, coeffs, scr, width, height, soft)
-        return kernels.geometry_backward(_flat_ids(ids), *args, g_bary.reshape(-1, k, 3),
-                                         g_depth.reshape(-1, k), g_dist.reshape(-1, k))
-    return (None,) + host_call(host, shapes, ids, *per_face, *cotangents)
+#: Per fragment: barycentrics [H, W, K, 3] (clamped to the triangle in soft mode), the
+#: interpolated eye-space depth [H, W, K] and the signed squared distance in pixels^2 to
+#: the triangle's boundary [H, W, K] (soft; zeros in hard mode), from the face ids
+#: [H, W, K] and per-face inputs: corner_w [F, 3] clip W and corner_z [F, 3] eye-space
+#: depth of the corners, coeffs [F, 3, 3] edge coefficients (face_edge_coefficients), scr
+#: [F, 3, 2] corner pixel positions. Static: width, height, soft.
+fragment_geometry = FragmentOp("fragment_geometry", ("face",) * 4, _geometry_native,
+                               _geometry_forward, _geometry_backward, _geometry_avals)
 
 
-fragment_geometry.defvjp(_geometry_fwd, _geometry_bwd)
-
-
-def fragments_from_ids(proj: Projected, faces, face_ids, dropped, soft=False) -> Fragments:
+def fragments_from_ids(proj: Projected, faces, face_ids, dropped, soft=False,
+                       host=None) -> Fragments:
     """Differentiable fragment geometry of the chosen faces (see module docstring).
 
     soft=True: barycentrics of pixels outside a triangle are clamped to it in screen space
@@ -138,7 +196,10 @@ def fragments_from_ids(proj: Projected, faces, face_ids, dropped, soft=False) ->
     squared distance `dist` is computed. (Clamping the perspective-correct barycentrics
     instead goes wrong where the pixel's ray meets the triangle's plane behind the eye:
     they all flip sign there.)
+    host: run the per-fragment geometry as compiled host kernels (default: on the CPU
+    backend), else in jax.numpy (hostop.py).
     """
+    host = jax.default_backend() == "cpu" if host is None else host
     height, width, _ = face_ids.shape
     valid = face_ids >= 0
     ids = jnp.maximum(face_ids, 0)
@@ -146,8 +207,8 @@ def fragments_from_ids(proj: Projected, faces, face_ids, dropped, soft=False) ->
     corner_w = jnp.take(proj.clip[:, 3], faces)
     corner_z = jnp.take(proj.depth, faces)
     scr = jnp.take(_screen_positions(proj.clip, width, height), faces, axis=0)
-    bary, depth, dist = fragment_geometry(face_ids, corner_w, corner_z, coeffs, scr, width,
-                                          height, soft)
+    bary, depth, dist = fragment_geometry(face_ids, corner_w, corner_z, coeffs, scr, host=host,
+                                          width=width, height=height, soft=soft)
     return Fragments(face_ids, bary, depth, valid & (jnp.take(det, ids) > 0), dropped,
                      dist if soft else None)
 
@@ -156,9 +217,8 @@ def rasterize(proj: Projected, faces, camera, settings) -> Fragments:
     """Hard mode: the nearest covering face per pixel (K = 1, z-buffer). Soft mode: up to
     settings.faces_per_pixel faces whose soft footprint reaches the pixel, ranked by their
     weight in the soft blend (candidates.find_candidates)."""
-    if settings.raster == "soft":
-        k, radius = settings.faces_per_pixel, soft_radius(settings)
-    else:
-        k, radius = 1, 0.0
-    face_ids, dropped = search_faces(proj.clip, faces, camera, k, settings, radius)
-    return fragments_from_ids(proj, faces, face_ids, dropped, soft=settings.raster == "soft")
+    soft = settings.raster == "soft"
+    k = settings.faces_per_pixel if soft else 1
+    face_ids, dropped = search_faces(proj.clip, faces, camera, k, settings, soft)
+    return fragments_from_ids(proj, faces, face_ids, dropped, soft=soft,
+                              host=settings.use_host_kernels())

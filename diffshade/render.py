@@ -1,14 +1,19 @@
-"""render: project -> rasterize -> interpolate -> shade -> blend, as a short composition.
+"""render: project -> rasterize -> weights -> shade what counts -> blend, each once.
 
-Shading modes (RenderSettings.shading), following OpenGL 1.x:
+Shading modes (RenderSettings.shading) follow OpenGL 1.x; where each mode lights the
+surface and how fragments read the lit colours is diffshade.samples (shared with the
+fitting cache):
 - 'phong': normals interpolated perspective-correctly and renormalized, lit per fragment;
   the final colour is clamped (when clamping is on).
 - 'gouraud': lit per vertex, each vertex colour clamped, then interpolated.
 - 'flat': one evaluation per face, at the centroid with the face normal.
 - 'flat_last': OpenGL's flat shading: the whole face takes the lit colour of its last
   vertex (the provoking vertex), computed with that vertex's normal.
-Two-sided lighting (scene.two_sided) flips the normal and uses the back material on faces
-that are clockwise on screen, as OpenGL does.
+Two-sided lighting (scene.two_sided) flips the normal on faces that are clockwise on
+screen and lights them with the back material, when the scene has one, as OpenGL does.
+
+In soft mode the blend weights are computed once, before shading: Phong shading then
+lights only the fragments whose weight is not 0 (diffshade.compact).
 """
 
 import dataclasses
@@ -21,13 +26,19 @@ import jax.numpy as jnp
 from diffshade.blend import hard_blend, soft_blend, soft_weights
 from diffshade.camera import view_dir_infinite
 from diffshade.compact import on_active
-from diffshade.interpolate import gather_faces, interpolate_tree
 from diffshade.numerics import clamp01, safe_normalize
 from diffshade.project import Projected, project
-from diffshade.raster import Fragments, face_edge_coefficients, rasterize
+from diffshade.raster import Fragments, rasterize
+from diffshade.samples import Samples, read, shading_samples
 from diffshade.scene import Scene
 from diffshade.settings import RenderSettings
 from diffshade.shading import ShadingParts, shade
+
+DEFAULT_SETTINGS = RenderSettings()
+
+#: Phong shading of a soft render lights at most this many slots per pixel on average
+#: when only that many have a non-zero blend weight (diffshade.compact); else all of them
+ACTIVE_SLOTS_PER_PIXEL = 4
 
 
 def view_dirs(scene, points):
@@ -47,99 +58,25 @@ def _fill_absent(material, other):
     return dataclasses.replace(material, shininess=shininess, **changes)
 
 
-def _pick_material(scene, front):
-    """Front material where `front`, back material elsewhere; front: [...] bool."""
-    back = scene.material if scene.back_material is None else scene.back_material
-    front_mat, back = _fill_absent(scene.material, back), _fill_absent(back, scene.material)
+def _material_at(scene, front):
+    """The material of each sample: the front one, or the back material where `front` is
+    False when the scene has one; front: [...] bool."""
+    if not scene.two_sided or scene.back_material is None:
+        return scene.material
+    front_mat = _fill_absent(scene.material, scene.back_material)
+    back = _fill_absent(scene.back_material, scene.material)
 
     def pick(f, b):
-        mask = front.reshape(front.shape + (1,) * jnp.ndim(f))
-        return jnp.where(mask, f, b)
+        return jnp.where(front.reshape(front.shape + (1,) * jnp.ndim(f)), f, b)
     return jax.tree.map(pick, front_mat, back)
 
 
-def _shade_points(scene, settings, points, normals, front) -> ShadingParts:
-    """Light samples with OpenGL's two-sided rule; front: [...] bool."""
-    material = scene.material
-    if scene.two_sided:
-        normals = jnp.where(front[..., None], normals, -normals)
-        material = _pick_material(scene, front)
-    return shade(material, scene.lights, scene.global_ambient, points, normals,
-                 view_dirs(scene, points), settings)
-
-
-def _colour(parts, settings):
-    return clamp01(parts.total) if settings.clamp else parts.total
-
-
-def _phong(scene, proj, frags, settings, active=None):
-    faces = scene.mesh.faces
-    points, normals = interpolate_tree((proj.world, proj.normals), faces, frags)
-
-    def light(points, normals, front):
-        parts = _shade_points(scene, settings, points, safe_normalize(normals), front)
-        return parts, _colour(parts, settings)
-    if active is None:
-        return light(points, normals, frags.front)
-    height, width, k = frags.face_ids.shape
-    capacity = height * width * min(k, ACTIVE_SLOTS_PER_PIXEL)
-    return on_active(light, active, capacity, points, normals, frags.front)
-
-
-def _vertex_sides(scene, proj, settings):
-    """Per-vertex (parts, colour) lit as front and, when two-sided, as back faces."""
-    n = proj.world.shape[0]
-    sides = [True, False] if scene.two_sided else [True]
-    lit = [_shade_points(scene, settings, proj.world, proj.normals, jnp.full(n, side))
-           for side in sides]
-    return [(parts, _colour(parts, settings)) for parts in lit]
-
-
-def _by_side(sides, front, select):
-    """Combine per-side values with `select(side)`, choosing by front-facing."""
-    values = [select(side) for side in sides]
-    if len(values) == 1:
-        return values[0]
-    return jax.tree.map(lambda f, b: jnp.where(front[..., None], f, b), *values)
-
-
-def _gouraud(scene, proj, frags, settings):
-    sides = _vertex_sides(scene, proj, settings)
-    parts, colour = _by_side(sides, frags.front,
-                             lambda side: interpolate_tree(side, scene.mesh.faces, frags))
-    # the interpolated clamped colours can exceed 1 by a rounding error; keep [0, 1] exact
-    return parts, clamp01(colour) if settings.clamp else colour
-
-
-def _flat_last(scene, proj, frags, settings):
-    last = scene.mesh.faces[:, 2]
-    sides = _vertex_sides(scene, proj, settings)
-    return _by_side(sides, frags.front,
-                    lambda side: jax.tree.map(lambda a: gather_faces(a[last], frags), side))
-
-
-def flat_samples(scene, proj: Projected):
-    """Per face, where flat shading lights it: centroids [F, 3], unit face normals [F, 3]
-    and front [F] bool (counter-clockwise on screen)."""
-    tri = proj.world[scene.mesh.faces]
-    normals = safe_normalize(jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
-    _, det = face_edge_coefficients(proj.clip, scene.mesh.faces)
-    return tri.mean(1), normals, det > 0
-
-
-def _flat(scene, proj, frags, settings):
-    parts = _shade_points(scene, settings, *flat_samples(scene, proj))
-    return jax.tree.map(lambda a: gather_faces(a, frags), (parts, _colour(parts, settings)))
-
-
-DEFAULT_SETTINGS = RenderSettings()
-
-_SHADERS = {"phong": _phong, "gouraud": _gouraud, "flat": _flat, "flat_last": _flat_last}
-
-
-#: Phong shading of a soft render lights at most this many slots per pixel on average
-#: when only that many have a non-zero blend weight (diffshade.compact); else all of them
-ACTIVE_SLOTS_PER_PIXEL = 4
+def shade_samples(scene, samples: Samples, settings):
+    """(ShadingParts, colour) of each sample, [..., 3] each; colour clamped as OpenGL
+    clamps (per sample) when settings.clamp."""
+    parts = shade(_material_at(scene, samples.front), scene.lights, scene.global_ambient,
+                  samples.points, samples.normals, view_dirs(scene, samples.points), settings)
+    return parts, clamp01(parts.total) if settings.clamp else parts.total
 
 
 def shade_fragments(scene, proj: Projected, frags: Fragments, settings, active=None):
@@ -147,14 +84,23 @@ def shade_fragments(scene, proj: Projected, frags: Fragments, settings, active=N
 
     active: optional [H, W, K] bool, the fragments whose colour matters; Phong shading
     may then skip the others (their values are then 0; see diffshade.compact)."""
-    if settings.shading == "phong":
-        return _phong(scene, proj, frags, settings, active)
-    return _SHADERS[settings.shading](scene, proj, frags, settings)
+    host = settings.use_host_kernels()
+    samples, reader = shading_samples(scene, proj, frags, settings.shading, host)
+    light = lambda *leaves: shade_samples(scene, Samples(*leaves), settings)
+    if active is None or reader.table is not None:
+        lit = light(samples.points, samples.normals, samples.front)
+    else:
+        height, width, k = frags.face_ids.shape
+        capacity = height * width * min(k, ACTIVE_SLOTS_PER_PIXEL)
+        lit = on_active(light, active, capacity, samples.points, samples.normals, samples.front)
+    parts, colour = read(lit, reader, host)
+    # interpolated clamped colours can exceed 1 by a rounding error; keep [0, 1] exact
+    return parts, clamp01(colour) if settings.clamp else colour
 
 
 def check_arguments(scene, settings):
     """Raise a clear TypeError unless scene is a Scene and settings a RenderSettings
-    (checked before jit: a dict as a static argument fails while being hashed)."""
+    (checked before jit, at the API boundary)."""
     if not isinstance(scene, Scene):
         raise TypeError(f"scene: got {type(scene).__name__}; expected Scene "
                         "(diffshade.make_scene)")
@@ -172,19 +118,29 @@ def _checked(jitted):
     return entry
 
 
-@partial(jax.jit, static_argnames=("settings",))
+@jax.jit
 def _rasterize_scene(scene, settings=DEFAULT_SETTINGS) -> Fragments:
     """Project and rasterize the scene's mesh (cache the result when geometry is fixed)."""
     return rasterize(project(scene), scene.mesh.faces, scene.camera, settings)
 
 
-def blend(scene, colours, frags: Fragments, settings):
-    """Hard (nearest fragment) or soft (SoftRas) blending by settings.raster: [H, W, 4]."""
+def blend_weights(scene, frags: Fragments, settings):
+    """Soft mode's aggregation weights [H, W, K + 1] (the last is the background's), or
+    None in hard mode."""
+    if settings.raster == "hard":
+        return None
+    cam = scene.camera
+    return soft_weights(frags, cam.near, cam.far, settings.sigma, settings.gamma)
+
+
+def blend(scene, colours, frags: Fragments, settings, weights=None):
+    """Hard (nearest fragment) or soft (SoftRas) blending by settings.raster: [H, W, 4].
+    weights: blend_weights, when the caller has them already."""
     if settings.raster == "hard":
         return hard_blend(colours, frags, scene.background)
     cam = scene.camera
     image = soft_blend(colours, frags, scene.background, cam.near, cam.far, settings.sigma,
-                       settings.gamma)
+                       settings.gamma, weights)
     if not settings.clamp:
         return image
     # the weights sum to 1 only up to rounding: keep a blend of clamped colours in [0, 1]
@@ -194,26 +150,23 @@ def blend(scene, colours, frags: Fragments, settings):
 def render_fragments(scene, frags: Fragments, settings=DEFAULT_SETTINGS):
     """Shade and blend cached fragments: [H, W, 4] RGBA. In soft mode only the fragments
     with a non-zero blend weight need a colour (shade_fragments' `active`)."""
-    active = None
-    if settings.raster == "soft":
-        cam = scene.camera
-        weights = soft_weights(frags, cam.near, cam.far, settings.sigma, settings.gamma)
-        active = weights[..., :-1] > 0.0
+    weights = blend_weights(scene, frags, settings)
+    active = None if weights is None else weights[..., :-1] > 0.0
     _, colours = shade_fragments(scene, project(scene), frags, settings, active)
-    return blend(scene, colours, frags, settings)
+    return blend(scene, colours, frags, settings, weights)
 
 
-@partial(jax.jit, static_argnames=("settings",))
+@jax.jit
 def _render(scene, settings=DEFAULT_SETTINGS):
     """Render the scene: [H, W, 4] RGBA (alpha = coverage) over scene.background."""
-    return render_fragments(scene, rasterize_scene(scene, settings), settings)
+    return render_fragments(scene, _rasterize_scene(scene, settings), settings)
 
 
-@partial(jax.jit, static_argnames=("settings",))
+@jax.jit
 def _render_parts(scene, settings=DEFAULT_SETTINGS) -> ShadingParts:
     """The unclamped ambient, diffuse, specular and emission images, each [H, W, 3]
     (zero where no face covers the pixel)."""
-    frags = rasterize_scene(scene, settings)
+    frags = _rasterize_scene(scene, settings)
     parts, _ = shade_fragments(scene, project(scene), frags, settings)
     return parts.map(lambda a: jnp.where(frags.valid[..., 0, None], a[..., 0, :], 0.0))
 
@@ -224,13 +177,13 @@ def downsample(image, factor: int):
     return image.reshape(h // factor, factor, w // factor, factor, c).mean(axis=(1, 3))
 
 
-@partial(jax.jit, static_argnames=("settings", "factor"))
+@partial(jax.jit, static_argnames=("factor",))
 def _render_supersampled(scene, settings=DEFAULT_SETTINGS, factor: int = 2):
     """Anti-aliased render: render at factor x the camera's resolution, then box-filter
     down: [H, W, 4]."""
     cam = dataclasses.replace(scene.camera, width=scene.camera.width * factor,
                               height=scene.camera.height * factor)
-    big = render(dataclasses.replace(scene, camera=cam), settings)
+    big = _render(dataclasses.replace(scene, camera=cam), settings)
     return downsample(big, factor)
 
 

@@ -1,6 +1,11 @@
-"""RenderSettings: the hashable choices of code path, static under `jit`.
+"""RenderSettings: the structural choices of code path, and the continuous soft parameters.
 
-Changing a setting recompiles; changing a scene array does not. Values:
+RenderSettings is a pytree. Its structural fields are static (part of the tree's
+structure: changing one recompiles); its continuous fields are leaves (data: changing one
+never recompiles, and they can be traced and differentiated, e.g. a sigma schedule or a
+gradient with respect to gamma under `jit`). Pass it to `render` like any other argument.
+
+Structural (static):
 - shading: 'phong' (per fragment), 'gouraud' (per vertex, interpolated), 'flat' (per face,
   face normal at the centroid), 'flat_last' (OpenGL flat: the last vertex's lit colour).
 - specular: 'blinn' (N.H) or 'phong' (R.V).
@@ -10,19 +15,34 @@ Changing a setting recompiles; changing a scene array does not. Values:
 - spot_edge: 'hard' (OpenGL's step at the cutoff) or 'smooth' (a sigmoid of width
   `spot_softness` degrees, differentiable with respect to the cutoff).
 - raster: 'hard' (z-buffer) or 'soft' (SoftRas aggregation, see blend.py).
-- faces_per_pixel (K), sigma (pixels^2), gamma, soft_threshold: soft rasterization
-  parameters (see blend.py); the footprint radius is sqrt(sigma * ln((1 - t) / t)) pixels.
+- faces_per_pixel: K, the fragment slots per pixel in soft mode.
+- kernels: where the fragment ops run. 'host': compiled CPU kernels (numba, through host
+  callbacks) for the face search and the per-fragment geometry and interpolation, with
+  hand-written derivative rules so that every transform still works; 'jax': the same ops
+  written in jax.numpy (a tile-binned face search), for accelerators and for exact
+  higher-order derivatives; 'auto' (default): 'host' when JAX's default backend is the
+  CPU, 'jax' elsewhere (nothing then leaves the device).
+
+Continuous (data):
+- sigma (pixels^2), gamma, soft_threshold: soft rasterization (see blend.py); the
+  footprint radius is sqrt(sigma * ln((1 - t) / t)) pixels.
+- spot_softness: degrees, the width of the smooth spot edge.
 """
 
 import dataclasses
+
+import jax
+import numpy as np
 
 SHADING_MODES = ("phong", "gouraud", "flat", "flat_last")
 SPECULAR_MODELS = ("blinn", "phong")
 SPOT_EDGES = ("hard", "smooth")
 RASTER_MODES = ("hard", "soft")
+KERNELS = ("auto", "host", "jax")
 # sigma, gamma and spot_softness divide float32 values: below ~1e-38 their reciprocal
 # overflows and the soft blend (or the smooth spot edge) turns into inf - inf = NaN
 MIN_SCALE = 1e-30
+DATA_FIELDS = ("spot_softness", "sigma", "gamma", "soft_threshold")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,10 +58,12 @@ class RenderSettings:
     sigma: float = 1.0
     gamma: float = 1e-4
     soft_threshold: float = 1e-4
+    kernels: str = "auto"
 
     def __post_init__(self):
         for name, allowed in (("shading", SHADING_MODES), ("specular", SPECULAR_MODELS),
-                              ("spot_edge", SPOT_EDGES), ("raster", RASTER_MODES)):
+                              ("spot_edge", SPOT_EDGES), ("raster", RASTER_MODES),
+                              ("kernels", KERNELS)):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name}: got {getattr(self, name)!r}; expected one of {allowed}")
         k = self.faces_per_pixel
@@ -51,13 +73,34 @@ class RenderSettings:
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}: got {getattr(self, name)!r}; expected True or False")
         for name in ("spot_softness", "sigma", "gamma"):
-            value = getattr(self, name)
-            if not (_is_number(value) and MIN_SCALE <= value < float("inf")):
-                raise ValueError(f"{name}: got {value!r}; expected a finite number >= "
-                                 f"{MIN_SCALE:g} (float32 must hold its reciprocal)")
-        if not (_is_number(self.soft_threshold) and 0 < self.soft_threshold < 0.5):
-            raise ValueError(f"soft_threshold: got {self.soft_threshold!r}; expected (0, 0.5)")
+            _check_data(name, getattr(self, name), lambda v: MIN_SCALE <= v < float("inf"),
+                        f"a finite number >= {MIN_SCALE:g} (float32 must hold its reciprocal)")
+        _check_data("soft_threshold", self.soft_threshold, lambda v: 0 < v < 0.5,
+                    "a number in (0, 0.5)")
+
+    def use_host_kernels(self) -> bool:
+        """Whether the fragment ops run as compiled host kernels (see `kernels`)."""
+        if self.kernels == "auto":
+            return jax.default_backend() == "cpu"
+        return self.kernels == "host"
 
 
-def _is_number(value):
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
+def _check_data(name, value, ok, expected):
+    """Check a continuous field where its value is known: a Python number, or a concrete
+    scalar array. Tracers (and the placeholders JAX puts in a pytree while transforming
+    it) pass; they are data by design."""
+    if isinstance(value, (bool, str, np.bool_)) or value is None:
+        raise ValueError(f"{name}: got {value!r}; expected {expected}")
+    if isinstance(value, jax.core.Tracer):
+        return
+    if isinstance(value, (int, float, np.ndarray, np.generic, jax.Array)):
+        if np.ndim(value) != 0:
+            raise ValueError(f"{name}: got an array of shape {np.shape(value)}; expected a "
+                             "scalar")
+        if not ok(float(value)):
+            raise ValueError(f"{name}: got {value!r}; expected {expected}")
+
+
+jax.tree_util.register_dataclass(
+    RenderSettings, data_fields=list(DATA_FIELDS),
+    meta_fields=[f.name for f in dataclasses.fields(RenderSettings) if f.name not in DATA_FIELDS])
