@@ -32,6 +32,9 @@ import numpy as np
 
 import diffshade as ds
 from diffshade.color import COLOR_SPACES
+from diffshade.io import write_json
+from diffshade.mesh import check_mesh
+from diffshade.scenefile import scene_to_dict
 from fitting.data import Dataset, View, view_scene
 from fitting.params import DEFAULT_INIT
 
@@ -60,8 +63,8 @@ def _write_mesh(out_dir, dataset):
 def _write_view(out_dir, dataset, i, mesh_ref):
     view, name = dataset.views[i], f"view_{i:03d}"
     scene = view_scene(dataset, i, dataset.truth or DEFAULT_INIT)
-    ds.write_json(os.path.join(out_dir, f"{name}.json"),
-                  ds.scene_to_dict(scene, dataset.settings, mesh_ref))
+    write_json(os.path.join(out_dir, f"{name}.json"),
+                  scene_to_dict(scene, dataset.settings, mesh_ref))
     ds.write_png(os.path.join(out_dir, f"{name}.png"), view.target)
     ds.write_npy(os.path.join(out_dir, f"{name}.npy"), view.target.astype(np.float32))
     entry = {"scene": f"{name}.json", "image": f"{name}.png", "target": f"{name}.npy",
@@ -80,8 +83,8 @@ def save_dataset(dataset: Dataset, out_dir) -> str:
     mesh_ref = _write_mesh(out_dir, dataset)
     entries = [_write_view(out_dir, dataset, i, mesh_ref) for i in range(len(dataset.views))]
     if dataset.truth is not None:
-        ds.write_json(os.path.join(out_dir, "truth.json"), _material_dict(dataset.truth))
-    ds.write_json(os.path.join(out_dir, "dataset.json"),
+        write_json(os.path.join(out_dir, "truth.json"), _material_dict(dataset.truth))
+    write_json(os.path.join(out_dir, "dataset.json"),
                   {"format": FORMAT, "version": VERSION, "views": entries,
                    "info": dataset.info})
     return out_dir
@@ -129,7 +132,7 @@ def _load_mesh(out_dir):
     def path(name):
         return os.path.join(out_dir, f"mesh_{name}.npy")
     arrays = [np.load(path(name), allow_pickle=False) for name in MESH_ARRAYS]
-    return ds.check_mesh(ds.Mesh(*arrays), name=path)
+    return check_mesh(ds.Mesh(*arrays), name=path)
 
 
 def load_dataset(out_dir, color_space=None) -> Dataset:

@@ -9,71 +9,54 @@ from diffshade import cputune
 #: a module that could start XLA)
 CPU_TUNING = cputune.apply()
 
-from diffshade.blend import hard_blend, soft_blend
 from diffshade.builtin import BUILTIN_SCENES, builtin_scene
-from diffshade.camera import Camera, look_at, projection_matrix, view_matrix
-from diffshade.color import COLOR_SPACES, linear_to_srgb, srgb_to_linear
-from diffshade.interpolate import gather_faces, interpolate
-from diffshade.io import image_transfer, read_image, write_json, write_npy, write_png
-from diffshade.lights import (
-    AmbientLight,
-    DirectionalLight,
-    LightGroups,
-    PointLight,
-    SpotLight,
-    ambient_light,
-    directional_light,
-    group_lights,
-    point_light,
-    spot_light,
-)
+from diffshade.camera import Camera, look_at
+from diffshade.color import linear_to_srgb, srgb_to_linear
+from diffshade.interpolate import interpolate
+from diffshade.io import read_image, write_npy, write_png
+from diffshade.lights import ambient_light, directional_light, point_light, spot_light
 from diffshade.material import Material, material
 from diffshade.mesh import (
     Mesh,
     box,
-    check_mesh,
-    face_normals,
     icosphere,
     load_mesh,
     mesh_from_arrays,
     mesh_from_trimesh,
     model_matrix,
     torus,
-    transform_mesh,
-    vertex_normals,
 )
-from diffshade.project import Projected, project
-from diffshade.raster import Fragments, fragments_from_ids, rasterize
+from diffshade.project import project
+from diffshade.raster import Fragments, rasterize
 from diffshade.render import (
+    blend,
     rasterize_scene,
     render,
     render_fragments,
     render_parts,
-    shade_fragments,
+    render_views,
+    stack_cameras,
 )
 from diffshade.scene import Scene, make_scene, replace
-from diffshade.scenefile import (
-    SceneFileError,
-    load_scene,
-    save_scene,
-    scene_from_dict,
-    scene_to_dict,
-)
+from diffshade.scenefile import SceneFileError, load_scene, save_scene, scene_from_dict
 from diffshade.settings import RenderSettings
-from diffshade.shading import ShadingParts, shade
+from diffshade.shading import shade
 
+# What users call. Everything else (light classes, blend variants, mesh utilities, the
+# scene-file dict writer, io helpers) stays importable from its module.
 __all__ = [
-    "BUILTIN_SCENES", "COLOR_SPACES", "SceneFileError", "builtin_scene", "image_transfer",
-    "linear_to_srgb", "load_scene", "read_image", "srgb_to_linear",
-    "save_scene", "scene_from_dict", "scene_to_dict", "soft_blend", "write_json", "write_npy",
-    "write_png",
-    "AmbientLight", "Camera", "DirectionalLight", "Fragments", "LightGroups", "Material",
-    "Mesh", "PointLight", "Projected", "RenderSettings", "Scene", "ShadingParts", "SpotLight",
-    "ambient_light", "box", "check_mesh", "directional_light", "face_normals", "fragments_from_ids",
-    "gather_faces", "group_lights", "hard_blend", "icosphere", "interpolate", "load_mesh",
-    "look_at", "make_scene", "material", "mesh_from_arrays", "mesh_from_trimesh",
-    "model_matrix", "point_light", "project", "projection_matrix", "rasterize",
-    "rasterize_scene", "render", "render_fragments", "render_parts", "replace", "shade",
-    "shade_fragments", "spot_light", "torus", "transform_mesh", "vertex_normals",
-    "view_matrix",
+    # the types a user holds
+    "Camera", "Fragments", "Material", "Mesh", "RenderSettings", "Scene", "SceneFileError",
+    # building a scene
+    "ambient_light", "box", "directional_light", "icosphere", "load_mesh", "look_at",
+    "make_scene", "material", "mesh_from_arrays", "mesh_from_trimesh", "model_matrix",
+    "point_light", "replace", "spot_light", "torus",
+    "BUILTIN_SCENES", "builtin_scene", "load_scene", "save_scene", "scene_from_dict",
+    # rendering
+    "rasterize_scene", "render", "render_fragments", "render_parts", "render_views",
+    "stack_cameras",
+    # the pipeline's ops
+    "blend", "interpolate", "project", "rasterize", "shade",
+    # images
+    "linear_to_srgb", "read_image", "srgb_to_linear", "write_npy", "write_png",
 ]

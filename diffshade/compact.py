@@ -13,10 +13,14 @@ import jax
 import jax.numpy as jnp
 
 
-def on_active(fn, active, capacity, *arrays):
+def on_active(fn, active, capacity, *arrays, axis_name=None):
     """fn(*arrays) -> pytree of [N, ...] arrays, for arrays [*S, ...] and active [*S] bool
     (N = prod(S)); returns the pytree reshaped to [*S, ...]. Entries where `active` is
-    False are 0 or fn's value (the caller must not depend on them)."""
+    False are 0 or fn's value (the caller must not depend on them).
+
+    axis_name: the name of an enclosing `vmap` axis (a batch of views): the branch is then
+    chosen once for the whole batch (compacted when every member fits), so that vmap
+    keeps the `lax.cond` instead of running both branches."""
     shape = active.shape
     n = active.size
     flat = [a.reshape((n,) + a.shape[len(shape):]) for a in arrays]
@@ -34,5 +38,8 @@ def on_active(fn, active, capacity, *arrays):
     if capacity >= n:
         out = everywhere(flat)
     else:
-        out = jax.lax.cond(jnp.sum(mask) <= capacity, compacted, everywhere, flat)
+        fits = jnp.sum(mask) <= capacity
+        if axis_name is not None:
+            fits = jax.lax.pmin(fits.astype(jnp.int32), axis_name) > 0
+        out = jax.lax.cond(fits, compacted, everywhere, flat)
     return jax.tree.map(lambda o: o.reshape(shape + o.shape[1:]), out)

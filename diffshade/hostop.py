@@ -145,7 +145,8 @@ class FragmentOp:
                         if d is not None)
             ids, *floats = [_batch_first(a, d, size) for a, d in zip(args, dims, strict=True)]
             # cotangents of the outputs follow the kinds: they are all 'pixel'
-            faces = next(a.shape[1] for a, k in zip(floats, kinds, strict=False) if k == "face")
+            faces = next((a.shape[1] for a, k in zip(floats, kinds, strict=False)
+                          if k == "face"), 0)
             offset = jnp.arange(size, dtype=ids.dtype) * faces
             ids = jnp.where(ids >= 0, ids + offset.reshape((size,) + (1,) * (ids.ndim - 1)), -1)
             out = prim.bind(_merge(ids), *[_merge(a) for a in floats], **params)
@@ -164,10 +165,9 @@ def _define(prim, impl, avals, batch_rule):
 
 def _native_jvp(native_fn, primals, tangents, **params):
     """A jvp rule from jax.jvp of a native map (used for second-order derivatives)."""
-    tangents = [ad.instantiate_zeros(t) for t in tangents]
     ids, *args = primals
     fn = lambda *a: tuple(native_fn(ids, *a, **params))
-    return jax.jvp(fn, tuple(args), tuple(tangents[1:]))
+    return jax.jvp(fn, tuple(args), tuple(ad.instantiate_zeros(t) for t in tangents[1:]))
 
 
 def _zeros_if_symbolic(ct, aval):

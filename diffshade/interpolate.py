@@ -3,10 +3,11 @@
 Vertex attributes are blended with the fragments' perspective-correct barycentrics; face
 attributes are gathered by face id. Empty slots (face id -1) get zeros.
 
-The blend of vertex attributes is a `jax.custom_vjp` op with compiled forward and backward
-kernels (fragment_kernels.py): its backward is a scatter-add into the faces' corners, which
-XLA on CPU runs serially and slowly. JAX differentiates the gather of vertex attributes to
-face corners ([F, 3, C], small) around it.
+The blend of vertex attributes is a FragmentOp (hostop.py) with compiled forward and
+backward kernels (fragment_kernels.py), or the same sum in jax.numpy: its backward is a
+scatter-add into the faces' corners, which XLA on CPU runs serially and slowly. JAX
+differentiates the gather of vertex attributes to face corners ([F, 3, C], small) around
+it.
 """
 
 import jax
@@ -20,7 +21,7 @@ from diffshade.hostop import FragmentOp
 def _interpolate_native(ids, bary, corners):
     """interpolate_corners in jax.numpy."""
     c = jnp.take(corners, jnp.maximum(ids, 0), axis=0)
-    b = bary[..., None]
+    b = bary.astype(corners.dtype)[..., None]
     # explicit sum over the 3 corners: see numerics.dot for why
     values = b[..., 0, :] * c[..., 0, :] + b[..., 1, :] * c[..., 1, :] + b[..., 2, :] * c[..., 2, :]
     return (jnp.where((ids >= 0)[..., None], values, 0.0),)

@@ -1,13 +1,15 @@
 """rasterize: per pixel, the K nearest faces with perspective-correct barycentrics and depth.
 
 Two stages. The search (which faces cover which pixel, nearest first) is discrete and
-non-differentiable; a compiled kernel (candidates.py) runs it on the host through
-`jax.pure_callback` (hostcall.py), under `jit` and `vmap`. Everything computed *from* the chosen
-face ids is differentiable with respect to vertices and camera: barycentrics from 2D
-homogeneous edge functions (equivalent to the lecture notes' perspective correction
-b_i/w_i / sum_j b_j/w_j), the soft signed distance and the eye-space depth. The
-per-fragment part is a `jax.custom_vjp` op whose forward and backward are compiled kernels
-(fragment_kernels.py); JAX differentiates the per-face setup feeding it.
+non-differentiable: a compiled kernel on the host (candidates.py, through
+`jax.pure_callback`, hostcall.py), or tile binning in JAX (tile_search.py), as
+RenderSettings.kernels says. Everything computed *from* the chosen face ids is
+differentiable with respect to vertices and camera: barycentrics from 2D homogeneous edge
+functions (equivalent to the lecture notes' perspective correction b_i/w_i / sum_j
+b_j/w_j), the soft signed distance and the eye-space depth. The per-fragment part is a
+FragmentOp (hostop.py): compiled forward and backward kernels (fragment_kernels.py) with
+every JAX transform rule, or the same arithmetic in jax.numpy (`_geometry_native`); JAX
+differentiates the per-face setup feeding it.
 
 The returned `Fragments` is an ordinary pytree: cache it when geometry and camera are
 fixed and pass it back to `render_fragments` (fitting materials then never re-rasterizes).
@@ -141,7 +143,8 @@ def _geometry_native(ids, corner_w, corner_z, coeffs, scr, *, width, height, sof
     else:
         w = jnp.take(corner_w, f, axis=0)
         screen = _normalized(edge * w)
-        bary = _normalized(safe_div(jnp.maximum(screen, 0.0), w))
+        # where, not jnp.maximum: see _pick_min; and no gradient at 0, as the kernel
+        bary = _normalized(safe_div(jnp.where(screen > 0.0, screen, 0.0), w))
         s = jnp.take(scr, f, axis=0)
         d2 = _pick_min(_pick_min(_segment_dist2(px, py, s[..., 0, :], s[..., 1, :]),
                                  _segment_dist2(px, py, s[..., 1, :], s[..., 2, :])),

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 
 from diffshade.blend import hard_blend, soft_blend, soft_weights
-from diffshade.camera import view_dir_infinite
+from diffshade.camera import Camera, view_dir_infinite
 from diffshade.compact import on_active
 from diffshade.numerics import clamp01, safe_normalize
 from diffshade.project import Projected, project
@@ -79,11 +79,13 @@ def shade_samples(scene, samples: Samples, settings):
     return parts, clamp01(parts.total) if settings.clamp else parts.total
 
 
-def shade_fragments(scene, proj: Projected, frags: Fragments, settings, active=None):
+def shade_fragments(scene, proj: Projected, frags: Fragments, settings, active=None,
+                    axis_name=None):
     """(ShadingParts, colour) per fragment, each [H, W, K, 3], by settings.shading.
 
     active: optional [H, W, K] bool, the fragments whose colour matters; Phong shading
-    may then skip the others (their values are then 0; see diffshade.compact)."""
+    may then skip the others (their values are then 0; see diffshade.compact, and its
+    axis_name for a batch of views)."""
     host = settings.use_host_kernels()
     samples, reader = shading_samples(scene, proj, frags, settings.shading, host)
     light = lambda *leaves: shade_samples(scene, Samples(*leaves), settings)
@@ -92,7 +94,8 @@ def shade_fragments(scene, proj: Projected, frags: Fragments, settings, active=N
     else:
         height, width, k = frags.face_ids.shape
         capacity = height * width * min(k, ACTIVE_SLOTS_PER_PIXEL)
-        lit = on_active(light, active, capacity, samples.points, samples.normals, samples.front)
+        lit = on_active(light, active, capacity, samples.points, samples.normals, samples.front,
+                        axis_name=axis_name)
     parts, colour = read(lit, reader, host)
     # interpolated clamped colours can exceed 1 by a rounding error; keep [0, 1] exact
     return parts, clamp01(colour) if settings.clamp else colour
@@ -106,6 +109,7 @@ def check_arguments(scene, settings):
                         "(diffshade.make_scene)")
     if not isinstance(settings, RenderSettings):
         raise TypeError(f"settings: got {type(settings).__name__}; expected RenderSettings")
+    settings.validate()
 
 
 def _checked(jitted):
@@ -147,12 +151,12 @@ def blend(scene, colours, frags: Fragments, settings, weights=None):
     return jnp.concatenate([clamp01(image[..., :3]), image[..., 3:]], -1)
 
 
-def render_fragments(scene, frags: Fragments, settings=DEFAULT_SETTINGS):
+def render_fragments(scene, frags: Fragments, settings=DEFAULT_SETTINGS, axis_name=None):
     """Shade and blend cached fragments: [H, W, 4] RGBA. In soft mode only the fragments
     with a non-zero blend weight need a colour (shade_fragments' `active`)."""
     weights = blend_weights(scene, frags, settings)
     active = None if weights is None else weights[..., :-1] > 0.0
-    _, colours = shade_fragments(scene, project(scene), frags, settings, active)
+    _, colours = shade_fragments(scene, project(scene), frags, settings, active, axis_name)
     return blend(scene, colours, frags, settings, weights)
 
 
@@ -169,6 +173,37 @@ def _render_parts(scene, settings=DEFAULT_SETTINGS) -> ShadingParts:
     frags = _rasterize_scene(scene, settings)
     parts, _ = shade_fragments(scene, project(scene), frags, settings)
     return parts.map(lambda a: jnp.where(frags.valid[..., 0, None], a[..., 0, :], 0.0))
+
+
+def stack_cameras(cameras) -> Camera:
+    """One Camera whose array fields have a leading view axis [N, ...], from a sequence of
+    cameras of one image size and projection (or such a stacked Camera, returned as is)."""
+    if isinstance(cameras, Camera):
+        return cameras
+    cameras = list(cameras)
+    if not cameras or not all(isinstance(c, Camera) for c in cameras):
+        raise TypeError(f"cameras: got {cameras!r}; expected a non-empty sequence of Camera")
+    static = {(c.width, c.height, c.projection) for c in cameras}
+    if len(static) > 1:
+        raise ValueError(f"cameras: got image sizes / projections {sorted(static)}; expected "
+                         "one (a batched render has one image shape)")
+    return jax.tree.map(lambda *leaves: jnp.stack(leaves), *cameras)
+
+
+@jax.jit
+def _render_views(scene, cameras, settings=DEFAULT_SETTINGS):
+    def one(cam):
+        view = dataclasses.replace(scene, camera=cam)
+        return render_fragments(view, _rasterize_scene(view, settings), settings, "views")
+    return jax.vmap(one, axis_name="views")(cameras)
+
+
+def render_views(scene, cameras, settings=DEFAULT_SETTINGS):
+    """Render one scene from N cameras as one batched call: [N, H, W, 4]. cameras: a
+    sequence of Camera of one image size (or a stacked Camera, see stack_cameras); the
+    scene's own camera is ignored."""
+    check_arguments(scene, settings)
+    return _render_views(scene, stack_cameras(cameras), settings)
 
 
 def downsample(image, factor: int):

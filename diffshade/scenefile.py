@@ -49,7 +49,7 @@ from diffshade.mesh import (
     torus,
 )
 from diffshade.scene import Scene, make_scene
-from diffshade.settings import RenderSettings
+from diffshade.settings import DATA_FIELDS, RenderSettings
 
 __all__ = ["FORMAT_VERSION", "SceneFileError", "load_scene", "save_scene", "scene_from_dict",
            "scene_to_dict"]
@@ -490,7 +490,13 @@ def scene_to_dict(scene: Scene, settings: RenderSettings, mesh_ref=None) -> dict
         out["back_material"] = _material_to_dict(scene.back_material)
     return out | {"global_ambient": _rgb(scene.global_ambient),
                   "background": _rgb(scene.background), "local_viewer": scene.local_viewer,
-                  "two_sided": scene.two_sided, "settings": dataclasses.asdict(settings)}
+                  "two_sided": scene.two_sided, "settings": _settings_to_dict(settings)}
+
+
+def _settings_to_dict(settings):
+    """The settings' fields, the continuous ones (possibly arrays) as floats."""
+    return {k: float(v) if k in DATA_FIELDS else v
+            for k, v in dataclasses.asdict(settings).items()}
 
 
 def save_scene(path, scene: Scene, settings: RenderSettings, mesh_ref=None) -> str:

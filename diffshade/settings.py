@@ -72,11 +72,19 @@ class RenderSettings:
         for name in ("clamp", "cull_backfaces"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}: got {getattr(self, name)!r}; expected True or False")
+        for name in DATA_FIELDS:
+            _check_type(name, getattr(self, name))
+        if _all_python_numbers(self):
+            self.validate()
+
+    def validate(self):
+        """Check the continuous fields' values (render's entry points call this): each a
+        real scalar in its range. Tracers pass: they are data by design."""
         for name in ("spot_softness", "sigma", "gamma"):
-            _check_data(name, getattr(self, name), lambda v: MIN_SCALE <= v < float("inf"),
-                        f"a finite number >= {MIN_SCALE:g} (float32 must hold its reciprocal)")
-        _check_data("soft_threshold", self.soft_threshold, lambda v: 0 < v < 0.5,
-                    "a number in (0, 0.5)")
+            _check_value(name, getattr(self, name), lambda v: MIN_SCALE <= v < float("inf"),
+                         f"a finite number >= {MIN_SCALE:g} (float32 must hold its reciprocal)")
+        _check_value("soft_threshold", self.soft_threshold, lambda v: 0 < v < 0.5,
+                     "a number in (0, 0.5)")
 
     def use_host_kernels(self) -> bool:
         """Whether the fragment ops run as compiled host kernels (see `kernels`)."""
@@ -85,20 +93,29 @@ class RenderSettings:
         return self.kernels == "host"
 
 
-def _check_data(name, value, ok, expected):
-    """Check a continuous field where its value is known: a Python number, or a concrete
-    scalar array. Tracers (and the placeholders JAX puts in a pytree while transforming
-    it) pass; they are data by design."""
-    if isinstance(value, (bool, str, np.bool_)) or value is None:
-        raise ValueError(f"{name}: got {value!r}; expected {expected}")
+def _check_type(name, value):
+    """Reject what is never a continuous setting (strings, booleans, complex numbers,
+    containers). Anything else may be a placeholder JAX puts in the pytree while
+    transforming it (None, an object, an array of gradients or of a stacked batch), so
+    values are checked only where they are the user's (`validate`)."""
+    if isinstance(value, (bool, str, bytes, complex, np.bool_, list, tuple, dict)):
+        raise ValueError(f"{name}: got {value!r}; expected a real number")
+
+
+def _all_python_numbers(settings):
+    return all(isinstance(getattr(settings, n), (int, float)) for n in DATA_FIELDS)
+
+
+def _check_value(name, value, ok, expected):
     if isinstance(value, jax.core.Tracer):
         return
-    if isinstance(value, (int, float, np.ndarray, np.generic, jax.Array)):
-        if np.ndim(value) != 0:
-            raise ValueError(f"{name}: got an array of shape {np.shape(value)}; expected a "
-                             "scalar")
-        if not ok(float(value)):
-            raise ValueError(f"{name}: got {value!r}; expected {expected}")
+    if not isinstance(value, (int, float, np.ndarray, np.generic, jax.Array)) or isinstance(
+            value, (bool, np.bool_)):
+        raise ValueError(f"{name}: got {value!r}; expected {expected}")
+    if np.ndim(value) != 0 or np.asarray(value).dtype.kind not in "fiu":
+        raise ValueError(f"{name}: got {value!r}; expected a real scalar, {expected}")
+    if not ok(float(value)):
+        raise ValueError(f"{name}: got {value!r}; expected {expected}")
 
 
 jax.tree_util.register_dataclass(

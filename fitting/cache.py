@@ -57,13 +57,13 @@ class ViewSamples:
 
 
 @partial(jax.tree_util.register_dataclass,
-         data_fields=["views", "lights", "material", "global_ambient"],
-         meta_fields=["settings"])
+         data_fields=["views", "lights", "material", "global_ambient", "settings"],
+         meta_fields=[])
 @dataclasses.dataclass(frozen=True)
 class FitData:
     """Everything a cached fit step reads: views: tuple of ViewSamples; lights: tuple of
     LightGroups (one per view); material: the base Material (held-fixed quantities);
-    global_ambient: [3]; settings: RenderSettings (static)."""
+    global_ambient: [3]; settings: RenderSettings (a pytree: its structure is static)."""
 
     views: tuple
     lights: tuple
@@ -157,8 +157,10 @@ def build_cache(dataset: Dataset, material: Material, *, edge_margin: int = 1) -
 
 
 def _to_pixels(values, samples: ViewSamples):
-    """Sample values [S, C] -> kept-pixel values [N, C], as render combines them."""
-    return read(values, samples.reader).reshape(samples.pixels.shape + values.shape[-1:])
+    """Sample values [S, C] -> kept-pixel values [N, C], as render combines them (in XLA:
+    the arrays are small, and a gather beats a host callback per view and step)."""
+    return read(values, samples.reader, host=False).reshape(
+        samples.pixels.shape + values.shape[-1:])
 
 
 def _shade_samples(material, lights: LightGroups, global_ambient, samples, settings):

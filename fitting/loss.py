@@ -96,12 +96,12 @@ def make_loss(spec: FitSpec, kind: str = "mse"):
 
 
 @partial(jax.tree_util.register_dataclass,
-         data_fields=["scenes", "targets", "weights"], meta_fields=["settings"])
+         data_fields=["scenes", "targets", "weights", "settings"], meta_fields=[])
 @dataclasses.dataclass(frozen=True)
 class RenderData:
     """The full-image path: scenes: tuple of Scene (one per view, base material);
     targets: tuple of [H, W, 3]; weights: tuple of [H, W] (1 at the kept pixels, else 0);
-    settings: RenderSettings (static)."""
+    settings: RenderSettings (a pytree: its structure is static)."""
 
     scenes: tuple
     targets: tuple
@@ -131,11 +131,19 @@ def make_render_loss(spec: FitSpec, kind: str = "mse"):
     def loss_fn(params, data):
         values = to_values(params, spec)
         lights = values_to_lights(values, spec, [s.lights for s in data.scenes])
-        res = []
-        for scene, light in zip(data.scenes, lights, strict=True):
-            material = values_to_material(values, spec, scene.material)
-            image = render(replace(scene, material=material, lights=light), data.settings)
-            res.append(image[..., :3])
-        res = [img - t for img, t in zip(res, data.targets, strict=True)]
+        scenes = [replace(scene, material=values_to_material(values, spec, scene.material),
+                          lights=light) for scene, light in zip(data.scenes, lights, strict=True)]
+        res = [img[..., :3] - t for img, t in zip(render_all(scenes, data.settings),
+                                                   data.targets, strict=True)]
         return mean_rho(kind, res, list(data.weights))
     return loss_fn
+
+
+def render_all(scenes, settings):
+    """The images [H, W, 4] of a list of scenes: one batched render (jax.vmap) when they
+    share one structure (image size, lights, mesh size), else one render each."""
+    if len({jax.tree.structure(s) for s in scenes}) > 1 or len({
+            tuple(np.shape(x) for x in jax.tree.leaves(s)) for s in scenes}) > 1:
+        return [render(s, settings) for s in scenes]
+    stacked = jax.tree.map(lambda *leaves: jnp.stack(leaves), *scenes)
+    return list(jax.vmap(lambda s: render(s, settings))(stacked))

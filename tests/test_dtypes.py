@@ -18,6 +18,8 @@ from jax.test_util import check_grads
 
 import diffshade as ds
 from data_synth import load_dataset, make_dataset, save_dataset
+from diffshade.mesh import check_mesh, transform_mesh, vertex_normals
+from diffshade.scenefile import scene_to_dict
 
 F32, F64 = np.dtype(np.float32), np.dtype(np.float64)
 # 0.1 and 1/3 are not float32 numbers: float32 storage would change them.
@@ -41,8 +43,8 @@ ARRAY_BUILDERS = {
     "area": lambda v: ds.mesh_from_arrays(v, TENT_FACES, weighting="area"),
     "normals": lambda v: ds.mesh_from_arrays(v, TENT_FACES, np.ones_like(v)),
     "crease": lambda v: ds.mesh_from_arrays(v, TENT_FACES, crease_angle=30.0),
-    "check_mesh": lambda v: ds.check_mesh(ds.Mesh(v, TENT_FACES, np.zeros_like(v))),
-    "transform": lambda v: ds.transform_mesh(ds.mesh_from_arrays(v, TENT_FACES),
+    "check_mesh": lambda v: check_mesh(ds.Mesh(v, TENT_FACES, np.zeros_like(v))),
+    "transform": lambda v: transform_mesh(ds.mesh_from_arrays(v, TENT_FACES),
                                              ds.model_matrix(scale=(1, 2, 3))),
 }
 
@@ -62,7 +64,7 @@ def test_float64_vertices_are_kept_exactly_under_x64(x64_mode):
     mesh = ds.mesh_from_arrays(TENT, TENT_FACES)
     want = TENT if x64 else TENT.astype(np.float32)
     np.testing.assert_array_equal(np.asarray(mesh.vertices), want)
-    normals = ds.vertex_normals(mesh.vertices, mesh.faces)
+    normals = vertex_normals(mesh.vertices, mesh.faces)
     assert normals.dtype == want.dtype
 
 
@@ -99,7 +101,7 @@ def test_scene_builders_and_files_take_the_default_dtype(x64_mode, tmp_path):
     direct = ds.make_scene(ds.mesh_from_arrays(TENT, TENT_FACES), camera, lights, mat,
                            model=ds.model_matrix(translate=(0.1, 0, 0)))
     scenes.append(direct)
-    inline = ds.scene_to_dict(direct, ds.RenderSettings())
+    inline = scene_to_dict(direct, ds.RenderSettings())
     scenes.append(ds.scene_from_dict(json.loads(json.dumps(inline)))[0])
     trimesh.creation.box().export(tmp_path / "box.obj")
     path_scene = {**inline, "mesh": {"path": "box.obj"}}
@@ -133,7 +135,7 @@ def test_float64_vertex_gradient_check_runs_on_float64_vertices():
         weights = jnp.asarray(np.random.default_rng(3).normal(size=(10, 12, 4)))
 
         def image(vertices):
-            normals = ds.vertex_normals(vertices, mesh.faces)
+            normals = vertex_normals(vertices, mesh.faces)
             return ds.render(ds.replace(scene, mesh=ds.Mesh(vertices, mesh.faces, normals)),
                              settings)
 

@@ -23,6 +23,7 @@ import diffshade as ds
 import fitting.checkpoint as checkpoint_module
 from data_synth import load_dataset, make_dataset, save_dataset
 from diffshade import cli
+from diffshade.io import image_transfer
 from fitting import FitSpec
 from fitting.inputs import fit_spec, parse_material
 from fitting.report import ERROR_GAIN, PANEL_GAP, mtl_text, result_dict
@@ -185,7 +186,7 @@ def test_fit_panels_mtl_and_loss_curve(data_root, tmp_path, capsys):
     assert panel.shape == (SIZE, 4 * SIZE + 3 * PANEL_GAP, 3)
     tiles = [panel[:, k * (SIZE + PANEL_GAP):k * (SIZE + PANEL_GAP) + SIZE] for k in range(4)]
     target = dataset.views[1].target
-    assert ds.image_transfer(out / "view_001.png") == "srgb"
+    assert image_transfer(out / "view_001.png") == "srgb"
     tiles = [ds.linear_to_srgb(tile) for tile in tiles]  # compared as the file's 8-bit codes
     levels = lambda x: np.round(ds.linear_to_srgb(np.clip(x, 0, 1)) * 255) / 255  # noqa: E731
     np.testing.assert_allclose(tiles[0], levels(target), atol=1e-6)

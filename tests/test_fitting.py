@@ -14,6 +14,7 @@ import pytest
 
 import diffshade as ds
 from data_synth import make_dataset
+from diffshade.lights import group_lights
 from fitting import (
     DEFAULT_INIT,
     Dataset,
@@ -98,7 +99,7 @@ def test_fixed_quantities_come_from_the_base_material():
 
 def test_param_labels_group_shininess_positions_and_colours():
     spec = FitSpec(ka="grey", light_colors=True, light_positions=True)
-    lights = [ds.group_lights([ds.point_light((1.0, 2.0, 3.0), 0.5),
+    lights = [group_lights([ds.point_light((1.0, 2.0, 3.0), 0.5),
                                ds.directional_light((0, 0, -1), 0.8)])]
     params = to_unconstrained(DEFAULT_INIT, spec, lights)
     labels = param_labels(params)
@@ -127,7 +128,7 @@ def cup_dataset(shading, two_sided):
     views = []
     for k, eye in enumerate([(0.6, 1.5, 2.2), (-1.8, 0.5, 1.6)]):
         camera = ds.look_at(eye, (0, 0, 0), width=36, height=32)
-        lights = ds.group_lights([ds.directional_light((-0.3, -1.0, -0.5), 0.7),
+        lights = group_lights([ds.directional_light((-0.3, -1.0, -0.5), 0.7),
                                   ds.point_light((1.5, 2.0, 2.0), 0.5)])
         mask = np.ones((32, 36), bool)
         mask[:, : 10 * k] = False

@@ -42,8 +42,8 @@ from diffshade import (
     render,
     replace,
     spot_light,
-    vertex_normals,
 )
+from diffshade.mesh import vertex_normals
 from diffshade.numerics import float_dtype
 
 SIZE = 15

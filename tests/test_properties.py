@@ -32,8 +32,8 @@ from diffshade import (
     render,
     replace,
     spot_light,
-    vertex_normals,
 )
+from diffshade.mesh import vertex_normals
 
 SIZE = 16
 SPHERE = icosphere(1)

@@ -18,7 +18,6 @@ from diffshade import (
     RenderSettings,
     ambient_light,
     directional_light,
-    group_lights,
     look_at,
     make_scene,
     material,
@@ -28,6 +27,7 @@ from diffshade import (
     shade,
     spot_light,
 )
+from diffshade.lights import group_lights
 from diffshade.numerics import float_dtype
 
 pytestmark = pytest.mark.usefixtures("x64")

@@ -76,9 +76,23 @@ def device(scene, k, cull, soft, radius_px=0.0, sigma=1.0, gamma=1e-4, tile=8, c
     return np.asarray(ids), int(dropped)
 
 
-def assert_same(got, want):
-    np.testing.assert_array_equal(got[0], want[0])
+def assert_same(got, want, near_ties=False):
+    """Face ids and drop counts equal. near_ties (soft ranking): XLA's exp and log1p may
+    differ from libm's in the last bit, so two keys within an ulp can swap places; then
+    every pixel must still hold the same faces, and the order may differ only by swaps of
+    neighbouring slots, in at most 0.1% of the slots."""
+    got_ids, want_ids = np.asarray(got[0]), np.asarray(want[0])
     assert got[1] == want[1]
+    if not near_ties:
+        np.testing.assert_array_equal(got_ids, want_ids)
+        return
+    np.testing.assert_array_equal(np.sort(got_ids, -1), np.sort(want_ids, -1))
+    differ = got_ids != want_ids
+    assert differ.sum() <= max(2, differ.size // 1000), differ.sum()
+    for pixel in zip(*np.nonzero(differ.any(-1)), strict=True):
+        slots = np.flatnonzero(differ[pixel])
+        assert len(slots) == 2 and slots[1] == slots[0] + 1, (pixel, got_ids[pixel],
+                                                                want_ids[pixel])
 
 
 @pytest.mark.parametrize("cull", [False, True])
@@ -98,7 +112,8 @@ def test_soft_equals_host(name, cull):
     for k in KS[name]:
         for radius, sigma, gamma in SOFT:
             want = host(scene, k, cull, radius, sigma, gamma)
-            assert_same(device(scene, k, cull, True, radius, sigma, gamma), want)
+            assert_same(device(scene, k, cull, True, radius, sigma, gamma), want,
+                        near_ties=True)
 
 
 def test_near_plane_scene_crosses_it():
@@ -168,7 +183,7 @@ def test_jit_with_traced_parameters_equals_eager():
         got = jitted(clip, faces, cam.near, cam.far, jnp.asarray(radius), jnp.asarray(sigma),
                      jnp.asarray(gamma))
         want = host(scene, 4, False, radius, sigma, gamma)
-        assert_same((np.asarray(got[0]), int(got[1])), want)
+        assert_same((np.asarray(got[0]), int(got[1])), want, near_ties=True)
     assert jitted._cache_size() == 1
     np.testing.assert_array_equal(eager[0], host(scene, 4, False, 1.5, 0.5, 1e-3)[0])
 
@@ -184,7 +199,7 @@ def test_vmap_over_cameras_equals_separate_calls():
     for i, scene in enumerate(scenes):
         want = device(scene, 4, False, True, 2.0, 1.0, 1e-3)
         assert_same((np.asarray(batched[0][i]), int(batched[1][i])), want)
-        assert_same(want, host(scene, 4, False, 2.0, 1.0, 1e-3))
+        assert_same(want, host(scene, 4, False, 2.0, 1.0, 1e-3), near_ties=True)
 
 
 def test_usable_inside_grad():
