@@ -22,30 +22,14 @@ median of --repeats calls after one warm-up call.
 import argparse
 import json
 import os
-import statistics
 import subprocess
 import sys
 import tempfile
-import time
+
+from raster import measure  # benchmarks/raster.py, beside this script
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 BASELINE = "48d2648"
-
-
-def measure(fn, args, repeats):
-    """(compile seconds, median seconds) of jit(fn)(*args) after one warm-up call."""
-    import jax
-
-    t0 = time.perf_counter()
-    compiled = jax.jit(fn).lower(*args).compile()
-    compile_s = time.perf_counter() - t0
-    jax.block_until_ready(compiled(*args))
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(compiled(*args))
-        times.append(time.perf_counter() - t0)
-    return {"compile_s": compile_s, "median_s": statistics.median(times)}
 
 
 def sphere_scene(size, eye=(0.0, 0.0, 3.0)):

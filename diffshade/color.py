@@ -54,21 +54,20 @@ def _check(transfer):
 
 def decode(values, transfer):
     """Encoded values [...] -> linear values [...] (float64) under `transfer`."""
-    transfer = _check(transfer)
-    if transfer == "srgb":
-        return srgb_to_linear(values)
-    v = np.asarray(values, np.float64)
-    if transfer == "linear" or transfer == 1.0:
-        return v
-    return np.sign(v) * np.abs(v) ** (1.0 / transfer)
+    return _convert(values, transfer, srgb_to_linear, lambda gamma: 1.0 / gamma)
 
 
 def encode(values, transfer):
     """Linear values [...] -> encoded values [...] (float64) under `transfer`."""
+    return _convert(values, transfer, linear_to_srgb, lambda gamma: gamma)
+
+
+def _convert(values, transfer, srgb, exponent):
+    """values through the sRGB curve `srgb`, or a power law |v| ** exponent(gamma)."""
     transfer = _check(transfer)
     if transfer == "srgb":
-        return linear_to_srgb(values)
-    x = np.asarray(values, np.float64)
+        return srgb(values)
+    v = np.asarray(values, np.float64)
     if transfer == "linear" or transfer == 1.0:
-        return x
-    return np.sign(x) * np.abs(x) ** transfer
+        return v
+    return np.sign(v) * np.abs(v) ** exponent(transfer)
