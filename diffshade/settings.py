@@ -21,7 +21,8 @@ Structural (static):
   hand-written derivative rules so that every transform still works; 'jax': the same ops
   written in jax.numpy (a tile-binned face search), for accelerators and for exact
   higher-order derivatives; 'auto' (default): 'host' when JAX's default backend is the
-  CPU, 'jax' elsewhere (nothing then leaves the device).
+  CPU with one device, 'jax' elsewhere (nothing then leaves the device; and the host
+  kernels' callbacks do not shard: under XLA's SPMD partitioner they deadlock).
 
 Continuous (data):
 - sigma (pixels^2), gamma, soft_threshold: soft rasterization (see blend.py); the
@@ -89,7 +90,7 @@ class RenderSettings:
     def use_host_kernels(self) -> bool:
         """Whether the fragment ops run as compiled host kernels (see `kernels`)."""
         if self.kernels == "auto":
-            return jax.default_backend() == "cpu"
+            return jax.default_backend() == "cpu" and jax.local_device_count() == 1
         return self.kernels == "host"
 
 

@@ -265,8 +265,9 @@ cams = ds.stack_cameras([ds.look_at(e, (0, 0, 0), width=24, height=20, fov_y=45)
                          for e in [(0, 0, 3), (2, 0.5, 2.2), (-2, 1, 2), (0.5, -2.5, 1.8)]])
 mesh = Mesh(np.array(jax.devices()), ("views",))
 sharded = jax.device_put(cams, NamedSharding(mesh, P("views")))
-for kernels in ("jax",):
+for kernels in ("auto", "jax"):
     settings = ds.RenderSettings(raster="soft", kernels=kernels)
+    assert not settings.use_host_kernels()
     alone = np.asarray(ds.render_views(scene, cams, settings))
     images = ds.render_views(scene, sharded, settings)
     assert len(images.sharding.device_set) == 2, images.sharding
@@ -277,9 +278,9 @@ print("ok")
 
 def test_views_sharded_over_two_devices_equal_one_device():
     """Two CPU devices (XLA's host platform device count), views sharded along the batch:
-    the images equal the one-device render on the JAX path (the host path's callbacks are
-    pinned to device 0 by the SPMD partitioner and deadlock with the other device's
-    collectives, so sharding needs kernels='jax')."""
+    the images equal the one-device render on the JAX path, which the default settings
+    pick with several devices (the host path's callbacks are pinned to device 0 by the
+    SPMD partitioner and deadlock with the other device's collectives)."""
     import os
     import subprocess
     import sys
