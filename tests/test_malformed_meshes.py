@@ -87,18 +87,11 @@ def folder(tmp_path_factory):
 
 
 @PROPERTY_SETTINGS
-@given(text=mutated_text(OBJ))
-def test_malformed_obj_loads_or_raises_a_clean_error(folder, text):
-    path = folder / "mesh.obj"
-    path.write_text(text)
-    load_or_refuse(ds.load_mesh, path)
-
-
-@PROPERTY_SETTINGS
-@given(text=mutated_text(PLY))
-def test_malformed_ply_loads_or_raises_a_clean_error(folder, text):
-    path = folder / "mesh.ply"
-    path.write_text(text)
+@given(data=st.data())
+@pytest.mark.parametrize("suffix,text", [(".obj", OBJ), (".ply", PLY)])
+def test_malformed_mesh_file_loads_or_raises_a_clean_error(folder, suffix, text, data):
+    path = folder / f"mesh{suffix}"
+    path.write_text(data.draw(mutated_text(text)))
     load_or_refuse(ds.load_mesh, path)
 
 
