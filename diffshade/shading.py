@@ -69,10 +69,10 @@ def _spot_factor(light_dir, spot, edge, softness_deg):
 
 
 def _incidence(kind, light, points, settings):
-    """Unit direction to the light [..., 3] and its attenuation * spot scale [..., 1]."""
+    """Unit direction to the light [..., 3] and its attenuation * spot scale [..., 1], or
+    None for a directional light (no attenuation: nothing to multiply per fragment)."""
     if kind == "directional":
-        light_dir = jnp.broadcast_to(safe_normalize(-light.direction), points.shape)
-        return light_dir, jnp.ones_like(points[..., :1])
+        return jnp.broadcast_to(safe_normalize(-light.direction), points.shape), None
     to_light = light.position - points
     light_dir = safe_normalize(to_light)
     scale = _attenuation(light.attenuation, safe_norm(to_light, keepdims=True))
@@ -92,10 +92,11 @@ def _specular_base(normals, light_dir, view_dirs, model):
 
 
 def _light_terms(material, light, light_dir, scale, normals, view_dirs, settings):
-    """Ambient, diffuse and specular of one light: [..., 3] each."""
+    """Ambient, diffuse and specular of one light: [..., 3] each; scale None means 1."""
+    scaled = (lambda x: x) if scale is None else (lambda x: scale * x)
     n_dot_l = dot(normals, light_dir, keepdims=True)
-    ambient = scale * material.ka * light.ambient
-    diffuse = scale * material.kd * light.diffuse * jnp.maximum(n_dot_l, 0.0)
+    ambient = scaled(material.ka * light.ambient)
+    diffuse = scaled(material.kd * light.diffuse * jnp.maximum(n_dot_l, 0.0))
     if material.ks is None:
         return ambient, diffuse, None
     base = _specular_base(normals, light_dir, view_dirs, settings.specular)
@@ -103,7 +104,7 @@ def _light_terms(material, light, light_dir, scale, normals, view_dirs, settings
     base = jax.lax.optimization_barrier(base)
     power = safe_pow(base, jnp.asarray(material.shininess)[..., None])
     lit = jnp.where(n_dot_l > 0.0, power, 0.0)
-    return ambient, diffuse, scale * material.ks * light.specular * lit
+    return ambient, diffuse, scaled(material.ks * light.specular * lit)
 
 
 def _lights(lights: LightGroups):
