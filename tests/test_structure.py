@@ -1,18 +1,32 @@
 """The scene's structure decides what is compiled, and only the structure.
 
-Markers, counted over the render's jaxpr and all its sub-jaxprs:
+Markers, counted over the render's jaxpr and all its sub-jaxprs, in hard and soft raster:
 - the spot path is the only user of `cos` (the cone's cutoff angle);
-- `exp`/`log` come only from safe_pow, used by the specular power and the spot exponent,
-  so a directional-only scene without `ks` has none;
-- attenuation and the spot cone add equations: the equation count grows when a point or
-  spot light is added to a directional-only scene.
+- `log` comes only from safe_pow, used by the specular power and the spot exponent, so a
+  directional-only scene without `ks` has as many as a scene without lights (none in
+  hard raster; soft raster's weights have their own);
+- `log1p` (log-sigmoid) only from soft raster's coverage: hard raster has none;
+- each light's incidence passes one `optimization_barrier`: a directional light's carries
+  only its direction (no attenuation array of ones), a point light's also its attenuation;
+- two-sided lighting without a back material selects only the normal's side, never
+  between materials; a back material adds one select per material field;
+- emission adds no per-fragment work when the material has none.
+The plain scene's lowered program is compared, op for op, with the one the revision
+before the effects of issue 14 (BASELINE) lowers, run from `git archive` in a subprocess.
 Recompilation is observed with the jitted `render`'s own cache size.
 """
 
 import collections
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
 
 import jax
 import numpy as np
+import pytest
 from jax.extend import core as jex_core
 
 from diffshade import (
@@ -29,15 +43,20 @@ from diffshade import (
 )
 
 SETTINGS = RenderSettings()
+SOFT = RenderSettings(raster="soft")
+RASTERS = pytest.mark.parametrize("settings", [SETTINGS, SOFT], ids=["hard", "soft"])
+#: the revision before the effects of issue 14 (shadows, transparency, area lights, objects)
+BASELINE = "4ab48df"
+ROOT = Path(__file__).resolve().parents[1]
 
 
-def primitive_counts(scene, settings=SETTINGS):
-    """Counter of primitive names in the jaxpr of render(scene), sub-jaxprs included."""
-    counts = collections.Counter()
+def equations(scene, settings=SETTINGS):
+    """Every equation of the jaxpr of render(scene), sub-jaxprs included."""
+    found = []
 
     def walk(jaxpr):
         for eqn in jaxpr.eqns:
-            counts[eqn.primitive.name] += 1
+            found.append(eqn)
             for param in eqn.params.values():
                 for sub in param if isinstance(param, (list, tuple)) else [param]:
                     if isinstance(sub, jex_core.ClosedJaxpr):
@@ -46,7 +65,12 @@ def primitive_counts(scene, settings=SETTINGS):
                         walk(sub)
 
     walk(jax.make_jaxpr(lambda s: render(s, settings))(scene).jaxpr)
-    return counts
+    return found
+
+
+def primitive_counts(scene, settings=SETTINGS):
+    """Counter of primitive names in the jaxpr of render(scene), sub-jaxprs included."""
+    return collections.Counter(eqn.primitive.name for eqn in equations(scene, settings))
 
 
 def scene_with(lights, mat=None, size=8):
@@ -59,22 +83,119 @@ BULB = point_light((0.0, 1.0, 2.0), attenuation=(1.0, 0.1, 0.01))
 SPOT = spot_light((0.0, 0.0, 2.0), (0.0, 0.0, -1.0), cutoff=30.0, exponent=2.0)
 
 
-def test_directional_only_scene_compiles_no_spot_or_attenuation_code():
-    sun = primitive_counts(scene_with([SUN]))
-    with_bulb = primitive_counts(scene_with([SUN, BULB]))
-    with_spot = primitive_counts(scene_with([SUN, SPOT]))
-    assert sun["cos"] == 0 and sun["exp"] == 0 and sun["log"] == 0
-    assert with_spot["cos"] >= 1 and with_spot["exp"] >= 1
+@RASTERS
+def test_directional_only_scene_compiles_no_spot_or_attenuation_code(settings):
+    sun = primitive_counts(scene_with([SUN]), settings)
+    with_bulb = primitive_counts(scene_with([SUN, BULB]), settings)
+    with_spot = primitive_counts(scene_with([SUN, SPOT]), settings)
+    dark = primitive_counts(scene_with([]), settings)  # the soft weights' own logs only
+    assert sun["cos"] == 0 and sun["log"] == dark["log"]
+    assert with_spot["cos"] >= 1 and with_spot["log"] > dark["log"]
     assert sum(with_bulb.values()) > sum(sun.values())
     assert sum(with_spot.values()) > sum(with_bulb.values())
 
 
-def test_material_without_ks_compiles_no_specular_code():
-    plain = primitive_counts(scene_with([SUN], material(ks=None)))
-    shiny = primitive_counts(scene_with([SUN], material(ks=0.5, shininess=10.0)))
-    assert plain["exp"] == 0 and plain["log"] == 0
-    assert shiny["exp"] >= 1 and shiny["log"] >= 1
+@RASTERS
+def test_material_without_ks_compiles_no_specular_code(settings):
+    plain = primitive_counts(scene_with([SUN], material(ks=None)), settings)
+    shiny = primitive_counts(scene_with([SUN], material(ks=0.5, shininess=10.0)), settings)
+    dark = primitive_counts(scene_with([]), settings)
+    assert plain["log"] == dark["log"]
+    assert shiny["log"] > dark["log"]
     assert sum(shiny.values()) > sum(plain.values())
+
+
+def test_only_soft_raster_compiles_the_sigmoid_coverage():
+    hard = primitive_counts(scene_with([SUN]), SETTINGS)
+    soft = primitive_counts(scene_with([SUN]), SOFT)
+    assert hard["log1p"] == 0 and soft["log1p"] >= 1
+
+
+def barrier_operands(scene, settings=SETTINGS):
+    """Operand counts of the optimization barriers that render(scene) has beyond those of
+    the same scene without lights."""
+    def operands(s):
+        return collections.Counter(len(e.invars) for e in equations(s, settings)
+                                   if e.primitive.name == "optimization_barrier")
+    extra = operands(scene) - operands(replace(scene, lights=scene_with([]).lights))
+    return sorted(extra.elements())
+
+
+@RASTERS
+def test_a_directional_light_carries_no_attenuation_array(settings):
+    plain = material(ks=None)
+    # a barrier per light (per traced copy of the shading: soft raster's compaction traces
+    # it in both branches of a cond): the direction alone, or with the attenuation
+    sun = barrier_operands(scene_with([SUN], plain), settings)
+    bulb = barrier_operands(scene_with([BULB], plain), settings)
+    assert set(sun) == {1} and set(bulb) == {2}
+    assert barrier_operands(scene_with([SUN, BULB], plain), settings) == sorted(sun + bulb)
+
+
+def _selects(scene, settings):
+    return primitive_counts(scene, settings)["select_n"]
+
+
+@RASTERS
+def test_two_sided_lighting_selects_materials_only_with_a_back_material(settings):
+    mat = material(ka=0.1, kd=0.5, ks=0.3, shininess=5.0)
+    one = scene_with([SUN], mat)
+    two = replace(one, two_sided=True)
+    back = replace(two, back_material=material(ka=0.2, kd=0.1, ks=0.6, shininess=9.0))
+    fields = 4  # ka, kd, ks, shininess
+    copies = len(barrier_operands(scene_with([SUN], material(ks=None)), settings))  # shadings
+    # without a back material only the normals' side is chosen (a select per sample)
+    assert 1 <= _selects(two, settings) - _selects(one, settings) <= 2 * copies
+    assert _selects(back, settings) - _selects(two, settings) == fields * copies
+
+
+def compiled_adds(scene, settings):
+    """How many `add` instructions XLA's optimized program for render(scene) has."""
+    text = jax.jit(lambda s: render(s, settings)).lower(scene).compile().as_text()
+    return len(re.findall(r"\badd\(", text))
+
+
+def test_emission_compiles_only_when_the_material_has_it():
+    # without emission the renderer adds an image of zeros, which XLA folds away
+    plain = compiled_adds(scene_with([SUN], material(ks=None)), SETTINGS)
+    glowing = compiled_adds(scene_with([SUN], material(ks=None, emission=0.3)), SETTINGS)
+    assert glowing > plain
+
+
+PLAIN_PROGRAM = r"""
+import collections, json, re, sys
+import jax
+import diffshade as ds
+cam = ds.look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), width=8, height=8)
+lights = [ds.directional_light((0.0, -1.0, -1.0)),
+          ds.point_light((0.0, 1.0, 2.0), attenuation=(1.0, 0.1, 0.01))]
+out = {}
+for raster in ("hard", "soft"):
+    scene = ds.make_scene(ds.icosphere(0), cam, lights, ds.material(ks=0.3, shininess=5.0))
+    text = jax.jit(lambda s: ds.render(s, ds.RenderSettings(raster=raster))).lower(scene).as_text()
+    out[raster] = collections.Counter(re.findall(r"= (?:\"?)([a-z_]+\.[a-z_0-9.]+)", text))
+print(json.dumps(out))
+"""
+
+
+def lowered_plain_program(cwd):
+    proc = subprocess.run([sys.executable, "-c", PLAIN_PROGRAM], cwd=cwd, capture_output=True,
+                          text=True, env={**os.environ, "PYTHONPATH": str(cwd)})
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def test_a_plain_scene_lowers_to_the_program_of_the_baseline_revision(tmp_path):
+    try:
+        archive = subprocess.run(["git", "archive", BASELINE], cwd=ROOT, capture_output=True,
+                                 check=True).stdout
+    except (OSError, subprocess.CalledProcessError) as err:
+        pytest.fail(f"the baseline revision {BASELINE} is not in this clone's history: {err}")
+    subprocess.run(["tar", "-x", "-C", str(tmp_path)], input=archive, check=True)
+    before = lowered_plain_program(tmp_path)
+    now = lowered_plain_program(ROOT)
+    assert sum(now["hard"].values()) > 100  # the count did see the program
+    assert now == before
 
 
 def test_new_values_with_the_same_structure_do_not_recompile():
