@@ -76,15 +76,24 @@ SIGNALS = {signal.SIGINT: "SIGINT", signal.SIGTERM: "SIGTERM"}
 
 def positive_float(text):
     """argparse type: a finite number > 0."""
-    value = non_negative_float(text) if text.strip() not in ("0", "0.0") else 0.0
-    if value <= 0:
+    try:
+        value = float(text)
+    except ValueError:
+        value = 0.0
+    if not (np.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"got {text!r}; expected a finite number > 0")
     return value
 
 
 def non_negative_int(text):
     """argparse type: an integer >= 0."""
-    return 0 if text.strip() == "0" else positive_int(text)
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"got {text!r}; expected an integer >= 0")
+    return value
 
 
 def number_pair(text):
@@ -330,8 +339,9 @@ def _report(args, dataset, data, state, status, message, signum):
     print(comparison_table(result, result.truth, label))
     for path in paths:
         print(path)
-    if result.misfit is not None and not result.misfit.explained:
-        print(f"diffshade: warning: {result.misfit.message()}", file=sys.stderr)
+    if result.misfit is not None and not result.misfit.explained and status in (
+            "converged", "budget"):  # else stderr says why the fit stopped
+        print(f"diffshade: warning: {result.misfit.message(status)}", file=sys.stderr)
     where = f"the best parameters so far (step {state.best_step}) are in {result_path}"
     if status == "non-finite":
         print(f"diffshade: error: fit stopped: {message}; {where}", file=sys.stderr)

@@ -150,7 +150,7 @@ def fit_result(state, dataset, data, *, with_uncertainty=True, warn=False, truth
     found = (*([f"fit stopped: {stop_message}"] if status == "non-finite" else []),
              *(report.warnings if report else ()),
              *([_bound_warning(bound, values, spec)] if bound else []),
-             *([check.message()] if check is not None and not check.explained else []))
+             *([check.message(status)] if check is not None and not check.explained else []))
     errors = (relative_errors(values, truth, spec)
               if truth is not None and spec.fits_material else None)
     return FitResult(
@@ -163,7 +163,7 @@ def fit_result(state, dataset, data, *, with_uncertainty=True, warn=False, truth
         stop_message=stop_message, at_bound=bound, misfit=check)
 
 
-def _check_fit_args(dataset, spec, init, truth, settings):
+def _check_fit_args(dataset, spec, init, truth, options, settings):
     if not isinstance(dataset, Dataset):
         raise TypeError(f"dataset: got {type(dataset).__name__}; expected fitting.Dataset")
     if not isinstance(spec, FitSpec):
@@ -172,6 +172,8 @@ def _check_fit_args(dataset, spec, init, truth, settings):
         if value is not None and not isinstance(value, Material):
             raise TypeError(f"{name}: got {type(value).__name__}; expected a Material "
                             "(diffshade.material(...)) or None")
+    if options is not None and not isinstance(options, FitOptions):
+        raise TypeError(f"options: got {type(options).__name__}; expected FitOptions")
     unknown = sorted(set(settings) - {f.name for f in dataclasses.fields(FitOptions)})
     if unknown:
         raise TypeError(f"fit: got unknown option(s) {unknown}; expected FitOptions fields "
@@ -204,7 +206,7 @@ def fit(dataset: Dataset, spec: FitSpec | None = None, init=None, *, options=Non
     raised as IdentifiabilityWarning) and the misfit check. callback(step, loss, material)
     after every step; returning True stops the fit (status 'stopped')."""
     spec = FitSpec() if spec is None else spec
-    _check_fit_args(dataset, spec, init, truth, settings)
+    _check_fit_args(dataset, spec, init, truth, options, settings)
     options = dataclasses.replace(options or FitOptions(), **settings)
     init = DEFAULT_INIT if init is None else init
     start = time.perf_counter()

@@ -48,13 +48,19 @@ class Misfit:
     ratio: float
     explained: bool
 
-    def message(self) -> str:
-        """The warning when the images are not explained, else ''."""
+    def message(self, status="converged") -> str:
+        """The warning when the images are not explained, else ''. status: the fit's
+        (fitting.run); a fit that has not converged is named as the first suspect."""
         if self.explained:
             return ""
-        return (f"the model does not explain the images: the residual (RMS {self.rms:.3g}) "
+        head = (f"the model does not explain the images: the residual (RMS {self.rms:.3g}) "
                 f"is {self.ratio:.3g} times the noise and quantization floor "
-                f"({self.floor:.3g}); likely causes: {CAUSES}; see the residual images")
+                f"({self.floor:.3g})")
+        if status != "converged":
+            return (f"{head}, and the fit has not converged (status {status!r}): take more "
+                    "steps (--steps with --resume) or use the 'linear' method; if a "
+                    f"converged fit still shows this, likely causes: {CAUSES}")
+        return f"{head}; likely causes: {CAUSES}; see the residual images"
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)

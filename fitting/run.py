@@ -177,7 +177,7 @@ def _small_gradient(state, data):
     if options.gtol is None or state.step % options.stop_patience:
         return False
     grads = gradients(state.params, data, state.spec, state.kind)
-    return float(optax.global_norm(grads)) < options.gtol
+    return float(optax.tree.norm(grads)) < options.gtol
 
 
 def _loss_known(state):

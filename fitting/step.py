@@ -25,11 +25,12 @@ NEVER_GIVE_UP = 2**31 - 2
 
 
 def make_optimizer(method="adam", *, lr=0.05, lr_shininess=0.05, lr_position=0.02,
-                   memory_size=10) -> optax.GradientTransformation:
+                   memory_size=10, guard=True) -> optax.GradientTransformation:
     """'adam': Adam per group — lr for coefficient logits and log light colours,
     lr_shininess for log-shininess, lr_position for light positions (world units);
     'lbfgs': optax.lbfgs with its zoom line search (learning rates unused). Either inside
-    optax.apply_if_finite (module docstring)."""
+    optax.apply_if_finite (module docstring); guard=False leaves it out (only to measure
+    its cost: benchmarks/fit_step.py)."""
     if method not in OPTAX_METHODS:
         raise ValueError(f"method: got {method!r}; expected one of {OPTAX_METHODS}")
     for name, value in (("lr", lr), ("lr_shininess", lr_shininess), ("lr_position", lr_position)):
@@ -38,7 +39,7 @@ def make_optimizer(method="adam", *, lr=0.05, lr_shininess=0.05, lr_position=0.0
     inner = (optax.lbfgs(memory_size=memory_size) if method == "lbfgs" else optax.partition(
         {"colour": optax.adam(lr), "shininess": optax.adam(lr_shininess),
          "position": optax.adam(lr_position)}, param_labels))
-    return optax.apply_if_finite(inner, NEVER_GIVE_UP)
+    return optax.apply_if_finite(inner, NEVER_GIVE_UP) if guard else inner
 
 
 def _has_linesearch(opt_state):

@@ -327,6 +327,10 @@ def test_fit_rejects_a_broken_dataset(data_root, tmp_path, capsys, how, message)
     (["--method", "newton"], "argument --method: invalid choice: 'newton'"),
     (["--init", "0.1,0.2,x,4"], "--init: got '0.1,0.2,x,4'; expected KA,KD,KS,N"),
     (["--resume"], "checkpoint not found"),
+    (["--lr", "0"], "argument --lr: got '0'; expected a finite number > 0"),
+    (["--gtol", "-1"], "argument --gtol: got '-1'; expected a finite number >= 0"),
+    (["--shininess-range", "5,2"], "argument --shininess-range: got '5,2'; expected LOW,HIGH"),
+    (["--fit", "kd,lights"], "--fit: got 'kd,lights'; expected distinct comma-separated"),
 ])
 def test_fit_rejects_bad_options(data_root, tmp_path, capsys, args, message):
     code, out, err = run_cli(["fit", data_root / "clean", "-o", tmp_path / "result", *args],
@@ -424,7 +428,9 @@ def test_transient_non_finite_losses_are_skipped(data_root, tmp_path, capsys, mo
     out = tmp_path / "result"
     code, _, err = run_cli(["fit", data_root / "clean", "-o", out, "--method", "adam",
                             "--steps", "12"], capsys)
-    assert (code, err) == (0, "")
+    # 12 Adam steps do not fit the images: the misfit warning says so, nothing else does
+    assert code == 0 and [line for line in err.splitlines() if "warning" not in line] == []
+    assert "the fit has not converged (status 'budget')" in err
     result = strict_json(out / "result.json")
     assert result["rejected_steps"] == 2 and result["n_steps"] == 12 and len(calls) == 14
     assert len(result["loss_history"]) == 13

@@ -334,6 +334,20 @@ def test_fit_rejects_bad_arguments(small):
         FitSpec(ka="rg")
 
 
+@pytest.mark.parametrize("settings, error, message", [
+    ({"lr": -1.0}, ValueError, "lr: got -1.0; expected a positive learning rate"),
+    ({"gtol": float("nan")}, ValueError, "gtol: got nan; expected a finite number >= 0"),
+    ({"patience": 0}, ValueError, "patience: got 0; expected an integer >= 1"),
+    ({"shininess_range": (5.0, 2.0)}, ValueError, "shininess_range: got (5.0, 2.0)"),
+    ({"speed": 3}, TypeError, "fit: got unknown option(s) ['speed']"),
+    ({"options": "fast"}, TypeError, "options: got str; expected FitOptions"),
+])
+def test_fit_options_are_checked_at_the_boundary(small, settings, error, message):
+    with pytest.raises(error) as info:
+        fit(small, **settings)
+    assert message in str(info.value)
+
+
 def test_target_size_mismatch_names_the_view(small):
     views = list(small.views)
     views[1] = dataclasses.replace(views[1], target=np.zeros((40, 41, 3)))
