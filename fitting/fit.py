@@ -34,6 +34,7 @@ from fitting.data import Dataset
 from fitting.misfit import Misfit, misfit
 from fitting.options import FitOptions
 from fitting.params import (
+    COEFFICIENTS,
     DEFAULT_INIT,
     FitSpec,
     at_bound,
@@ -112,7 +113,7 @@ def relative_errors(values: dict, truth, spec: FitSpec) -> dict:
     """|fitted - true| / |true| per fitted material quantity and channel (the absolute
     error where the truth is 0): {'ka': [3], ..., 'shininess': []} as numpy."""
     true = material_values(truth, FitSpec(**{n: "rgb" if getattr(spec, n) else None
-                                             for n in ("ka", "kd", "ks")},
+                                             for n in COEFFICIENTS},
                                           shininess=spec.shininess))
     errors = {}
     for name, t in true.items():
