@@ -681,6 +681,10 @@ def test_residual_files(data_root, tmp_path, capsys):
                                                               "shininess")})
     scale = result["residual_scale"]
     assert scale >= 1 / 255
+    # the right model on noise 0.01: the residual is that noise, and the check says so
+    misfit = result["misfit"]
+    assert misfit["explained"] and misfit["ratio"] < 1.5
+    assert misfit["noise"] == pytest.approx(0.01, rel=0.05)
     for i, view in enumerate(dataset.views):
         scene = ds.make_scene(dataset.mesh, view.camera, view.lights, fitted,
                               model=dataset.model, global_ambient=dataset.global_ambient)
