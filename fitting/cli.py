@@ -11,7 +11,7 @@
 The fit is fitting.run's, the driver `fitting.fit` uses, with the same options: one flag
 per field of fitting.options.FitOptions. Everything that can be wrong with the input
 (options, the dataset folder, its targets, the output path, the checkpoint to resume;
-fitting.inputs) is checked before anything is written; such an error is raised as
+fitting.plan, fitting.inputs) is checked before anything is written; such an error is raised as
 ValueError or OSError, which diffshade.cli prints as one line (exit 2). Then the fit runs
 with a progress bar on a terminal, writing RESULT/checkpoint.json every
 --checkpoint-every steps, and at its end the result files (fitting.report) and the
@@ -34,7 +34,6 @@ import signal
 import sys
 import threading
 import time
-from typing import NamedTuple
 
 import jax
 import numpy as np
@@ -42,30 +41,16 @@ from tqdm import tqdm
 
 from diffshade.color import COLOR_SPACES
 from fitting.cache import build_cache
-from fitting.checkpoint import (
-    checkpoint_run,
-    load_checkpoint,
-    material_dict,
-    read_checkpoint,
-    save_checkpoint,
-)
+from fitting.checkpoint import save_checkpoint
 from fitting.fit import fit_result
-from fitting.inputs import (
-    check_output,
-    dataset_fingerprint,
-    fit_spec,
-    load_checked_dataset,
-    non_negative_float,
-    parse_material,
-    positive_int,
-)
+from fitting.inputs import non_negative_float, positive_int
 from fitting.loss import LOSSES
 from fitting.options import FIT_METHODS, OPTIONS, FitOptions
-from fitting.params import DEFAULT_INIT, FitSpec, to_values
+from fitting.params import to_values
+from fitting.plan import CHECKPOINT, flag, prepare
 from fitting.report import STATUS_LABELS, comparison_table, write_result
 from fitting.run import advance, finish, start_run
 
-CHECKPOINT = "checkpoint.json"
 RESULT_FORMAT = "diffshade-fit-result"
 EXIT_NON_FINITE = 3
 SIGNALS = {signal.SIGINT: "SIGINT", signal.SIGTERM: "SIGTERM"}
@@ -122,10 +107,10 @@ def _add_option(parser, name):
     shown = ",".join(map(str, default)) if isinstance(default, tuple) else default
     help_text = OPTIONS[name].help + ("" if default is None else f" (default {shown})")
     if isinstance(kind, tuple):
-        parser.add_argument(_flag(name), choices=kind, help=help_text)
+        parser.add_argument(flag(name), choices=kind, help=help_text)
     else:
         metavar = {number_pair: "LOW,HIGH", positive_int: "N", non_negative_int: "N"}
-        parser.add_argument(_flag(name), type=kind, metavar=metavar.get(kind, "X"),
+        parser.add_argument(flag(name), type=kind, metavar=metavar.get(kind, "X"),
                             help=help_text)
 
 
@@ -160,98 +145,6 @@ def register(subparsers):
                         help="continue from RESULT/checkpoint.json")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(run=run_fit)
-
-
-# ---- the run's plan (nothing is written before it is made) ----
-
-
-def _flag(name):
-    return "--" + name.replace("_", "-")
-
-
-def _given_options(args):
-    """{FitOptions field: value} of the options on the command line."""
-    return {f.name: getattr(args, f.name) for f in dataclasses.fields(FitOptions)
-            if getattr(args, f.name) is not None}
-
-
-def _new_options(args):
-    try:
-        return FitOptions(**_given_options(args))
-    except ValueError as err:  # "name: got ..." -> "--name: got ..."
-        name, _, rest = str(err).partition(":")
-        raise ValueError(f"{_flag(name)}:{rest}") from None
-
-
-def _resumed_options(args, saved, checkpoint):
-    """The checkpoint's options; those given must agree (--steps may change)."""
-    given = _given_options(args)
-    for name, value in given.items():
-        if name != "steps" and value != getattr(saved, name):
-            raise ValueError(f"{_flag(name)}: got {value!r}; the checkpoint {checkpoint!r} "
-                             f"was made with {getattr(saved, name)!r}")
-    return dataclasses.replace(saved, **{k: v for k, v in given.items() if k == "steps"})
-
-
-def _check_agrees(args, spec, init, meta, checkpoint):
-    """On --resume, the data options given must describe the checkpoint's run."""
-    if args.color_space is not None and args.color_space != meta.get("color_space"):
-        raise ValueError(f"--color-space: got {args.color_space!r}; the checkpoint "
-                         f"{checkpoint!r} was made with {meta.get('color_space')!r}")
-    if (args.fit is not None or args.grey is not None) and fit_spec(args.fit,
-                                                                   args.grey) != spec:
-        raise ValueError(f"--fit/--grey: describe another fit than the checkpoint "
-                         f"{checkpoint!r} ({spec})")
-    if args.init is not None:
-        given = material_dict(parse_material(args.init, "--init"))
-        if given != material_dict(init):
-            raise ValueError(f"--init: got {args.init!r}; the checkpoint {checkpoint!r} was "
-                             f"made from {material_dict(init)}")
-
-
-class Plan(NamedTuple):
-    """What `fit` will run: the fit spec, initial material and options, the RunState to
-    continue (None: a fresh run), how often to checkpoint, and the fingerprint of the
-    dataset's targets."""
-
-    spec: FitSpec
-    init: object
-    options: FitOptions
-    state: object
-    every: int
-    fingerprint: str
-
-
-def _prepare(args):
-    """Check every input; returns (dataset, Plan). Writes nothing."""
-    check_output(args.output)
-    checkpoint = os.path.join(args.output, CHECKPOINT)
-    saved, meta = None, {}
-    if args.resume:
-        saved = read_checkpoint(checkpoint)
-        try:
-            spec, init, options = checkpoint_run(saved)
-        except (KeyError, TypeError, ValueError) as err:
-            raise ValueError(f"checkpoint {checkpoint!r}: {err}") from err
-        meta = saved.get("meta", {})
-        _check_agrees(args, spec, init, meta, checkpoint)
-        options = _resumed_options(args, options, checkpoint)
-        if args.color_space is None:
-            args.color_space = meta.get("color_space")
-    else:
-        spec, options = fit_spec(args.fit, args.grey), _new_options(args)
-        init = DEFAULT_INIT if args.init is None else parse_material(args.init, "--init")
-    dataset = load_checked_dataset(args.dataset, args.color_space)
-    fingerprint = dataset_fingerprint(dataset)
-    state = None
-    if saved is not None:
-        if meta.get("dataset_sha256") != fingerprint:
-            raise ValueError(f"DATASET: {args.dataset!r} holds other targets than the dataset "
-                             f"the checkpoint {checkpoint!r} was made with")
-        state = load_checkpoint(checkpoint, [v.lights for v in dataset.views])
-        state.options = options
-    every = args.checkpoint_every or meta.get("checkpoint_every") or 500
-    return dataset, Plan(spec, init, options, state, every, fingerprint)
 
 
 # ---- signals and progress ----
@@ -356,7 +249,7 @@ def _report(args, dataset, data, state, status, message, signum):
 def run_fit(args) -> int:
     """The `fit` command (module docstring)."""
     with _Signals() as signals:
-        dataset, plan = _prepare(args)
+        dataset, plan = prepare(args)
         start = time.perf_counter()
         data = build_cache(dataset, plan.init, edge_margin=plan.options.edge_margin)
         state = plan.state or start_run(data, plan.spec, plan.init, plan.options)
