@@ -5,7 +5,9 @@ change it). Both steps are the same jitted Adam step (fitting.make_step) on the 
 parameters; they differ only in the loss:
 - cached: `diffshade.shade` on the kept pixels cached by fitting.build_cache;
 - full render: `diffshade.render` of every view every step (rasterization included),
-  compared at the same pixels.
+  compared at the same pixels;
+- cached, unguarded: the cached step without optax.apply_if_finite (the guard against
+  non-finite steps that every fit uses), to measure the guard's cost.
 The first call (compile + run) is reported separately; then `--warmup` untimed steps, and
 the median (and quartiles) over `--runs` timed steps, each waited for with
 block_until_ready. Writes JSON (default results/fit_step.json).
@@ -83,13 +85,15 @@ def main(argv=None):
     dataset = make_dataset(n_views=args.views, n_lights=args.lights, size=args.size)
     spec, optimizer = FitSpec(), make_optimizer()
     params = to_unconstrained(DEFAULT_INIT, spec)
-    state = optimizer.init(params)
     cached_data = build_cache(dataset, DEFAULT_INIT)
     full_data = render_data(dataset, cached_data)
     results = {}
-    for name, loss, data in (("cached", make_loss(spec), cached_data),
-                             ("full_render", make_render_loss(spec), full_data)):
-        first, times = time_step(make_step(loss, optimizer), params, state, data,
+    unguarded = make_optimizer(guard=False)
+    for name, loss, data, opt in (
+            ("cached", make_loss(spec), cached_data, optimizer),
+            ("full_render", make_render_loss(spec), full_data, optimizer),
+            ("cached_unguarded", make_loss(spec), cached_data, unguarded)):
+        first, times = time_step(make_step(loss, opt), params, opt.init(params), data,
                                  args.runs, args.warmup)
         results[name] = summary(first, times)
     pixels = int(sum(v.pixels.shape[0] for v in cached_data.views))

@@ -3,12 +3,12 @@
     diffshade render SCENE.json -o OUT.png [--shading MODE] [--size WxH] [--parts]
     diffshade render --builtin sphere -o OUT.png
 
-Commands register themselves. A command module exposes `register(subparsers)`, which
-adds its parser with `subparsers.add_parser(name, help=...)` and sets
-`parser.set_defaults(run=fn)`, fn(args) -> int exit status. `render` is registered here;
-the modules named in `_EXTRA_COMMANDS` are imported when `main` runs, and one that is not
-installed is skipped (only a ModuleNotFoundError for that very module: a missing
-dependency inside an installed command module is a bug and surfaces).
+    diffshade synth ... (data_synth.cli),  diffshade fit ... (fitting.cli)
+
+`COMMANDS` is the table of commands: name -> register(subparsers), a callable imported
+directly from its module, which adds the command's parser with
+`subparsers.add_parser(name, help=...)` and sets `parser.set_defaults(run=fn)`,
+fn(args) -> int exit status. `render` is registered here.
 
 A user error (ValueError, including SceneFileError, or OSError such as a missing or
 unwritable file) prints one line `diffshade: error: <message>` on stderr and returns 2,
@@ -18,22 +18,22 @@ returns 0. Output files are written atomically (diffshade.io).
 
 import argparse
 import dataclasses
-import importlib
 import os
 import sys
 
 import numpy as np
 
+from data_synth.cli import register as register_synth
 from diffshade.builtin import BUILTIN_SCENES, builtin_scene
 from diffshade.io import write_npy, write_png
 from diffshade.render import render, render_parts
 from diffshade.scene import replace
 from diffshade.scenefile import load_scene
 from diffshade.settings import SHADING_MODES, RenderSettings
+from fitting.cli import register as register_fit
 
-__all__ = ["build_parser", "main"]
+__all__ = ["COMMANDS", "build_parser", "main"]
 
-_EXTRA_COMMANDS = ("data_synth.cli", "fitting.cli")
 _USER_ERRORS = (ValueError, OSError)
 _OUTPUT_KINDS = (".png", ".npy")
 _PARTS = ("ambient", "diffuse", "specular", "emission")
@@ -117,25 +117,16 @@ def _run_render(args):
     return 0
 
 
-def _register_extra_commands(subparsers):
-    for name in _EXTRA_COMMANDS:
-        try:
-            module = importlib.import_module(name)
-        except ModuleNotFoundError as err:
-            absent = err.name is not None and (name + ".").startswith(err.name + ".")
-            if absent:
-                continue
-            raise
-        module.register(subparsers)
+COMMANDS = {"render": _register_render, "synth": register_synth, "fit": register_fit}
 
 
 def build_parser():
-    """The argument parser with `render` and the installed extra commands registered."""
+    """The argument parser with every command of `COMMANDS` registered."""
     parser = _Parser(prog="diffshade",
                      description="diffshade: a differentiable Blinn-Phong renderer.")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    _register_render(subparsers)
-    _register_extra_commands(subparsers)
+    for register in COMMANDS.values():
+        register(subparsers)
     return parser
 
 

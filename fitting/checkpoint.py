@@ -1,36 +1,20 @@
-"""Resumable fits: the state of a run, its checkpoint file, and a step loop that stops
-when asked.
+"""The checkpoint file of a run (fitting.run): everything needed to continue it.
 
-    state = start_run(data, spec, init, method="adam")     # or load_checkpoint(path)
-    status, message = advance(state, data, budget=3000, should_stop=flag.is_set,
-                              save=lambda s: save_checkpoint(path, s), every=500)
-    finish(state, data); result = fit_result(state, dataset, data)   # at the best params
+    save_checkpoint(path, state)                       # atomically
+    state = load_checkpoint(path, lights=[v.lights for v in dataset.views])
 
-`RunState` is a plain, mutable record that `advance` updates in place after every step,
-so it is a consistent snapshot whenever `should_stop`, `on_step` or `save` sees it:
-params (unconstrained, fitting.params) and optimizer state, the number of steps taken,
-the loss history (history[j] = loss after j steps; the loss of the current params is
-known only after the next step, or after `finish`), and the best params seen.
-
-Methods as in fitting.fit: 'adam' and 'lbfgs' take steps of fitting.step's jitted optax
-step; 'linear' solves the coefficients in closed form at the start (step 0) and then
-takes Levenberg-Marquardt iterations. A step that fitting.step rejects (non-finite loss or
-gradient: params and optimizer state unchanged) is not counted; `max_bad` rejected steps
-in a row stop the run with status 'non-finite' and a message naming the parameters whose
-gradient is not finite. Statuses: 'budget' (step budget reached), 'converged', 'stopped'
-(should_stop() returned True), 'non-finite'.
-
-A checkpoint (`save_checkpoint`, written atomically) is JSON: the run's spec, initial
-material, method and loss, params, optimizer state (every leaf, non-finite numbers as the
-strings 'nan', 'inf', '-inf'), step, history, best params and the caller's `meta`.
+A checkpoint is JSON: the run's spec, initial material and every option
+(fitting.options.FitOptions, so a resumed run continues with the settings it started
+with), the params, the optimizer state (every leaf; non-finite numbers as the strings
+'nan', 'inf', '-inf'), the step, the history, the best params and the caller's `meta`.
+`read_checkpoint` gives the checked JSON (a caller can learn the options and meta before
+it loads the dataset the arrays need when lights are fitted).
 """
 
 import dataclasses
 import json
 import math
 import os
-import time
-from functools import lru_cache, partial
 
 import jax
 import jax.numpy as jnp
@@ -38,238 +22,12 @@ import numpy as np
 
 from diffshade.io import write_json
 from diffshade.material import Material, material
-from fitting.fit import FitResult, relative_errors
-from fitting.gauss_newton import levenberg_marquardt, loss_at
-from fitting.linear import solve_linear
-from fitting.loss import check_kind, make_loss
-from fitting.params import (
-    FitSpec,
-    from_values,
-    material_values,
-    to_values,
-    value_names,
-    values_to_material,
-)
-from fitting.step import make_optimizer, make_step
-from fitting.uncertainty import uncertainty
+from fitting.options import FitOptions
+from fitting.params import FitSpec
+from fitting.run import RunState, check_run, initial_opt_state, start_params
 
 FORMAT = "diffshade-fit-checkpoint"
-VERSION = 1
-METHODS = ("linear", "adam", "lbfgs")
-
-
-@dataclasses.dataclass
-class RunState:
-    """spec, init (the held-fixed values and the start), method, kind (loss): what is run;
-    params, opt_state (None for 'linear'): where it is; step: steps taken; history: loss
-    after each step ([<= step + 1] floats, all finite); best_loss, best_params, best_step:
-    the lowest loss seen; quiet: consecutive steps of relative change below tol;
-    converged; rejected: steps rejected as non-finite; wall_time: seconds spent so far;
-    meta: the caller's description of the run (JSON-ready), saved with the checkpoint."""
-
-    spec: FitSpec
-    init: Material
-    method: str
-    kind: str
-    params: dict
-    opt_state: object = None
-    step: int = 0
-    history: list = dataclasses.field(default_factory=list)
-    best_loss: float = math.inf
-    best_params: dict | None = None
-    best_step: int = 0
-    quiet: int = 0
-    converged: bool = False
-    rejected: int = 0
-    wall_time: float = 0.0
-    meta: dict = dataclasses.field(default_factory=dict)
-
-
-@lru_cache(maxsize=16)
-def _step_and_optimizer(spec, kind, method):
-    """One compiled step per configuration, shared by every run in the process."""
-    optimizer = make_optimizer(method)
-    return make_step(make_loss(spec, kind), optimizer), optimizer
-
-
-def _check_run(spec, method, kind):
-    if not isinstance(spec, FitSpec):
-        raise TypeError(f"spec: got {type(spec).__name__}; expected FitSpec")
-    if spec.fits_lights:
-        raise ValueError("spec: fits light colours or positions; a resumable run fits the "
-                         "material only")
-    if method not in METHODS:
-        raise ValueError(f"method: got {method!r}; expected one of {METHODS}")
-    check_kind(kind)
-
-
-def start_run(data, spec: FitSpec, init: Material, method="linear", kind="mse",
-              meta=None) -> RunState:
-    """A fresh RunState at `init` (for 'linear': at the closed-form solution) on the cached
-    `data` (fitting.build_cache(dataset, init))."""
-    _check_run(spec, method, kind)
-    params = from_values(material_values(init, spec), spec)
-    opt_state = None
-    if method == "linear" and spec.fits_material:
-        params = {**params, **from_values(solve_linear(data, spec), spec)}
-    elif method != "linear":
-        opt_state = _step_and_optimizer(spec, kind, method)[1].init(params)
-    return RunState(spec, init, method, kind, params, opt_state, meta=dict(meta or {}))
-
-
-# ---- the step loop ----
-
-
-@jax.jit
-def _moved(new, old):
-    return jnp.any(jnp.stack([jnp.any(a != b) for a, b in zip(jax.tree.leaves(new),
-                                                                 jax.tree.leaves(old),
-                                                                 strict=True)]))
-
-
-@partial(jax.jit, static_argnames=("spec", "kind"))
-def _gradients(params, data, spec, kind):
-    return jax.grad(make_loss(spec, kind))(params, data)
-
-
-def nonfinite_gradients(state: RunState, data) -> list:
-    """Names ('ka[r]', 'shininess', ...) of the parameters whose gradient is not finite at
-    the state's params."""
-    grads = _gradients(state.params, data, state.spec, state.kind)
-    flat = np.concatenate([np.ravel(g) for g in jax.tree.leaves(grads)])
-    return [n for n, g in zip(value_names(grads), flat, strict=True) if not np.isfinite(g)]
-
-
-def _note(state, loss, params):
-    """Log the loss of `params`, the params after len(history) steps."""
-    state.history.append(loss)
-    if loss < state.best_loss:
-        state.best_loss, state.best_params, state.best_step = loss, params, len(state.history) - 1
-
-
-def _record(state, loss, params, tol, atol, patience):
-    """_note, and the convergence test on the change from the previous loss."""
-    if state.history:
-        change = abs(state.history[-1] - loss) / max(abs(state.history[-1]), 1e-30)
-        state.quiet = state.quiet + 1 if change < tol else 0
-    _note(state, loss, params)
-    state.converged = state.quiet >= patience or loss <= atol
-
-
-def _accepted(state, new_params, loss, data):
-    """Did fitting.step take this step? It leaves params unchanged when the loss or the
-    gradient is not finite; unchanged params with finite gradients are a zero update."""
-    if not math.isfinite(loss):
-        return False
-    return bool(_moved(new_params, state.params)) or not nonfinite_gradients(state, data)
-
-
-def _nonfinite_message(state, data, when):
-    names = nonfinite_gradients(state, data)
-    values = to_values(state.params, state.spec)
-    flat = np.concatenate([np.ravel(v) for v in jax.tree.leaves(values)])
-    shown = ", ".join(f"{n} = {v:.4g}" for n, v in zip(value_names(values), flat, strict=True)
-                      if n in names) or "none (the loss itself is not finite)"
-    return (f"the loss or its gradient was not finite {when}; non-finite gradient with "
-            f"respect to: {shown}")
-
-
-def _advance_optax(state, data, budget, rule, hooks):
-    step_fn = _step_and_optimizer(state.spec, state.kind, state.method)[0]
-    should_stop, on_step, save, every, max_bad = hooks
-    bad = 0
-    while state.step < budget and not state.converged:
-        params, opt_state, loss = step_fn(state.params, state.opt_state, data)
-        loss = float(loss)
-        if not _accepted(state, params, loss, data):
-            bad, state.rejected = bad + 1, state.rejected + 1
-            if math.isfinite(loss) and len(state.history) == state.step:
-                _note(state, loss, state.params)  # a finite loss with a non-finite gradient
-            if bad >= max_bad:
-                return "non-finite", _nonfinite_message(
-                    state, data, f"for {max_bad} steps in a row at step {state.step}")
-        else:
-            bad = 0
-            if len(state.history) == state.step:  # else known already (finish, then resume)
-                _record(state, loss, state.params, *rule)
-            state.params, state.opt_state, state.step = params, opt_state, state.step + 1
-            on_step(state)
-            if every and state.step % every == 0:
-                save(state)
-        if should_stop():
-            return "stopped", ""
-    return ("converged", "") if state.converged else ("budget", "")
-
-
-def _advance_lm(state, data, budget, rule, hooks):
-    should_stop, on_step, save, every, _ = hooks
-    tol, atol, _ = rule
-
-    def callback(_, loss, params):
-        _record(state, float(loss), params, *rule)
-        state.params, state.step = params, state.step + 1
-        on_step(state)
-        if every and state.step % every == 0:
-            save(state)
-        return bool(should_stop())
-
-    if len(state.history) == state.step:
-        loss = float(loss_at(state.params, data, state.spec, state.kind))
-        if not math.isfinite(loss):
-            return "non-finite", _nonfinite_message(state, data, f"at step {state.step}")
-        _record(state, loss, state.params, *rule)
-    if state.step < budget and not state.converged and not should_stop():
-        _, _, state.converged = levenberg_marquardt(
-            state.params, data, state.spec, state.kind, steps=budget - state.step, tol=tol,
-            atol=atol, callback=callback)
-    if should_stop():
-        return "stopped", ""
-    return ("converged", "") if state.converged else ("budget", "")
-
-
-def advance(state: RunState, data, *, budget: int, tol=1e-7, atol=1e-12, patience=20,
-            max_bad=5, should_stop=lambda: False, on_step=lambda state: None,
-            save=lambda state: None, every=0) -> tuple:
-    """Take steps until state.step reaches `budget`, convergence (relative loss change
-    below tol for `patience` steps — one step for Levenberg-Marquardt — or loss <= atol),
-    should_stop() (checked after every step), or `max_bad` rejected steps in a row.
-    on_step(state) after every step; save(state) every `every` steps (0: never).
-    Returns (status, message); see the module docstring."""
-    start = time.perf_counter()
-    advance_fn = _advance_lm if state.method == "linear" else _advance_optax
-    try:
-        return advance_fn(state, data, budget, (tol, atol, patience),
-                          (should_stop, on_step, save, every, max_bad))
-    finally:
-        state.wall_time += time.perf_counter() - start
-
-
-def finish(state: RunState, data) -> None:
-    """Log the loss of the current params when it is not known yet (so that best_params
-    is the best of every params visited); a non-finite loss is left out."""
-    if len(state.history) == state.step:
-        loss = float(loss_at(state.params, data, state.spec, state.kind))
-        if math.isfinite(loss):
-            _note(state, loss, state.params)
-
-
-def fit_result(state: RunState, dataset, data, with_uncertainty=True) -> FitResult:
-    """A FitResult at the state's best params: values, standard errors and warnings
-    (fitting.uncertainty, not raised as warnings), relative errors when the dataset knows
-    its truth; loss is the best loss, loss_history the whole history."""
-    if state.best_params is None:
-        raise ValueError("state: no step had a finite loss; there is no result to report")
-    spec = state.spec
-    values = jax.tree.map(np.asarray, to_values(state.best_params, spec))
-    report = uncertainty(values, data, spec, warn=False) if with_uncertainty else None
-    errors = (relative_errors(values, dataset.truth, spec)
-              if dataset.truth is not None and spec.fits_material else None)
-    return FitResult(
-        material=values_to_material(values, spec, data.material), lights=tuple(data.lights),
-        values=values, params=state.best_params, loss=state.best_loss,
-        loss_history=np.asarray(state.history), converged=state.converged,
-        n_steps=state.step, wall_time=state.wall_time, method=state.method, errors=errors,
-        uncertainty=report, warnings=report.warnings if report else ())
+VERSION = 2
 
 
 # ---- the checkpoint file ----
@@ -317,7 +75,7 @@ def save_checkpoint(path, state: RunState) -> str:
     return write_json(path, {
         "format": FORMAT, "version": VERSION, "meta": state.meta,
         "spec": dataclasses.asdict(state.spec), "init": material_dict(state.init),
-        "method": state.method, "loss": state.kind, "step": state.step,
+        "options": state.options.as_dict(), "step": state.step,
         "params": _encode_tree(state.params), "optimizer_state": _encode_tree(state.opt_state),
         "loss_history": state.history, "best": {
             "step": state.best_step, "loss": state.best_loss if state.best_params else None,
@@ -326,39 +84,45 @@ def save_checkpoint(path, state: RunState) -> str:
         "wall_time": state.wall_time})
 
 
-def _read(path):
+def read_checkpoint(path) -> dict:
+    """The checkpoint's JSON, checked to be one. Raises FileNotFoundError when there is
+    none and ValueError naming the file when it is not a checkpoint of this version."""
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"checkpoint not found: {path!r}")
     try:
         with open(path, encoding="utf-8") as file:
             data = json.load(file)
-    except json.JSONDecodeError as err:
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as err:
         raise ValueError(f"checkpoint {path!r}: not valid JSON ({err})") from err
     if not isinstance(data, dict) or data.get("format") != FORMAT or data.get("version") != VERSION:
         raise ValueError(f"checkpoint {path!r}: not a {FORMAT} file of version {VERSION}")
     return data
 
 
-def load_checkpoint(path) -> RunState:
-    """The RunState saved at `path`. Raises FileNotFoundError when there is none and
-    ValueError naming the file when it is not a valid checkpoint."""
-    data = _read(path)
+def checkpoint_run(data: dict):
+    """(spec, init, options) of a checkpoint's JSON."""
+    return FitSpec(**data["spec"]), material(**data["init"]), FitOptions(**data["options"])
+
+
+def load_checkpoint(path, lights=None) -> RunState:
+    """The RunState saved at `path`; `lights` (one LightGroups per view, the dataset's) is
+    needed when the run fits lights. Raises FileNotFoundError when there is no checkpoint
+    and ValueError naming the file when it is not a valid one."""
+    data = read_checkpoint(path)
     try:
-        spec, init = FitSpec(**data["spec"]), material(**data["init"])
-        method, kind = data["method"], data["loss"]
-        _check_run(spec, method, kind)
-        template = from_values(material_values(init, spec), spec)
+        spec, init, options = checkpoint_run(data)
+        check_run(spec, init, options)
+        if spec.fits_lights and lights is None:
+            raise ValueError("the run fits lights; expected the dataset's lights")
+        template = start_params(spec, init, lights)
         params = _decode_tree(data["params"], template, "params")
-        opt_state = None
-        if method != "linear":
-            opt_state = _decode_tree(data["optimizer_state"],
-                                     _step_and_optimizer(spec, kind, method)[1].init(params),
-                                     "optimizer_state")
+        opt_state = _decode_tree(data["optimizer_state"],
+                                 initial_opt_state(spec, options, params), "optimizer_state")
         best = data["best"]
         best_params = (None if best["params"] is None
                        else _decode_tree(best["params"], template, "best.params"))
-        return RunState(spec, init, method, kind, params, opt_state, int(data["step"]),
+        return RunState(spec, init, options, params, opt_state, int(data["step"]),
                         [float(x) for x in data["loss_history"]],
                         math.inf if best["loss"] is None else float(best["loss"]),
                         best_params, int(best["step"]), int(data["quiet"]),

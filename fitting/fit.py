@@ -1,9 +1,11 @@
 """fit: recover the material (and optionally the lights) of a Dataset.
 
     result = fit(dataset, FitSpec(), method="linear")
-    result.material, result.errors, result.uncertainty.table()
+    result.material, result.errors, result.uncertainty.table(), print(result.summary())
 
-Methods (all on the cached pixels, see fitting.cache):
+`fit` is the Python face of the one fit driver (fitting.run), the same loop, options
+(fitting.options.FitOptions, as keywords) and result as `diffshade fit`. Methods (all on
+the cached pixels, see fitting.cache):
 - 'linear' (default): variable projection — closed-form coefficients inside a 1-D search
   on log-shininess (fitting.linear) — then Levenberg-Marquardt on every fitted quantity
   with the exact clamped model and the chosen loss (fitting.gauss_newton). Independent of
@@ -14,46 +16,50 @@ Adam and L-BFGS stop when the relative loss change stays below `tol` for `patien
 steps, the loss reaches `atol` or the gradient norm falls below `gtol`; they are local and
 can stall on the ks-shininess ridge from a poor start (see docs/fitting.md).
 
-Held-fixed quantities come from `init` (default DEFAULT_INIT). When the dataset knows its
-`truth`, the result reports the relative error of every fitted value (per channel).
+`fit_result` reports a run at its best params: the values, the relative error of every
+fitted value when the truth is known (per channel), standard errors, the values that
+ended at a bound (no standard error), and whether the model explains the images
+(fitting.misfit).
 """
 
 import dataclasses
 import time
-from functools import lru_cache, partial
 
 import jax
 import numpy as np
-import optax
 
+from diffshade.material import Material
 from fitting.cache import build_cache
 from fitting.data import Dataset
-from fitting.gauss_newton import levenberg_marquardt, loss_at
-from fitting.linear import solve_linear
-from fitting.loss import check_kind, make_loss
+from fitting.misfit import Misfit, misfit
+from fitting.options import FitOptions
 from fitting.params import (
+    COEFFICIENTS,
     DEFAULT_INIT,
     FitSpec,
-    from_values,
+    at_bound,
     material_values,
     to_values,
+    value_names,
     values_to_lights,
     values_to_material,
 )
-from fitting.step import make_optimizer, make_step
+from fitting.report import comparison_table
+from fitting.run import advance, finish, start_run
 from fitting.uncertainty import UncertaintyReport, uncertainty
-
-FIT_METHODS = ("linear", "adam", "lbfgs")
-DEFAULT_STEPS = {"linear": 50, "adam": 3000, "lbfgs": 500}
 
 
 @dataclasses.dataclass(frozen=True)
 class FitResult:
     """material: the fitted Material; lights: tuple of LightGroups per view (fitted or
     given); values: physical fitted values (fitting.params); params: unconstrained;
-    loss: final loss; loss_history: [steps + 1]; converged; n_steps; wall_time (s);
-    method; errors: {name: relative error per channel} against dataset.truth, or None;
-    uncertainty: UncertaintyReport or None; warnings: tuple of messages."""
+    loss: the lowest loss seen (the values are where it was reached); loss_history:
+    [steps + 1]; converged; n_steps; wall_time (s); method; errors: {name: relative error
+    per channel} against `truth`, or None; uncertainty: UncertaintyReport or None;
+    warnings: tuple of messages; truth: the true Material, or None; status: 'converged',
+    'budget', 'stopped' or 'non-finite' (fitting.run); stop_message: why it stopped on
+    non-finite values; at_bound: names of the values at a bound; misfit: fitting.misfit
+    .Misfit or None."""
 
     material: object
     lights: tuple
@@ -68,26 +74,37 @@ class FitResult:
     errors: dict | None
     uncertainty: UncertaintyReport | None
     warnings: tuple
+    truth: Material | None = None
+    status: str = "converged"
+    stop_message: str = ""
+    at_bound: tuple = ()
+    misfit: Misfit | None = None
 
-    def summary(self) -> str:
-        """A table: parameter, fitted value, standard error and relative error (vs truth)."""
-        return format_summary(self)
+    def summary(self, truth=None) -> str:
+        """A table: parameter, true value (when `truth` or self.truth is known), fitted
+        value, standard error and relative error; warnings and notes below."""
+        return comparison_table(self, self.truth if truth is None else truth)
 
     def as_dict(self) -> dict:
-        """JSON-ready: method, loss, loss_history, converged, n_steps, wall_time, values
-        (material quantities; lights omitted), errors, std_errors, rounding_bound (8-bit
-        targets), warnings, notes."""
+        """JSON-ready: method, status, loss, loss_history, converged, n_steps, wall_time,
+        values (lights included when fitted), errors, std_errors and rounding_bound (None
+        for a value at a bound), at_bound, misfit, warnings, notes."""
         plain = lambda tree: jax.tree.map(lambda x: np.asarray(x).tolist(), tree)
         report = self.uncertainty
-        return {"method": self.method, "loss": self.loss,
+        number = lambda name, x: None if name in self.at_bound else float(x)
+        return {"method": self.method, "status": self.status, "loss": self.loss,
                 "loss_history": self.loss_history.tolist(), "converged": self.converged,
                 "n_steps": self.n_steps, "wall_time": self.wall_time,
-                "values": plain({k: v for k, v in self.values.items() if k != "lights"}),
+                "values": plain(self.values),
                 "errors": None if self.errors is None else plain(self.errors),
                 "std_errors": None if report is None else {
-                    name: se for name, (_, se) in report.as_dict().items()},
+                    n: number(n, s) for n, s in zip(report.names, report.std_errors,
+                                                    strict=True)},
                 "rounding_bound": None if report is None or report.rounding_bound is None
-                else dict(zip(report.names, report.rounding_bound.tolist(), strict=True)),
+                else {n: number(n, b) for n, b in zip(report.names, report.rounding_bound,
+                                                      strict=True)},
+                "at_bound": list(self.at_bound),
+                "misfit": None if self.misfit is None else self.misfit.as_dict(),
                 "warnings": list(self.warnings),
                 "notes": [] if report is None else list(report.notes)}
 
@@ -96,7 +113,7 @@ def relative_errors(values: dict, truth, spec: FitSpec) -> dict:
     """|fitted - true| / |true| per fitted material quantity and channel (the absolute
     error where the truth is 0): {'ka': [3], ..., 'shininess': []} as numpy."""
     true = material_values(truth, FitSpec(**{n: "rgb" if getattr(spec, n) else None
-                                             for n in ("ka", "kd", "ks")},
+                                             for n in COEFFICIENTS},
                                           shininess=spec.shininess))
     errors = {}
     for name, t in true.items():
@@ -106,137 +123,101 @@ def relative_errors(values: dict, truth, spec: FitSpec) -> dict:
     return errors
 
 
-@lru_cache(maxsize=32)
-def _optax_step(spec, kind, method, lr, lr_shininess, lr_position):
-    """One compiled step per configuration, shared by every fit that uses it."""
-    optimizer = make_optimizer(method, lr=lr, lr_shininess=lr_shininess, lr_position=lr_position)
-    return make_step(make_loss(spec, kind), optimizer), optimizer
+def _bound_warning(names, values, spec):
+    flat = np.concatenate([np.ravel(np.asarray(v, np.float64))
+                           for v in jax.tree.leaves(values)])
+    shown = ", ".join(f"{n} = {v:.4g}" for n, v in zip(value_names(values), flat, strict=True)
+                      if n in names)
+    return (f"{shown} ended at a bound of its range (coefficients: [0, {spec.upper:g}]): no "
+            "standard error; the model may be missing something the bound stands in for "
+            "(see the misfit check), or the value is truly there")
 
 
-@partial(jax.jit, static_argnames=("spec", "kind"))
-def _grad_norm(params, data, spec, kind):
-    grads = jax.grad(make_loss(spec, kind))(params, data)
-    return optax.global_norm(grads)
+def fit_result(state, dataset, data, *, with_uncertainty=True, warn=False, truth=None,
+               status="converged", stop_message="") -> FitResult:
+    """A FitResult at the state's best params (fitting.run.RunState): values, standard
+    errors and warnings (fitting.uncertainty; raised as warnings when `warn`), the values
+    at a bound, the misfit check, relative errors against `truth` (default the dataset's)
+    when known; loss is the best loss, loss_history the whole history."""
+    if state.best_params is None:
+        raise ValueError("state: no step had a finite loss; there is no result to report")
+    spec, truth = state.spec, dataset.truth if truth is None else truth
+    values = jax.tree.map(np.asarray, to_values(state.best_params, spec))
+    report = uncertainty(values, data, spec, warn=warn) if with_uncertainty else None
+    bound = tuple(n for n, b in zip(value_names(values), at_bound(values, spec), strict=True)
+                  if b)
+    check = (misfit(values, data, spec, [v.camera.width for v in dataset.views])
+             if with_uncertainty else None)
+    found = (*([f"fit stopped: {stop_message}"] if status == "non-finite" else []),
+             *(report.warnings if report else ()),
+             *([_bound_warning(bound, values, spec)] if bound else []),
+             *([check.message(status)] if check is not None and not check.explained else []))
+    errors = (relative_errors(values, truth, spec)
+              if truth is not None and spec.fits_material else None)
+    return FitResult(
+        material=values_to_material(values, spec, data.material),
+        lights=values_to_lights(values, spec, data.lights), values=values,
+        params=state.best_params, loss=state.best_loss,
+        loss_history=np.asarray(state.history), converged=state.converged,
+        n_steps=state.step, wall_time=state.wall_time, method=state.method, errors=errors,
+        uncertainty=report, warnings=found, truth=truth, status=status,
+        stop_message=stop_message, at_bound=bound, misfit=check)
 
 
-def _descend(params, data, spec, kind, method, steps, stop, lrs, notify):
-    tol, atol, patience, gtol = stop
-    step, optimizer = _optax_step(spec, kind, method, *lrs)
-    opt_state = optimizer.init(params)
-    history, quiet, converged = [], 0, False
-    for i in range(steps):
-        params, opt_state, loss = step(params, opt_state, data)
-        history.append(float(loss))
-        if len(history) > 1:
-            change = abs(history[-2] - history[-1]) / max(abs(history[-2]), 1e-30)
-            quiet = quiet + 1 if change < tol else 0
-        if notify(i, history[-1], params):
-            break
-        if quiet >= patience or history[-1] <= atol or (
-                gtol and i % patience == 0 and float(_grad_norm(params, data, spec, kind)) < gtol):
-            converged = True
-            break
-    history.append(float(loss_at(params, data, spec, kind)))
-    return params, history, converged
-
-
-def _check_fit_args(dataset, spec, method, steps):
+def _check_fit_args(dataset, spec, init, truth, options, settings):
     if not isinstance(dataset, Dataset):
         raise TypeError(f"dataset: got {type(dataset).__name__}; expected fitting.Dataset")
     if not isinstance(spec, FitSpec):
         raise TypeError(f"spec: got {type(spec).__name__}; expected FitSpec")
-    if method not in FIT_METHODS:
-        raise ValueError(f"method: got {method!r}; expected one of {FIT_METHODS}")
-    if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or steps < 0):
-        raise ValueError(f"steps: got {steps!r}; expected an integer >= 0")
-
-
-def fit(dataset: Dataset, spec: FitSpec | None = None, init=None, *, method="linear", steps=None,
-        tol=1e-7, atol=1e-12, patience=20, gtol=None, loss="mse", lr=0.05, lr_shininess=0.05,
-        lr_position=0.02, edge_margin=1, shininess_range=(1.0, 2000.0),
-        with_uncertainty=True, callback=None) -> FitResult:
-    """Fit `spec`'s quantities (default FitSpec(): ka, kd, ks in RGB and shininess) to
-    `dataset`, starting from (and holding fixed the rest of)
-    `init` (a Material; default DEFAULT_INIT).
-
-    method: 'linear' | 'adam' | 'lbfgs' (module docstring); steps: iteration cap (default
-    50 Levenberg-Marquardt iterations, 3000 Adam steps, 500 L-BFGS steps); convergence:
-    the relative loss change stays below tol for `patience` steps (Levenberg-Marquardt:
-    one step), the loss falls to atol, or the gradient norm (checked every `patience`
-    steps) below gtol; loss: 'mse' | 'l1' | 'charbonnier' | 'huber'; lr, lr_shininess,
-    lr_position: Adam's per-group rates; edge_margin: silhouette pixels left out;
-    shininess_range: the 'linear' search interval; with_uncertainty: compute standard
-    errors and identifiability warnings; callback(step, loss, material) -> True stops."""
-    spec = FitSpec() if spec is None else spec
-    _check_fit_args(dataset, spec, method, steps)
-    check_kind(loss)
-    init = DEFAULT_INIT if init is None else init
-    steps = DEFAULT_STEPS[method] if steps is None else steps
-    start = time.perf_counter()
-    data = build_cache(dataset, init, edge_margin=edge_margin)
-    params = from_values(material_values(init, spec, data.lights if spec.fits_lights else None),
-                         spec)
-    notify = _notifier(callback, spec, data)
-    if method == "linear":
-        params = _linear_start(params, data, spec, shininess_range)
-        params, history, converged = levenberg_marquardt(params, data, spec, loss, steps=steps,
-                                                         tol=tol, atol=atol, callback=notify)
-    else:
-        params, history, converged = _descend(params, data, spec, loss, method, steps,
-                                              (tol, atol, patience, gtol),
-                                              (lr, lr_shininess, lr_position), notify)
-    return _result(dataset, spec, data, params, history, converged, method,
-                   time.perf_counter() - start, with_uncertainty)
-
-
-def _linear_start(params, data, spec, shininess_range):
-    """Replace the material part of params by the variable-projection solution."""
-    if not spec.fits_material:
-        return params
-    solved = from_values(solve_linear(data, spec, shininess_range=shininess_range), spec)
-    return {**params, **solved}
+    for name, value in (("init", init), ("truth", truth)):
+        if value is not None and not isinstance(value, Material):
+            raise TypeError(f"{name}: got {type(value).__name__}; expected a Material "
+                            "(diffshade.material(...)) or None")
+    if options is not None and not isinstance(options, FitOptions):
+        raise TypeError(f"options: got {type(options).__name__}; expected FitOptions")
+    unknown = sorted(set(settings) - {f.name for f in dataclasses.fields(FitOptions)})
+    if unknown:
+        raise TypeError(f"fit: got unknown option(s) {unknown}; expected FitOptions fields "
+                        f"{[f.name for f in dataclasses.fields(FitOptions)]}")
 
 
 def _notifier(callback, spec, data):
+    """(on_step, should_stop) for callback(step, loss, material) -> True stops."""
+    stop = [False]
     if callback is None:
-        return lambda *_: False
-    return lambda i, loss, params: bool(callback(
-        i, loss, values_to_material(to_values(params, spec), spec, data.material)))
+        return lambda state: None, lambda: False
+
+    def on_step(state):
+        material = values_to_material(to_values(state.params, spec), spec, data.material)
+        stop[0] = bool(callback(state.step - 1, state.history[-1], material))
+    return on_step, lambda: stop[0]
 
 
-def _result(dataset, spec, data, params, history, converged, method, wall_time, with_unc):
-    values = jax.tree.map(np.asarray, to_values(params, spec))
-    report = uncertainty(values, data, spec) if with_unc else None
-    errors = (relative_errors(values, dataset.truth, spec)
-              if dataset.truth is not None and spec.fits_material else None)
-    return FitResult(
-        material=values_to_material(values, spec, data.material),
-        lights=values_to_lights(values, spec, data.lights), values=values, params=params,
-        loss=history[-1], loss_history=np.asarray(history), converged=converged,
-        n_steps=len(history) - 1, wall_time=wall_time, method=method, errors=errors,
-        uncertainty=report, warnings=report.warnings if report else ())
+def fit(dataset: Dataset, spec: FitSpec | None = None, init=None, *, options=None,
+        truth=None, with_uncertainty=True, callback=None, **settings) -> FitResult:
+    """Fit `spec`'s quantities (default FitSpec(): ka, kd, ks in RGB and shininess) to
+    `dataset`, starting from (and holding fixed the rest of) `init` (a Material; default
+    DEFAULT_INIT).
 
-
-def format_summary(result: FitResult) -> str:
-    """Parameter table of a FitResult (see FitResult.summary)."""
-    report = result.uncertainty
-    se = report.as_dict() if report else {}
-    lines = [f"method {result.method}: loss {result.loss:.3e} after {result.n_steps} steps, "
-             f"{result.wall_time:.2f} s, {'converged' if result.converged else 'not converged'}",
-             f"{'parameter':<12} {'fitted':>10} {'± s.e.':>10} {'rel. error':>11}"]
-    for name, value in result.values.items():
-        if name == "lights":
-            continue
-        flat = np.atleast_1d(value)
-        errs = (np.atleast_1d(result.errors[name]) if result.errors and name in result.errors
-                else [None] * len(flat))
-        for c, v in enumerate(flat):
-            label = name if len(flat) == 1 else f"{name}[{'rgb'[c]}]"
-            s = se.get(label, (None, None))[1]
-            err = errs[c] if c < len(errs) else None
-            lines.append(f"{label:<12} {v:>10.5g} {'' if s is None else f'{s:.2g}':>10} "
-                         f"{'' if err is None else f'{100 * err:.3f}%':>11}")
-    notes = report.notes if report else ()
-    return "\n".join(lines + [f"warning: {w}" for w in result.warnings]
-                     + [f"note: {n}" for n in notes])
-
+    options: a FitOptions; settings: any of its fields as keywords (method='linear' |
+    'adam' | 'lbfgs', steps, loss, tol, atol, patience, gtol, lr, lr_shininess,
+    lr_position, edge_margin, shininess_range, max_bad: docs/fitting.md), which replace
+    those of `options`. truth: the true Material for the errors and the summary (default
+    dataset.truth). with_uncertainty: standard errors, identifiability warnings (also
+    raised as IdentifiabilityWarning) and the misfit check. callback(step, loss, material)
+    after every step; returning True stops the fit (status 'stopped')."""
+    spec = FitSpec() if spec is None else spec
+    _check_fit_args(dataset, spec, init, truth, options, settings)
+    options = dataclasses.replace(options or FitOptions(), **settings)
+    init = DEFAULT_INIT if init is None else init
+    start = time.perf_counter()
+    data = build_cache(dataset, init, edge_margin=options.edge_margin)
+    state = start_run(data, spec, init, options)
+    state.wall_time = time.perf_counter() - start
+    on_step, should_stop = _notifier(callback, spec, data)
+    status, message = advance(state, data, should_stop=should_stop, on_step=on_step)
+    finish(state, data)
+    if state.best_params is None:
+        raise ValueError(f"dataset: no step had a finite loss ({message})")
+    return fit_result(state, dataset, data, with_uncertainty=with_uncertainty, warn=True,
+                      truth=truth, status=status, stop_message=message)

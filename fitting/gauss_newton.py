@@ -6,10 +6,12 @@ kept pixels, and the damped system is solved on the host in float64. The loss is
 `fitting.loss.LOSSES`; non-quadratic ones are handled by iteratively reweighted least
 squares (W = rho'(r) / 2r). A step is kept only when the true loss decreases, so the loss
 history is monotone. Converged: relative decrease below `tol`, loss below `atol`, or no
-decreasing step for damping up to 1e10.
+decreasing step for damping up to 1e10. `lm_step` is one iteration, whose state is the
+params and the damping (fitting.run drives it; `levenberg_marquardt` is the plain loop).
 """
 
 from functools import partial
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -73,26 +75,46 @@ def _linearize64(params, data, spec, kind):
     return tuple(np.asarray(x, np.float64) for x in linearize(params, data, spec, kind))
 
 
+class LMStep(NamedTuple):
+    """status: 'moved' (params, loss after the step, damping to start the next with),
+    'converged' (no damped step lowers the loss) or 'non-finite' (the loss, gradient or
+    J^T W J at params is not finite); params, loss and damping unchanged unless moved."""
+
+    status: str
+    params: dict
+    loss: float
+    damping: float
+
+
+def lm_step(params, data, spec, kind="mse", damping=1e-3) -> LMStep:
+    """One Levenberg-Marquardt iteration from params (see LMStep)."""
+    flat, unravel = ravel_pytree(params)
+    linear = _linearize64(params, data, spec, kind)
+    if not all(np.all(np.isfinite(x)) for x in linear):
+        return LMStep("non-finite", params, float(linear[0]), damping)
+    found = _decreasing_step(np.asarray(flat, np.float64), unravel, flat.dtype, linear, data,
+                             spec, kind, damping)
+    if found is None:
+        return LMStep("converged", params, float(linear[0]), damping)
+    _, params, loss, damping = found
+    return LMStep("moved", params, loss, max(damping / 3.0, 1e-9))
+
+
 def levenberg_marquardt(params, data, spec, kind="mse", *, steps=50, tol=1e-7, atol=1e-12,
                         damping=1e-3, callback=None):
     """Minimize the loss from `params`. Returns (params, loss history [list of float],
     converged). Stops when the relative decrease is below tol or the loss below atol;
     callback(iteration, loss, params) -> True stops early."""
-    flat, unravel = ravel_pytree(params)
-    dtype, flat = flat.dtype, np.asarray(flat, np.float64)
-    linear = _linearize64(params, data, spec, kind)
-    history = [float(linear[0])]
+    history = [float(loss_at(params, data, spec, kind))]
     for it in range(steps):
-        found = _decreasing_step(flat, unravel, dtype, linear, data, spec, kind, damping)
-        if found is None:
-            return params, history, True
-        flat, params, loss, damping = found
+        found = lm_step(params, data, spec, kind, damping)
+        if found.status != "moved":
+            return params, history, found.status == "converged"
+        _, params, loss, damping = found
         decrease = (history[-1] - loss) / max(history[-1], 1e-30)
         history.append(loss)
-        damping = max(damping / 3.0, 1e-9)
         if callback is not None and callback(it, loss, params):
             break
         if decrease < tol or loss <= atol:
             return params, history, True
-        linear = _linearize64(params, data, spec, kind)
     return params, history, False

@@ -17,9 +17,9 @@ import numpy as np
 
 from data_synth.io import load_dataset
 from diffshade.material import material
-from fitting.params import COEFFICIENTS, FitSpec
+from fitting.params import COEFFICIENTS, FIT_NAMES, FitSpec
 
-FIT_NAMES = (*COEFFICIENTS, "shininess")
+DEFAULT_FIT = tuple(name for name, value in FitSpec().fitted.items() if value)
 
 
 # ---- arguments ----
@@ -108,15 +108,14 @@ def _names(text, option, allowed):
 
 
 def fit_spec(fit_text=None, grey_text=None) -> FitSpec:
-    """FitSpec from --fit (default: all of ka, kd, ks, shininess) and --grey (fitted
-    coefficients that get one value for all channels)."""
-    fitted = _names(fit_text, "--fit", FIT_NAMES) if fit_text is not None else FIT_NAMES
+    """FitSpec from --fit (names among fitting.params.FIT_NAMES; default: ka, kd, ks,
+    shininess) and --grey (fitted coefficients that get one value for all channels)."""
+    fitted = _names(fit_text, "--fit", FIT_NAMES) if fit_text is not None else DEFAULT_FIT
     grey = _names(grey_text, "--grey", COEFFICIENTS) if grey_text is not None else []
     for name in grey:
         if name not in fitted:
             raise ValueError(f"--grey: {name!r} is not fitted (--fit {','.join(fitted)})")
-    return FitSpec(**{name: None if name not in fitted else "grey" if name in grey else "rgb"
-                      for name in COEFFICIENTS}, shininess="shininess" in fitted)
+    return FitSpec.from_names(fitted, grey)
 
 
 # ---- folders ----

@@ -12,7 +12,13 @@ Three representations of the same quantities, each a dict pytree with the same k
 - Material / LightGroups: what `diffshade.shade` consumes.
 Keys: 'ka', 'kd', 'ks' ([3] or []), 'shininess' ([]), 'lights' (a tuple over views of
 {group: {'color': [L, 3], 'position': [L, 3]}} for the 'directional', 'point', 'spot'
-groups present). Optimizer groups for per-group learning rates: `param_labels`.
+groups present).
+
+`KINDS` is the one table of parameter kinds, keyed by a leaf's last dict key: its map to
+physical values (`TRANSFORMS`), its optimizer group for per-group learning rates
+(`param_labels`) and its bounds (`at_bound`). A new kind of fitted quantity is one entry
+there, plus where its value comes from and goes to (`material_values`,
+`values_to_material`, `values_to_lights`). `FIT_NAMES` are the names `--fit` accepts.
 """
 
 import dataclasses
@@ -32,6 +38,53 @@ POSITIONED_GROUPS = ("point", "spot")
 _EDGE = 1e-6
 
 DEFAULT_INIT = material(ka=0.3, kd=0.5, ks=0.3, shininess=20.0)
+FIT_NAMES = (*COEFFICIENTS, "shininess", "light_colors", "light_positions")
+# A value within this fraction of its bound (of 1 for a bound at 0 with no upper one) is
+# at the bound: its standard error is not defined (the Gaussian approximation fails).
+BOUND_TOL = 1e-3
+
+
+def _logit(x):
+    x = jnp.clip(x, _EDGE, 1.0 - _EDGE)
+    return jnp.log(x) - jnp.log1p(-x)
+
+
+@dataclasses.dataclass(frozen=True)
+class Transform:
+    """to_value(u, upper), from_value(x, upper) between an unconstrained variable u and a
+    physical value x; bounds(upper) -> (low, high) of x."""
+
+    to_value: object
+    from_value: object
+    bounds: object
+
+
+TRANSFORMS = {
+    "bounded": Transform(lambda u, upper: upper * jax.nn.sigmoid(u),
+                         lambda x, upper: _logit(x / upper), lambda upper: (0.0, upper)),
+    "log": Transform(lambda u, _: jnp.exp(u), lambda x, _: jnp.log(jnp.maximum(x, 1e-6)),
+                     lambda _: (0.0, np.inf)),
+    "identity": Transform(lambda u, _: u, lambda x, _: x, lambda _: (-np.inf, np.inf)),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Kind:
+    """transform: a key of TRANSFORMS; group: the optimizer group ('colour', 'shininess',
+    'position'; fitting.step gives each its learning rate)."""
+
+    transform: str
+    group: str
+
+
+KINDS = {
+    "ka": Kind("bounded", "colour"),
+    "kd": Kind("bounded", "colour"),
+    "ks": Kind("bounded", "colour"),
+    "shininess": Kind("log", "shininess"),
+    "color": Kind("log", "colour"),  # a light's colour (diffuse = specular)
+    "position": Kind("identity", "position"),
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,10 +122,21 @@ class FitSpec:
     def fits_material(self):
         return bool(self.coefficients) or self.shininess
 
+    @property
+    def fitted(self) -> dict:
+        """{name: this spec's setting} for every name of FIT_NAMES (JSON-ready)."""
+        return {name: getattr(self, name) for name in FIT_NAMES}
 
-def _logit(x):
-    x = jnp.clip(x, _EDGE, 1.0 - _EDGE)
-    return jnp.log(x) - jnp.log1p(-x)
+    @classmethod
+    def from_names(cls, fitted, grey=(), upper=1.0):
+        """The spec that fits the FIT_NAMES in `fitted`, the coefficients in `grey` with
+        one value for all channels."""
+        unknown = [n for n in (*fitted, *grey) if n not in FIT_NAMES]
+        if unknown:
+            raise ValueError(f"fitted: got {unknown}; expected names among {FIT_NAMES}")
+        return cls(**{n: None if n not in fitted else "grey" if n in grey else "rgb"
+                      for n in COEFFICIENTS},
+                   **{n: n in fitted for n in FIT_NAMES if n not in COEFFICIENTS}, upper=upper)
 
 
 def _coefficient_value(name, material_, spec):
@@ -115,31 +179,41 @@ def material_values(material_: Material, spec: FitSpec, lights=None) -> dict:
     return values
 
 
-def _light_map(tree, color_fn, position_fn):
-    return tuple({group: {key: (color_fn if key == "color" else position_fn)(x)
-                          for key, x in fields.items()}
-                  for group, fields in view.items()} for view in tree)
+def _key(path):
+    return [k.key for k in path if hasattr(k, "key")][-1]
+
+
+def _kind(path):
+    """The KINDS entry of a leaf: its last dict key."""
+    return KINDS[_key(path)]
+
+
+def _map_leaves(tree, spec, direction):
+    def one(path, leaf):
+        return getattr(TRANSFORMS[_kind(path).transform], direction)(leaf, spec.upper)
+    return jax.tree_util.tree_map_with_path(one, tree)
 
 
 def from_values(values: dict, spec: FitSpec) -> dict:
     """Physical values -> unconstrained params (inverse of `to_values`)."""
-    params = {name: _logit(values[name] / spec.upper) for name in spec.coefficients}
-    if spec.shininess:
-        params["shininess"] = jnp.log(jnp.maximum(values["shininess"], 1e-6))
-    if "lights" in values:
-        params["lights"] = _light_map(values["lights"], lambda c: jnp.log(jnp.maximum(c, 1e-6)),
-                                      lambda p: p)
-    return params
+    return _map_leaves(values, spec, "from_value")
 
 
 def to_values(params: dict, spec: FitSpec) -> dict:
     """Unconstrained params -> physical values: coefficients in (0, upper), shininess > 0."""
-    values = {name: spec.upper * jax.nn.sigmoid(params[name]) for name in spec.coefficients}
-    if spec.shininess:
-        values["shininess"] = jnp.exp(params["shininess"])
-    if "lights" in params:
-        values["lights"] = _light_map(params["lights"], jnp.exp, lambda p: p)
-    return values
+    return _map_leaves(params, spec, "to_value")
+
+
+def at_bound(values: dict, spec: FitSpec) -> np.ndarray:
+    """[p] bool, in `value_names` order: the scalars within BOUND_TOL of a bound of their
+    kind (times the bounded range, or times 1 when it is unbounded)."""
+    flags = []
+    for path, leaf in jax.tree_util.tree_flatten_with_path(values)[0]:
+        low, high = TRANSFORMS[_kind(path).transform].bounds(spec.upper)
+        tol = BOUND_TOL * ((high - low) if np.isfinite(high - low) else 1.0)
+        x = np.ravel(np.asarray(leaf, np.float64))
+        flags.append((x - low <= tol) | (high - x <= tol))
+    return np.concatenate(flags) if flags else np.zeros(0, bool)
 
 
 def to_unconstrained(material_: Material, spec: FitSpec, lights=None) -> dict:
@@ -184,17 +258,13 @@ def to_lights(params: dict, spec: FitSpec, base_lights):
     return values_to_lights(to_values(params, spec), spec, base_lights)
 
 
-def _label(path, _):
-    keys = [getattr(k, "key", None) for k in path]
-    if "shininess" in keys:
-        return "shininess"
-    return "position" if "position" in keys else "colour"
-
-
 def param_labels(params: dict):
-    """Optimizer group of every leaf: 'shininess' (log scale), 'position', or 'colour'
-    (coefficient logits and log light colours). Use with `optax.partition`."""
-    return jax.tree_util.tree_map_with_path(_label, params)
+    """Optimizer group of every leaf (KINDS): 'shininess' (log scale), 'position', or
+    'colour' (coefficient logits, log light colours, and leaves of no kind). Use with
+    `optax.partition`."""
+    def group(path, _):
+        return KINDS[_key(path)].group if _key(path) in KINDS else "colour"
+    return jax.tree_util.tree_map_with_path(group, params)
 
 
 def _leaf_names(path, leaf):

@@ -12,23 +12,31 @@
     view_000.png   per view: target | initial | fitted | ERROR_GAIN x |fitted - target|,
                    rendered with diffshade.render, separated by grey bars; computed in
                    linear colour and written sRGB-encoded, as every PNG (docs/color.md)
+    residual_000.npy    per view: fitted - target, linear float32 [H, W, 3] (signed)
+    residual_000.png    per view: |fitted - target| / residual_scale, clipped to 1, written
+                   sRGB-encoded; residual_scale (in result.json) is the 99th percentile of
+                   |fitted - target| over the kept pixels of all views (at least 1/255)
 
 `comparison_table(result, truth)` is the true-versus-recovered table (with standard
-errors), one row per fitted scalar.
+errors; "at bound" for a value at a bound, which has none), one row per fitted scalar.
 """
 
 import math
 import os
 
+import jax
 import numpy as np
 
 from diffshade.color import srgb_to_linear
-from diffshade.io import write_json, write_png, write_text
+from diffshade.io import write_json, write_npy, write_png, write_text
 from diffshade.render import render
 from fitting.checkpoint import material_dict
 from fitting.data import view_scene
+from fitting.params import value_names
 
 ERROR_GAIN = 10.0
+STATUS_LABELS = {"converged": "converged", "budget": "step budget reached",
+                 "stopped": "stopped", "non-finite": "stopped on non-finite values"}
 PANEL_GAP = 2
 MTL_NS_LIMIT = 1000.0
 
@@ -123,10 +131,16 @@ def result_dict(result, init, truth, extra=None) -> dict:
     return out
 
 
-def _rows(result, truth):
-    """(label, true or None, fitted, standard error or None, relative error or None)."""
-    se = result.uncertainty.as_dict() if result.uncertainty else {}
+def _std_errors(result):
+    """{name: standard error, or None (at a bound)}; {} without an uncertainty report."""
+    report = result.uncertainty
+    return {} if report is None else {n: s for n, (_, s) in report.as_dict().items()}
+
+
+def _material_rows(result, truth, se):
     for name, value in result.values.items():
+        if name == "lights":
+            continue
         fitted = np.atleast_1d(np.asarray(value, np.float64))
         true = None if truth is None else np.atleast_1d(np.asarray(getattr(truth, name),
                                                                    np.float64))
@@ -135,29 +149,45 @@ def _rows(result, truth):
         count = max(fitted.size, 1 if true is None else true.size)
         for c in range(count):
             label = name if count == 1 else f"{name}[{'rgb'[c]}]"
-            std = se.get(label, se.get(name, (None, None)))[1]
+            key = label if label in se or label in result.at_bound else name
             yield (label, None if true is None else true[min(c, true.size - 1)],
-                   fitted[min(c, fitted.size - 1)], std,
+                   fitted[min(c, fitted.size - 1)], se.get(key), key in result.at_bound,
                    None if errors is None else errors[min(c, errors.size - 1)])
+
+
+def _rows(result, truth):
+    """(label, true or None, fitted, standard error or None, at a bound, relative error
+    or None): the material's rows (per channel when the truth is known), then the
+    lights' (no truth)."""
+    se = _std_errors(result)
+    yield from _material_rows(result, truth, se)
+    lights = {"lights": result.values["lights"]} if "lights" in result.values else {}
+    flat = [float(x) for leaf in jax.tree.leaves(lights) for x in np.ravel(leaf)]
+    for label, value in zip(value_names(lights), flat, strict=True):
+        yield label, None, value, se.get(label), label in result.at_bound, None
 
 
 def _cell(value, fmt, width):
     return f"{'' if value is None else format(value, fmt):>{width}}"
 
 
-def comparison_table(result, truth=None, status="") -> str:
+def comparison_table(result, truth=None, status=None) -> str:
     """The true-versus-recovered table: one row per fitted scalar with the true value, the
-    fitted value, its standard error and the relative error (true and error columns only
-    when `truth` is known); warnings and notes below."""
+    fitted value, its standard error ('at bound' where it has none) and the relative error
+    (true and error columns only when `truth` is known); warnings and notes below.
+    status: the end of the first line (default: result.status in words)."""
+    status = STATUS_LABELS.get(result.status, result.status) if status is None else status
     steps = f"{result.n_steps} step{'' if result.n_steps == 1 else 's'}"
     head = (f"method {result.method}: loss {result.loss:.4g} after {steps}, "
             f"{result.wall_time:.2f} s{', ' + status if status else ''}")
     known = truth is not None
-    lines = [head, f"{'parameter':<12}" + (f"{'true':>11}" if known else "")
+    width = max([12] + [len(row[0]) + 1 for row in _rows(result, truth)])
+    lines = [head, f"{'parameter':<{width}}" + (f"{'true':>11}" if known else "")
              + f"{'fitted':>11}{'± s.e.':>11}" + (f"{'rel. error':>12}" if known else "")]
-    for label, true, fitted, std, error in _rows(result, truth):
-        lines.append(f"{label:<12}" + (_cell(true, ".5g", 11) if known else "")
-                     + _cell(fitted, ".5g", 11) + _cell(std, ".2g", 11)
+    for label, true, fitted, std, bounded, error in _rows(result, truth):
+        spread = f"{'at bound':>11}" if bounded else _cell(std, ".2g", 11)
+        lines.append(f"{label:<{width}}" + (_cell(true, ".5g", 11) if known else "")
+                     + _cell(fitted, ".5g", 11) + spread
                      + (_cell(None if error is None else 100 * error, ".3g", 11) + "%"
                         if known and error is not None else ""))
     notes = result.uncertainty.notes if result.uncertainty else ()
@@ -165,24 +195,47 @@ def comparison_table(result, truth=None, status="") -> str:
                      + [f"note: {n}" for n in notes])
 
 
-def _render_rgb(dataset, index, material):
-    return np.asarray(render(view_scene(dataset, index, material), dataset.settings))[..., :3]
+def _render_rgb(dataset, index, material, lights=None):
+    scene = view_scene(dataset, index, material, lights)
+    return np.asarray(render(scene, dataset.settings))[..., :3].astype(np.float64)
 
 
-def write_result(out_dir, dataset, result, init, extra=None, title="") -> list:
-    """Write the result files (module docstring) into out_dir; returns their paths."""
+def residual_scale(residuals, kept) -> float:
+    """The 99th percentile of |residual| over the kept pixels of all views, at least
+    1/255: the value a residual PNG shows as white."""
+    values = np.concatenate([np.abs(r.reshape(-1, 3)[k]).ravel()
+                             for r, k in zip(residuals, kept, strict=True)])
+    return max(float(np.percentile(values, 99)) if values.size else 0.0, 1.0 / 255.0)
+
+
+def write_result(out_dir, dataset, result, init, extra=None, title="", kept=None) -> list:
+    """Write the result files (module docstring) into out_dir; returns their paths.
+    kept: per view, the flat indices of the pixels the fit counted (fitting.cache; default
+    every pixel), for residual_scale."""
     out_dir = os.fspath(out_dir)
-    names = [f"view_{i:03d}.png" for i in range(len(dataset.views))]
-    files = {"material": "material.mtl", "loss_curve": "loss.png", "views": names}
-    extra = dict(extra or {}) | {"files": files, "error_gain": ERROR_GAIN}
+    count = len(dataset.views)
+    fitted = [_render_rgb(dataset, i, result.material, result.lights[i]) for i in range(count)]
+    residuals = [f - v.target for f, v in zip(fitted, dataset.views, strict=True)]
+    kept = kept or [np.arange(v.target.shape[0] * v.target.shape[1]) for v in dataset.views]
+    scale = residual_scale(residuals, kept)
+    files = {"material": "material.mtl", "loss_curve": "loss.png",
+             "views": [f"view_{i:03d}.png" for i in range(count)],
+             "residuals": [f"residual_{i:03d}.npy" for i in range(count)],
+             "residual_images": [f"residual_{i:03d}.png" for i in range(count)]}
+    extra = dict(extra or {}) | {"files": files, "error_gain": ERROR_GAIN,
+                                 "residual_scale": scale}
     paths = [write_text(os.path.join(out_dir, files["material"]),
                         mtl_text(result.material, comment=title)),
              write_json(os.path.join(out_dir, "result.json"),
                         result_dict(result, init, dataset.truth, extra)),
              write_png(os.path.join(out_dir, files["loss_curve"]),
                        loss_curve(result.loss_history, title))]
-    for i, name in enumerate(names):
-        image = panel(dataset.views[i].target, _render_rgb(dataset, i, init),
-                      _render_rgb(dataset, i, result.material))
-        paths.append(write_png(os.path.join(out_dir, name), image))
+    for i in range(count):
+        image = panel(dataset.views[i].target, _render_rgb(dataset, i, init), fitted[i])
+        paths.append(write_png(os.path.join(out_dir, files["views"][i]), image))
+    for i, r in enumerate(residuals):
+        paths.append(write_npy(os.path.join(out_dir, files["residuals"][i]),
+                               r.astype(np.float32)))
+        paths.append(write_png(os.path.join(out_dir, files["residual_images"][i]),
+                               np.clip(np.abs(r) / scale, 0.0, 1.0)))
     return paths

@@ -5,50 +5,45 @@ closed-over constant), so a second call with new targets or lights reuses the ex
 Optimizers with a line search (`optax.lbfgs`) are recognised by the value and gradient they
 keep in their state and are driven through `optax.value_and_grad_from_state`.
 
-A step whose loss or gradient is not finite is rejected: params and optimizer state are
-left unchanged (a `jnp.where` on the result, so the check costs one reduction).
-
 `make_optimizer` gives Adam with a learning rate per group (`optax.partition` over
 `param_labels`: coefficient logits and log light colours, log-shininess, light positions),
-or L-BFGS.
+or L-BFGS, inside `optax.apply_if_finite`: a step whose gradient is not finite is
+rejected by optax (params and the inner optimizer state unchanged) and counted in the
+state (`last_finite`, `notfinite_count`: the rejections in a row); the step makes a
+non-finite loss a non-finite gradient, so that the guard sees it too. The guard never
+gives up on its own (`NEVER_GIVE_UP`): the caller decides when to stop (fitting.run).
 """
 
 import jax
 import jax.numpy as jnp
 import optax
 
+from fitting.options import OPTAX_METHODS
 from fitting.params import param_labels
 
-METHODS = ("adam", "lbfgs")
+NEVER_GIVE_UP = 2**31 - 2
 
 
 def make_optimizer(method="adam", *, lr=0.05, lr_shininess=0.05, lr_position=0.02,
-                   memory_size=10) -> optax.GradientTransformation:
+                   memory_size=10, guard=True) -> optax.GradientTransformation:
     """'adam': Adam per group — lr for coefficient logits and log light colours,
     lr_shininess for log-shininess, lr_position for light positions (world units);
-    'lbfgs': optax.lbfgs with its zoom line search (learning rates unused)."""
-    if method == "lbfgs":
-        return optax.lbfgs(memory_size=memory_size)
-    if method != "adam":
-        raise ValueError(f"method: got {method!r}; expected one of {METHODS}")
+    'lbfgs': optax.lbfgs with its zoom line search (learning rates unused). Either inside
+    optax.apply_if_finite (module docstring); guard=False leaves it out (only to measure
+    its cost: benchmarks/fit_step.py)."""
+    if method not in OPTAX_METHODS:
+        raise ValueError(f"method: got {method!r}; expected one of {OPTAX_METHODS}")
     for name, value in (("lr", lr), ("lr_shininess", lr_shininess), ("lr_position", lr_position)):
         if not (isinstance(value, (int, float)) and 0 < value < float("inf")):
             raise ValueError(f"{name}: got {value!r}; expected a positive learning rate")
-    return optax.partition({"colour": optax.adam(lr), "shininess": optax.adam(lr_shininess),
-                            "position": optax.adam(lr_position)}, param_labels)
+    inner = (optax.lbfgs(memory_size=memory_size) if method == "lbfgs" else optax.partition(
+        {"colour": optax.adam(lr), "shininess": optax.adam(lr_shininess),
+         "position": optax.adam(lr_position)}, param_labels))
+    return optax.apply_if_finite(inner, NEVER_GIVE_UP) if guard else inner
 
 
 def _has_linesearch(opt_state):
     return optax.tree.get(opt_state, "value", None) is not None
-
-
-def _all_finite(tree):
-    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]
-    return jnp.all(jnp.stack(leaves)) if leaves else jnp.bool_(True)
-
-
-def _select(ok, new, old):
-    return jax.tree.map(lambda a, b: jnp.where(ok, a, b), new, old)
 
 
 def _strong(tree):
@@ -58,24 +53,29 @@ def _strong(tree):
                         tree)
 
 
+def _poisoned(grads, loss):
+    """grads, made NaN where the loss is not finite (for apply_if_finite to reject)."""
+    return jax.tree.map(lambda g: jnp.where(jnp.isfinite(loss), g, jnp.nan), grads)
+
+
 def make_step(loss_fn, optimizer=None):
     """step(params, opt_state, data) -> (params, opt_state, loss), jitted, for
     loss_fn(params, data) -> scalar; loss is the value at the incoming params.
-    optimizer: an optax GradientTransformation (default: make_optimizer())."""
+    optimizer: an optax GradientTransformation (default: make_optimizer()); only one from
+    make_optimizer (or wrapped in optax.apply_if_finite) rejects non-finite steps."""
     optimizer = make_optimizer() if optimizer is None else optimizer
 
     def step(params, opt_state, data):
         value_fn = lambda p: loss_fn(p, data)
         if _has_linesearch(opt_state):
             loss, grads = optax.value_and_grad_from_state(value_fn)(params, state=opt_state)
+            grads = _poisoned(grads, loss)
             updates, new_state = optimizer.update(grads, opt_state, params, value=loss,
                                                   grad=grads, value_fn=value_fn)
         else:
             loss, grads = jax.value_and_grad(value_fn)(params)
-            updates, new_state = optimizer.update(grads, opt_state, params)
-        new_params = optax.apply_updates(params, updates)
-        ok = jnp.isfinite(loss) & _all_finite(grads) & _all_finite(new_params)
-        return _select(ok, new_params, params), _select(ok, new_state, opt_state), loss
+            updates, new_state = optimizer.update(_poisoned(grads, loss), opt_state, params)
+        return optax.apply_updates(params, updates), new_state, loss
 
     jitted = jax.jit(step)
 

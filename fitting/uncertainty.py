@@ -8,7 +8,9 @@ pixel and channel one residual), and
 
 (n residuals, p fitted scalars). This assumes the residuals are independent with equal
 variance (e.g. sensor or quantization noise), that the model is right, and that the
-values are the least-squares optimum; it ignores the [0, upper] bounds. A near-singular
+values are the least-squares optimum. A value at a bound of its kind (fitting.params.
+at_bound: a coefficient at 0 or `upper`) has no Gaussian error: it gets none (NaN, listed
+in `at_bound`), and the others' are computed with it held where it is. A near-singular
 J^T J (condition number of its unit-diagonal scaling above `max_condition`) is reported
 with the parameters that move together in its weakest directions; those directions get a
 huge (not infinite) variance.
@@ -34,7 +36,13 @@ from diffshade.color import decode, encode
 from fitting.cache import FitData, pixel_parts
 from fitting.gauss_newton import jacobian_matrix
 from fitting.loss import values_residuals
-from fitting.params import FitSpec, value_names, values_to_lights, values_to_material
+from fitting.params import (
+    FitSpec,
+    at_bound,
+    value_names,
+    values_to_lights,
+    values_to_material,
+)
 
 
 class IdentifiabilityWarning(UserWarning):
@@ -46,7 +54,9 @@ class UncertaintyReport:
     """names: [p] readable parameter names; values, std_errors: [p]; covariance: [p, p];
     sigma2: residual variance; n_residuals, dof (= n - p); condition: of the scaled J^T J;
     warnings: identifiability messages; rounding_bound: [p] worst-case shift from 8-bit
-    rounding of the targets, or None when they are not 8-bit; notes: other caveats."""
+    rounding of the targets, or None when they are not 8-bit; notes: other caveats;
+    at_bound: names of the values at a bound (their std_errors, rounding_bound and
+    covariance entries are NaN)."""
 
     names: tuple
     values: np.ndarray
@@ -59,11 +69,12 @@ class UncertaintyReport:
     warnings: tuple
     rounding_bound: np.ndarray | None = None
     notes: tuple = ()
+    at_bound: tuple = ()
 
     def as_dict(self) -> dict:
-        """{name: (value, standard error)}."""
-        return {n: (float(v), float(s)) for n, v, s in zip(self.names, self.values,
-                                                           self.std_errors, strict=True)}
+        """{name: (value, standard error, or None at a bound)}."""
+        return {n: (float(v), None if n in self.at_bound else float(s))
+                for n, v, s in zip(self.names, self.values, self.std_errors, strict=True)}
 
     def table(self) -> str:
         """One line per parameter: name, value, standard error (and rounding bound)."""
@@ -71,7 +82,7 @@ class UncertaintyReport:
         lines = [f"{'parameter':<12} {'value':>12} {'std. error':>12}"
                  + ("" if bound is None else f" {'rounding':>10}")]
         for i, (n, (v, s)) in enumerate(self.as_dict().items()):
-            lines.append(f"{n:<12} {v:>12.6g} {s:>12.3g}"
+            lines.append(f"{n:<12} {v:>12.6g} {'at bound' if s is None else f'{s:.3g}':>12}"
                          + ("" if bound is None else f" {bound[i]:>10.3g}"))
         return "\n".join(lines + [f"warning: {w}" for w in self.warnings]
                          + [f"note: {n}" for n in self.notes])
@@ -120,6 +131,8 @@ def _data_warnings(values, data, spec, highlight_threshold, min_pixels):
 def _scaled_inverse(jtj, max_condition):
     """(J^T J)^-1 through its unit-diagonal scaling, with eigenvalues floored so that
     confounded directions get a huge variance; returns (inverse, condition, eigen pairs)."""
+    if len(jtj) == 0:
+        return np.zeros((0, 0)), 1.0, []
     scale = np.sqrt(np.diag(jtj))
     scale = np.where(scale > 0, scale, 1.0)
     corr = jtj / np.outer(scale, scale)
@@ -151,21 +164,32 @@ def uncertainty(values: dict, data: FitData, spec: FitSpec, *, highlight_thresho
     identifiability warnings (see module docstring)."""
     r, jac = (np.asarray(a, np.float64) for a in values_jacobian(values, data, spec))
     names = tuple(value_names(values))
-    n, p = r.shape[0], jac.shape[1]
+    free = ~at_bound(values, spec)
+    n, p = r.shape[0], int(free.sum())
     dof = max(n - p, 1)
     sigma2 = float(r @ r) / dof
-    jtj = jac.T @ jac
+    jtj = jac[:, free].T @ jac[:, free]
     inverse, condition, weak = _scaled_inverse(jtj, max_condition)
-    covariance = sigma2 * inverse
+    covariance = np.full((len(names), len(names)), np.nan)
+    covariance[np.ix_(free, free)] = sigma2 * inverse
     found = _data_warnings(values, data, spec, highlight_threshold, min_pixels)
-    found += _conditioning_warnings(jtj, names, condition, weak)
+    found += _conditioning_warnings(jtj, tuple(np.array(names)[free]), condition, weak)
     if warn:
         for message in found:
             warnings.warn(message, IdentifiabilityWarning, stacklevel=2)
     flat = np.asarray(ravel_pytree(values)[0], np.float64)
-    bound, notes = _rounding(data, jac, inverse)
+    bound, notes = _rounding(data, jac[:, free], inverse)
+    if bound is not None:
+        bound = _scatter(bound, free)
     return UncertaintyReport(names, flat, np.sqrt(np.diag(covariance)), covariance, sigma2,
-                             n, dof, float(condition), tuple(found), bound, notes)
+                             n, dof, float(condition), tuple(found), bound, notes,
+                             tuple(np.array(names)[~free]))
+
+
+def _scatter(free_values, free):
+    out = np.full(free.shape, np.nan)
+    out[free] = free_values
+    return out
 
 
 def _codes_8bit(values, encoding):

@@ -165,31 +165,26 @@ def test_console_script_renders_and_fails_cleanly(tmp_path):
     assert not bad_out.exists()
 
 
-# ---- extra commands ----
+# ---- the command table ----
 
-EXTENSION = '''
-def register(subparsers):
+
+def hello_command(subparsers):
     parser = subparsers.add_parser("hello")
     parser.add_argument("name")
     parser.set_defaults(run=lambda args: print("hello", args.name) or 7)
-'''
 
 
-def test_extra_command_modules_register_lazily(tmp_path, monkeypatch, capsys):
-    (tmp_path / "ds_ext_ok.py").write_text(EXTENSION)
-    monkeypatch.syspath_prepend(str(tmp_path))
-    modules = ("ds_ext_absent_pkg.cli", "ds_ext_ok", "ds_ext_absent")
-    monkeypatch.setattr(cli, "_EXTRA_COMMANDS", modules)
+def test_commands_are_a_table_of_imported_callables():
+    from data_synth.cli import register as register_synth
+    from fitting.cli import register as register_fit
+    assert cli.COMMANDS == {"render": cli._register_render, "synth": register_synth,
+                            "fit": register_fit}
+
+
+def test_a_command_in_the_table_is_dispatched(monkeypatch, capsys):
+    monkeypatch.setitem(cli.COMMANDS, "hello", hello_command)
     assert cli.main(["hello", "world"]) == 7
     assert capsys.readouterr().out == "hello world\n"
-
-
-def test_extra_command_with_a_missing_dependency_is_not_skipped(tmp_path, monkeypatch):
-    (tmp_path / "ds_ext_broken.py").write_text("import ds_no_such_dependency\n")
-    monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setattr(cli, "_EXTRA_COMMANDS", ("ds_ext_broken",))
-    with pytest.raises(ModuleNotFoundError, match="ds_no_such_dependency"):
-        cli.main(["render", "--help"])
 
 
 # ---- io ----

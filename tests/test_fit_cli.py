@@ -6,6 +6,8 @@ relative errors and panels recomputed with numpy from the files, an uninterrupte
 for resumed ones, and the folders' listings (no partial or temporary file may remain).
 The interrupt tests run `diffshade fit` in a subprocess and signal it."""
 
+import dataclasses
+import io
 import json
 import math
 import os
@@ -20,11 +22,12 @@ import numpy as np
 import pytest
 
 import diffshade as ds
-import fitting.checkpoint as checkpoint_module
+import fitting.run as run_module
 from data_synth import load_dataset, make_dataset, save_dataset
 from diffshade import cli
 from diffshade.io import image_transfer
-from fitting import FitSpec
+from fitting import FitOptions, FitSpec, fit
+from fitting.cli import _progress
 from fitting.inputs import fit_spec, parse_material
 from fitting.report import ERROR_GAIN, PANEL_GAP, mtl_text, result_dict
 
@@ -172,8 +175,10 @@ def test_fit_writes_results_that_match_the_truth(data_root, tmp_path, capsys):
             if line.split() and line.split()[0] in ("ka[r]", "kd[b]", "shininess")}
     assert float(rows["kd[b]"][1]) == pytest.approx(TRUTH["kd"][2], rel=1e-4)
     assert float(rows["shininess"][2]) == pytest.approx(result["values"]["shininess"], rel=1e-4)
-    assert stdout.splitlines()[-5:] == [str(out / n) for n in (
-        "material.mtl", "result.json", "loss.png", "view_000.png", "view_001.png")]
+    assert stdout.splitlines()[-9:] == [str(out / n) for n in (
+        "material.mtl", "result.json", "loss.png", "view_000.png", "view_001.png",
+        "residual_000.npy", "residual_000.png", "residual_001.npy", "residual_001.png")]
+    assert result["at_bound"] == [] and result["misfit"]["explained"] is True
     assert_no_temporaries(out)
 
 
@@ -229,7 +234,8 @@ def test_fit_subset_holds_the_rest_at_init(data_root, tmp_path, capsys):
             "--init", init]
     assert run_cli(argv, capsys)[0] == 0
     result = strict_json(out / "result.json")
-    assert result["fit"] == {"ka": None, "kd": "grey", "ks": None, "shininess": True}
+    assert result["fit"] == {"ka": None, "kd": "grey", "ks": None, "shininess": True,
+                             "light_colors": False, "light_positions": False}
     assert set(result["values"]) == {"kd", "shininess"} and set(result["errors"]) == {
         "kd", "shininess"}
     np.testing.assert_allclose(result["material"]["ka"], TRUTH["ka"], rtol=1e-6)
@@ -321,6 +327,10 @@ def test_fit_rejects_a_broken_dataset(data_root, tmp_path, capsys, how, message)
     (["--method", "newton"], "argument --method: invalid choice: 'newton'"),
     (["--init", "0.1,0.2,x,4"], "--init: got '0.1,0.2,x,4'; expected KA,KD,KS,N"),
     (["--resume"], "checkpoint not found"),
+    (["--lr", "0"], "argument --lr: got '0'; expected a finite number > 0"),
+    (["--gtol", "-1"], "argument --gtol: got '-1'; expected a finite number >= 0"),
+    (["--shininess-range", "5,2"], "argument --shininess-range: got '5,2'; expected LOW,HIGH"),
+    (["--fit", "kd,lights"], "--fit: got 'kd,lights'; expected distinct comma-separated"),
 ])
 def test_fit_rejects_bad_options(data_root, tmp_path, capsys, args, message):
     code, out, err = run_cli(["fit", data_root / "clean", "-o", tmp_path / "result", *args],
@@ -362,7 +372,7 @@ def _nan_slope_jvp(primals, tangents):
 def fresh_steps():
     """The compiled steps and gradients are cached per configuration: a test that swaps
     the loss needs them rebuilt before and after."""
-    steps, gradients = checkpoint_module._step_and_optimizer, checkpoint_module._gradients
+    steps, gradients = run_module.optax_step, run_module.gradients
 
     def clear():
         steps.cache_clear()
@@ -377,12 +387,12 @@ def test_non_finite_gradient_stops_the_fit_naming_the_parameter(
     """Beyond shininess 25 the gradient with respect to shininess is NaN (the loss stays
     finite): the steps are rejected and the fit stops with exit 3, naming shininess only;
     the result holds the best parameters with a finite loss."""
-    real = checkpoint_module.make_loss
+    real = run_module.make_loss
 
     def poisoned(spec, kind):
         loss = real(spec, kind)
         return lambda p, data: loss(p, data) + nan_slope_beyond_limit(p["shininess"])
-    monkeypatch.setattr(checkpoint_module, "make_loss", poisoned)
+    monkeypatch.setattr(run_module, "make_loss", poisoned)
     out = tmp_path / "result"
     code, stdout, err = run_cli(["fit", data_root / "clean", "-o", out, "--method", "adam",
                                  "--steps", "200"], capsys)
@@ -398,25 +408,29 @@ def test_non_finite_gradient_stops_the_fit_naming_the_parameter(
 
 
 def test_transient_non_finite_losses_are_skipped(data_root, tmp_path, capsys, monkeypatch):
-    """Two NaN losses in a row (fewer than the 5 that stop a fit): the steps are rejected
-    and not counted, and the fit finishes its budget."""
-    real = checkpoint_module._step_and_optimizer
+    """Two steps in a row on NaN targets (fewer than the 5 that stop a fit) go through the
+    real step: optax.apply_if_finite rejects them, they are not counted, and the fit
+    finishes its budget."""
+    real = run_module.optax_step
     calls = []
 
-    def flaky(spec, kind, method):
-        step, optimizer = real(spec, kind, method)
+    def flaky(*config):
+        step, optimizer = real(*config)
 
         def step_fn(params, state, data):
             calls.append(1)
             if len(calls) in (4, 5):
-                return params, state, jnp.asarray(jnp.nan)
+                data = dataclasses.replace(data, views=tuple(
+                    dataclasses.replace(v, target=v.target * jnp.nan) for v in data.views))
             return step(params, state, data)
         return step_fn, optimizer
-    monkeypatch.setattr(checkpoint_module, "_step_and_optimizer", flaky)
+    monkeypatch.setattr(run_module, "optax_step", flaky)
     out = tmp_path / "result"
     code, _, err = run_cli(["fit", data_root / "clean", "-o", out, "--method", "adam",
                             "--steps", "12"], capsys)
-    assert (code, err) == (0, "")
+    # 12 Adam steps do not fit the images: the misfit warning says so, nothing else does
+    assert code == 0 and [line for line in err.splitlines() if "warning" not in line] == []
+    assert "the fit has not converged (status 'budget')" in err
     result = strict_json(out / "result.json")
     assert result["rejected_steps"] == 2 and result["n_steps"] == 12 and len(calls) == 14
     assert len(result["loss_history"]) == 13
@@ -424,7 +438,7 @@ def test_transient_non_finite_losses_are_skipped(data_root, tmp_path, capsys, mo
 
 def test_a_fit_without_any_finite_loss_writes_nothing(data_root, tmp_path, capsys,
                                                       monkeypatch):
-    monkeypatch.setattr(checkpoint_module, "loss_at", lambda *args: jnp.asarray(jnp.nan))
+    monkeypatch.setattr(run_module, "loss_at", lambda *args: jnp.asarray(jnp.nan))
     out = tmp_path / "result"
     code, stdout, err = run_cli(["fit", data_root / "clean", "-o", out], capsys)
     assert code == 3 and stdout == ""
@@ -458,18 +472,31 @@ def test_mtl_notes_a_shininess_viewers_clamp():
 # ---- fit: checkpoints, resume, interrupts ----
 
 
-def test_resume_continues_the_same_trajectory(data_root, tmp_path, capsys):
-    """12 Adam steps, then a resume to 30, end exactly where 30 uninterrupted steps end."""
+@pytest.mark.parametrize("method, options, first, total", [
+    ("adam", ["--tol", "0.003", "--patience", "3", "--lr", "0.03", "--lr-shininess", "0.1",
+              "--gtol", "1e-9"], 12, 60),
+    ("linear", ["--tol", "1e-12", "--shininess-range", "2,500", "--edge-margin", "2"], 1, 10),
+])
+def test_resume_continues_the_same_trajectory(data_root, tmp_path, capsys, method, options,
+                                              first, total):
+    """A fit stopped after `first` steps and resumed with --resume --steps only ends
+    exactly where an uninterrupted one ends: every option (here all unlike the defaults;
+    --tol makes the Adam run converge at step 44 instead of running to 60) and the
+    optimizer state (Adam's moments, Levenberg-Marquardt's damping) come from the
+    checkpoint."""
     straight, split = tmp_path / "straight", tmp_path / "split"
-    base = ["fit", data_root / "noisy", "--method", "adam", "--checkpoint-every", "5"]
-    assert run_cli([*base, "-o", straight, "--steps", "30"], capsys)[0] == 0
-    assert run_cli([*base, "-o", split, "--steps", "12"], capsys)[0] == 0
-    assert strict_json(split / "checkpoint.json")["step"] == 12
+    base = ["fit", data_root / "noisy", "--method", method, "--checkpoint-every", "5", *options]
+    assert run_cli([*base, "-o", straight, "--steps", total], capsys)[0] == 0
+    assert run_cli([*base, "-o", split, "--steps", first], capsys)[0] == 0
+    assert strict_json(split / "checkpoint.json")["step"] == first
     code, _, err = run_cli(["fit", data_root / "noisy", "-o", split, "--resume", "--steps",
-                            "30"], capsys)
+                            total], capsys)
     assert (code, err) == (0, "")
     a, b = strict_json(straight / "result.json"), strict_json(split / "result.json")
-    assert a["n_steps"] == b["n_steps"] == 30 and a["method"] == b["method"] == "adam"
+    assert b["n_steps"] == a["n_steps"] and a["method"] == b["method"] == method
+    assert (a["status"], a["n_steps"]) == (("converged", 44) if method == "adam"
+                                           else (a["status"], a["n_steps"]))
+    assert a["options"] == b["options"]
     np.testing.assert_allclose(b["loss_history"], a["loss_history"], rtol=1e-6)
     for name in TRUTH:
         np.testing.assert_allclose(b["values"][name], a["values"][name], rtol=1e-6)
@@ -484,6 +511,9 @@ def test_resume_rejects_other_options_or_data(data_root, tmp_path, capsys):
             ([data_root / "clean", "--method", "lbfgs"],
              "--method: got 'lbfgs'; the checkpoint"),
             ([data_root / "clean", "--fit", "kd"], "--fit/--grey: describe another fit"),
+            ([data_root / "clean", "--tol", "0.5"],
+             "--tol: got 0.5; the checkpoint"),
+            ([data_root / "clean", "--lr", "0.2"], "--lr: got 0.2; the checkpoint"),
             ([data_root / "noisy"], "holds other targets than the dataset the checkpoint")):
         code, _, err = run_cli(["fit", argv[0], "-o", out, "--resume", *argv[1:]], capsys)
         assert code == 2 and message in one_error_line(err)
@@ -553,3 +583,135 @@ def test_sigterm_then_resume_finishes(data_root, tmp_path, capsys):
     np.testing.assert_array_equal(second["loss_history"][:steps + 1],
                                   first["loss_history"][:steps + 1])
     assert_no_temporaries(out)
+
+
+# ---- one driver: the CLI runs fitting.fit's loop with the same options ----
+
+
+def test_every_fit_option_is_a_flag():
+    actions = {a.dest for a in cli.build_parser()._subparsers._group_actions[0]
+               .choices["fit"]._actions}
+    assert {f.name for f in dataclasses.fields(FitOptions)} <= actions
+
+
+def test_cli_and_python_fit_are_the_same_fit(data_root, tmp_path, capsys):
+    """The options given to `diffshade fit` reach the same driver as fitting.fit's
+    keywords: the same values and loss history, step for step."""
+    out = tmp_path / "result"
+    argv = ["fit", data_root / "noisy", "-o", out, "--method", "adam", "--steps", "15",
+            "--lr", "0.08", "--lr-shininess", "0.02", "--loss", "huber", "--edge-margin", "2"]
+    assert run_cli(argv, capsys)[0] == 0
+    got = strict_json(out / "result.json")
+    want = fit(load_dataset(data_root / "noisy"), method="adam", steps=15, lr=0.08,
+               lr_shininess=0.02, loss="huber", edge_margin=2, with_uncertainty=False)
+    np.testing.assert_allclose(got["loss_history"], want.loss_history, rtol=1e-6)
+    for name in TRUTH:
+        np.testing.assert_allclose(got["values"][name], want.values[name], rtol=1e-6)
+
+
+def test_cli_fits_light_colours(data_root, tmp_path, capsys):
+    """From the true material and the dataset's own lights, a fit of the light colours
+    stays at those lights (read back from the scene files)."""
+    out = tmp_path / "result"
+    argv = ["fit", data_root / "clean", "-o", out, "--fit", "light_colors", "--init",
+            data_root / "clean" / "truth.json"]
+    code, stdout, _ = run_cli(argv, capsys)
+    assert code == 0
+    result = strict_json(out / "result.json")
+    assert result["fit"]["light_colors"] is True and set(result["values"]) == {"lights"}
+    dataset = load_dataset(data_root / "clean")
+    for view, fitted in zip(dataset.views, result["values"]["lights"], strict=True):
+        for group, fields in fitted.items():
+            np.testing.assert_allclose(fields["color"],
+                                       np.asarray(getattr(view.lights, group).diffuse),
+                                       rtol=1e-3)
+    assert "lights[1]." in stdout
+
+
+# ---- a fit that says when it is wrong ----
+
+
+@pytest.fixture(scope="module")
+def srgb_png_dataset(data_root, tmp_path_factory):
+    """The clean dataset with only its 8-bit sRGB PNG targets (no .npy)."""
+    folder = copy_dataset(data_root / "clean", tmp_path_factory.mktemp("png") / "data")
+    for name in os.listdir(folder):
+        if name.startswith("view_") and name.endswith(".npy"):
+            os.remove(folder / name)
+    return folder
+
+
+def test_wrong_colour_encoding_is_flagged(srgb_png_dataset, tmp_path, capsys):
+    """sRGB PNGs read as linear (the issue's walk-through): exit 0, but a warning on
+    stderr naming the likely causes, ka at its upper bound without a standard error, and
+    the misfit in result.json; read as sRGB, no warning."""
+    out = tmp_path / "wrong"
+    code, stdout, err = run_cli(["fit", srgb_png_dataset, "-o", out, "--color-space",
+                                 "linear"], capsys)
+    assert code == 0
+    line = [x for x in err.splitlines() if x.startswith("diffshade: warning:")]
+    assert len(line) == 1 and "does not explain the images" in line[0]
+    for cause in ("mesh", "cameras", "lights", "colour encoding"):
+        assert cause in line[0]
+    result = strict_json(out / "result.json")
+    assert result["misfit"]["explained"] is False and result["misfit"]["ratio"] > 3
+    bounded = result["at_bound"]
+    assert bounded and all(result["std_errors"][n] is None for n in bounded)
+    assert all(result["std_errors"][n] is not None for n in result["std_errors"]
+               if n not in bounded)
+    for name in bounded:
+        channel = "rgb".index(name[3]) if "[" in name else 0
+        value = np.atleast_1d(result["values"][name[:2]])[channel]
+        assert value < 1e-3 or value > 1 - 1e-3
+        row = next(x for x in stdout.splitlines() if x.startswith(name + " "))
+        assert "at bound" in row
+    code, _, err = run_cli(["fit", srgb_png_dataset, "-o", tmp_path / "right"], capsys)
+    assert (code, err) == (0, "")
+    assert strict_json(tmp_path / "right" / "result.json")["misfit"]["explained"] is True
+
+
+def test_residual_files(data_root, tmp_path, capsys):
+    """residual_*.npy is render(fitted material) - target in linear float32; residual_*.png
+    is |that| / residual_scale, clipped, sRGB-encoded."""
+    out = tmp_path / "result"
+    assert run_cli(["fit", data_root / "noisy", "-o", out], capsys)[0] == 0
+    result = strict_json(out / "result.json")
+    dataset = load_dataset(data_root / "noisy")
+    fitted = ds.material(**{k: result["material"][k] for k in ("ka", "kd", "ks",
+                                                              "shininess")})
+    scale = result["residual_scale"]
+    assert scale >= 1 / 255
+    # the right model on noise 0.01: the residual is that noise, and the check says so
+    misfit = result["misfit"]
+    assert misfit["explained"] and misfit["ratio"] < 1.5
+    assert misfit["noise"] == pytest.approx(0.01, rel=0.05)
+    for i, view in enumerate(dataset.views):
+        scene = ds.make_scene(dataset.mesh, view.camera, view.lights, fitted,
+                              model=dataset.model, global_ambient=dataset.global_ambient)
+        expected = np.asarray(ds.render(scene, dataset.settings))[..., :3] - view.target
+        got = np.load(out / f"residual_{i:03d}.npy")
+        assert got.dtype == np.float32 and got.shape == (SIZE, SIZE, 3)
+        np.testing.assert_allclose(got, expected, atol=2e-5)
+        assert image_transfer(out / f"residual_{i:03d}.png") == "srgb"
+        png = ds.read_image(out / f"residual_{i:03d}.png")
+        np.testing.assert_allclose(png, np.clip(np.abs(expected) / scale, 0, 1), atol=0.02)
+
+
+def test_progress_estimate_leaves_out_the_compiling_step():
+    """The first step takes 1 s (compilation), the next ones 20 ms: the remaining time
+    shown comes from the 20 ms steps."""
+    class State:
+        step, method, history, spec = 0, "adam", [0.1], FitSpec()
+        params = {"ka": jnp.zeros(3), "kd": jnp.zeros(3), "ks": jnp.zeros(3),
+                  "shininess": jnp.asarray(3.0)}
+    state = State()
+    bar, on_step = _progress(state, 1000, disable=False, file=io.StringIO())
+    with bar:
+        for pause in (1.0, *[0.02] * 8):
+            time.sleep(pause)
+            state.step += 1
+            on_step(state)
+        info = bar.format_dict
+    rate = info["rate"] or (info["n"] - info["initial"]) / info["elapsed"]
+    remaining = (info["total"] - info["n"]) / rate
+    assert info["n"] == 9 and remaining < 0.02 * 991 * 2.5, remaining

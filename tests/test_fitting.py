@@ -9,7 +9,6 @@ import itertools
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 import pytest
 
 import diffshade as ds
@@ -39,6 +38,7 @@ from fitting import (
     view_scene,
 )
 from fitting.loss import mean_rho
+from fitting.misfit import _neighbour_squares
 
 TRUTH = dict(ka=(0.35, 0.3, 0.5), kd=(0.6, 0.45, 0.3), ks=(0.4, 0.5, 0.3), shininess=35.0)
 SPHERE = ds.icosphere(2)
@@ -213,8 +213,11 @@ def toy_loss(params, data):
     return jnp.sum((params["x"] - data["target"]) ** 2) * data["scale"]
 
 
-@pytest.mark.parametrize("optimizer", [make_optimizer(), optax.lbfgs()], ids=["adam", "lbfgs"])
+@pytest.mark.parametrize("optimizer", [make_optimizer(), make_optimizer("lbfgs")],
+                         ids=["adam", "lbfgs"])
 def test_non_finite_step_is_rejected(optimizer):
+    """optax.apply_if_finite inside make_optimizer: params and the inner state unchanged,
+    the rejection counted in the guard's state."""
     step = make_step(toy_loss, optimizer)
     params = {"x": jnp.array([1.0, 2.0])}
     state = optimizer.init(params)
@@ -222,8 +225,10 @@ def test_non_finite_step_is_rejected(optimizer):
     new_params, new_state, loss = step(params, state, bad)
     assert not np.isfinite(float(loss))
     np.testing.assert_array_equal(new_params["x"], params["x"])
-    for a, b in zip(jax.tree.leaves(new_state), jax.tree.leaves(state), strict=True):
+    for a, b in zip(jax.tree.leaves(new_state.inner_state), jax.tree.leaves(state.inner_state),
+                    strict=True):
         np.testing.assert_array_equal(a, b)
+    assert not bool(new_state.last_finite) and int(new_state.notfinite_count) == 1
     good = {"target": jnp.zeros(2), "scale": jnp.asarray(1.0)}
     moved, _, _ = step(params, state, good)
     assert float(jnp.sum(moved["x"] ** 2)) < 5.0
@@ -258,6 +263,59 @@ def test_lbfgs_fit_runs_and_lowers_the_loss(small):
     assert result.loss < 0.2 * result.loss_history[0]
 
 
+def test_summary_shows_the_truth_and_counts_steps(small):
+    result = fit(small, method="adam", steps=1, with_uncertainty=False)
+    lines = result.summary().splitlines()
+    assert "after 1 step," in lines[0] and result.n_steps == 1
+    assert lines[1].split()[:3] == ["parameter", "true", "fitted"]
+    row = next(line.split() for line in lines if line.startswith("kd[g] "))
+    assert float(row[1]) == pytest.approx(TRUTH["kd"][1])
+    # no truth in the dataset: the caller's, else no true column
+    blind = dataclasses.replace(small, truth=None)
+    given = fit(blind, method="adam", steps=2, truth=truth_material(), with_uncertainty=False)
+    assert "after 2 steps," in given.summary() and given.errors is not None
+    assert given.summary().splitlines()[1].split()[:2] == ["parameter", "true"]
+    plain = fit(blind, method="adam", steps=2, with_uncertainty=False).summary()
+    assert plain.splitlines()[1].split()[:2] == ["parameter", "fitted"]
+
+
+def test_values_at_a_bound_have_no_standard_error(small):
+    """With coefficients bounded by 0.5, kd[r] (true 0.6) ends at the bound: it is flagged,
+    has no standard error anywhere, and the remaining misfit is reported."""
+    result = fit(small, FitSpec(upper=0.5))
+    assert "kd[r]" in result.at_bound
+    true = dict(zip(value_names(result.values), np.concatenate(
+        [np.ravel(TRUTH[k]) for k in ("ka", "kd", "ks", "shininess")]), strict=True))
+    assert all(true[name] >= 0.45 for name in result.at_bound)  # only where the truth is
+    report = result.uncertainty
+    for name, std in zip(report.names, report.std_errors, strict=True):
+        assert np.isnan(std) == (name in result.at_bound)
+    assert result.as_dict()["std_errors"]["kd[r]"] is None
+    assert "at bound" in next(line for line in result.summary().splitlines()
+                              if line.startswith("kd[r] "))
+    assert any("ended at a bound" in w for w in result.warnings)
+    assert not result.misfit.explained
+    assert any("does not explain the images" in w for w in result.warnings)
+
+
+def test_neighbour_differences_match_a_loop():
+    rng = np.random.default_rng(0)
+    height, width = 7, 9
+    keep = rng.random((height, width)) > 0.3
+    pixels = np.flatnonzero(keep)
+    image = rng.normal(size=(height, width, 3))
+    r = image.reshape(-1, 3)[pixels]
+    total, count = 0.0, 0
+    for y in range(height):
+        for x in range(width):
+            for dy, dx in ((0, 1), (1, 0)):
+                if y + dy < height and x + dx < width and keep[y, x] and keep[y + dy, x + dx]:
+                    total += np.sum((image[y, x] - image[y + dy, x + dx]) ** 2)
+                    count += 3
+    got = _neighbour_squares(r, pixels, width)
+    assert got[1] == count and got[0] == pytest.approx(total, rel=1e-12)
+
+
 def test_relative_errors_per_channel():
     truth = ds.material(ka=(0.2, 0.4, 0.5), kd=0.5, ks=(0.1, 0.2, 0.4), shininess=10.0)
     values = {"ka": np.array([0.22, 0.4, 0.45]), "kd": np.array(0.55), "shininess": np.array(9.0)}
@@ -274,6 +332,20 @@ def test_fit_rejects_bad_arguments(small):
         fit(small, loss="l3")
     with pytest.raises(ValueError, match="ka: got 'rg'"):
         FitSpec(ka="rg")
+
+
+@pytest.mark.parametrize("settings, error, message", [
+    ({"lr": -1.0}, ValueError, "lr: got -1.0; expected a positive learning rate"),
+    ({"gtol": float("nan")}, ValueError, "gtol: got nan; expected a finite number >= 0"),
+    ({"patience": 0}, ValueError, "patience: got 0; expected an integer >= 1"),
+    ({"shininess_range": (5.0, 2.0)}, ValueError, "shininess_range: got (5.0, 2.0)"),
+    ({"speed": 3}, TypeError, "fit: got unknown option(s) ['speed']"),
+    ({"options": "fast"}, TypeError, "options: got str; expected FitOptions"),
+])
+def test_fit_options_are_checked_at_the_boundary(small, settings, error, message):
+    with pytest.raises(error) as info:
+        fit(small, **settings)
+    assert message in str(info.value)
 
 
 def test_target_size_mismatch_names_the_view(small):

@@ -1,0 +1,114 @@
+"""The run a `diffshade fit` command line asks for (fitting.cli): a new one from the
+options given, or the checkpoint's, resumed with every option it was started with.
+
+`prepare(args)` checks every input and writes nothing: the output folder, the checkpoint
+(on --resume: the options given must agree with it; --steps may change), the dataset
+folder and its targets (fitting.inputs). It returns the dataset and a `Plan`.
+"""
+
+import dataclasses
+import os
+from typing import NamedTuple
+
+from fitting.checkpoint import checkpoint_run, load_checkpoint, material_dict, read_checkpoint
+from fitting.inputs import (
+    check_output,
+    dataset_fingerprint,
+    fit_spec,
+    load_checked_dataset,
+    parse_material,
+)
+from fitting.options import FitOptions
+from fitting.params import DEFAULT_INIT, FitSpec
+
+CHECKPOINT = "checkpoint.json"
+
+
+def flag(name):
+    """The command-line flag of a FitOptions field: lr_shininess -> --lr-shininess."""
+    return "--" + name.replace("_", "-")
+
+
+def _given_options(args):
+    """{FitOptions field: value} of the options on the command line."""
+    return {f.name: getattr(args, f.name) for f in dataclasses.fields(FitOptions)
+            if getattr(args, f.name) is not None}
+
+
+def _new_options(args):
+    try:
+        return FitOptions(**_given_options(args))
+    except ValueError as err:  # "name: got ..." -> "--name: got ..."
+        name, _, rest = str(err).partition(":")
+        raise ValueError(f"{flag(name)}:{rest}") from None
+
+
+def _resumed_options(args, saved, checkpoint):
+    """The checkpoint's options; those given must agree (--steps may change)."""
+    given = _given_options(args)
+    for name, value in given.items():
+        if name != "steps" and value != getattr(saved, name):
+            raise ValueError(f"{flag(name)}: got {value!r}; the checkpoint {checkpoint!r} "
+                             f"was made with {getattr(saved, name)!r}")
+    return dataclasses.replace(saved, **{k: v for k, v in given.items() if k == "steps"})
+
+
+def _check_agrees(args, spec, init, meta, checkpoint):
+    """On --resume, the data options given must describe the checkpoint's run."""
+    if args.color_space is not None and args.color_space != meta.get("color_space"):
+        raise ValueError(f"--color-space: got {args.color_space!r}; the checkpoint "
+                         f"{checkpoint!r} was made with {meta.get('color_space')!r}")
+    if (args.fit is not None or args.grey is not None) and fit_spec(args.fit,
+                                                                   args.grey) != spec:
+        raise ValueError(f"--fit/--grey: describe another fit than the checkpoint "
+                         f"{checkpoint!r} ({spec})")
+    if args.init is not None:
+        given = material_dict(parse_material(args.init, "--init"))
+        if given != material_dict(init):
+            raise ValueError(f"--init: got {args.init!r}; the checkpoint {checkpoint!r} was "
+                             f"made from {material_dict(init)}")
+
+
+class Plan(NamedTuple):
+    """What `fit` will run: the fit spec, initial material and options, the RunState to
+    continue (None: a fresh run), how often to checkpoint, and the fingerprint of the
+    dataset's targets."""
+
+    spec: FitSpec
+    init: object
+    options: FitOptions
+    state: object
+    every: int
+    fingerprint: str
+
+
+def prepare(args):
+    """Check every input; returns (dataset, Plan). Writes nothing."""
+    check_output(args.output)
+    checkpoint = os.path.join(args.output, CHECKPOINT)
+    saved, meta = None, {}
+    if args.resume:
+        saved = read_checkpoint(checkpoint)
+        try:
+            spec, init, options = checkpoint_run(saved)
+        except (KeyError, TypeError, ValueError) as err:
+            raise ValueError(f"checkpoint {checkpoint!r}: {err}") from err
+        meta = saved.get("meta", {})
+        _check_agrees(args, spec, init, meta, checkpoint)
+        options = _resumed_options(args, options, checkpoint)
+        if args.color_space is None:
+            args.color_space = meta.get("color_space")
+    else:
+        spec, options = fit_spec(args.fit, args.grey), _new_options(args)
+        init = DEFAULT_INIT if args.init is None else parse_material(args.init, "--init")
+    dataset = load_checked_dataset(args.dataset, args.color_space)
+    fingerprint = dataset_fingerprint(dataset)
+    state = None
+    if saved is not None:
+        if meta.get("dataset_sha256") != fingerprint:
+            raise ValueError(f"DATASET: {args.dataset!r} holds other targets than the dataset "
+                             f"the checkpoint {checkpoint!r} was made with")
+        state = load_checkpoint(checkpoint, [v.lights for v in dataset.views])
+        state.options = options
+    every = args.checkpoint_every or meta.get("checkpoint_every") or 500
+    return dataset, Plan(spec, init, options, state, every, fingerprint)
