@@ -7,6 +7,7 @@ The forward model is diffshade's lighting core: targets are rendered with
 
 from fitting.cache import FitData, ViewSamples, build_cache, pixel_parts, predict
 from fitting.data import Dataset, View, view_scene
+from fitting.dataset import load_dataset, save_dataset
 from fitting.fit import FIT_METHODS, FitResult, fit, format_summary, relative_errors
 from fitting.gauss_newton import levenberg_marquardt
 from fitting.linear import box_least_squares, normal_equations, solve_linear
@@ -32,9 +33,9 @@ __all__ = [
     "DEFAULT_INIT", "FIT_METHODS", "LOSSES", "Dataset", "FitData", "FitResult", "FitSpec",
     "IdentifiabilityWarning", "RenderData", "UncertaintyReport", "View", "ViewSamples",
     "box_least_squares", "build_cache", "fit", "format_summary", "from_values",
-    "levenberg_marquardt", "make_loss", "make_optimizer", "make_render_loss", "make_step",
-    "material_values", "normal_equations", "param_labels", "pixel_parts", "predict",
-    "relative_errors", "render_data", "residuals", "solve_linear", "to_lights",
-    "to_material", "to_unconstrained", "to_values", "uncertainty", "value_names",
+    "levenberg_marquardt", "load_dataset", "make_loss", "make_optimizer", "make_render_loss",
+    "make_step", "material_values", "normal_equations", "param_labels", "pixel_parts",
+    "predict", "relative_errors", "render_data", "residuals", "save_dataset", "solve_linear",
+    "to_lights", "to_material", "to_unconstrained", "to_values", "uncertainty", "value_names",
     "values_to_lights", "values_to_material", "view_scene",
 ]

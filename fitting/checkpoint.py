@@ -38,7 +38,9 @@ import numpy as np
 
 from diffshade.io import write_json
 from diffshade.material import Material, material
+from fitting.dataset import material_dict
 from fitting.fit import FitResult, relative_errors
+from fitting.gains import GAIN_NAMES
 from fitting.gauss_newton import levenberg_marquardt, loss_at
 from fitting.linear import solve_linear
 from fitting.loss import check_kind, make_loss
@@ -108,7 +110,7 @@ def start_run(data, spec: FitSpec, init: Material, method="linear", kind="mse",
     """A fresh RunState at `init` (for 'linear': at the closed-form solution) on the cached
     `data` (fitting.build_cache(dataset, init))."""
     _check_run(spec, method, kind)
-    params = from_values(material_values(init, spec), spec)
+    params = from_values(material_values(init, spec, n_views=len(data.views)), spec)
     opt_state = None
     if method == "linear" and spec.fits_material:
         params = {**params, **from_values(solve_linear(data, spec), spec)}
@@ -303,15 +305,6 @@ def _decode_tree(entries, template, where):
                                                                        strict=True))])
 
 
-def material_dict(mat: Material) -> dict:
-    """{'ka', 'kd', 'ks', 'shininess', 'emission'}: RGB lists (None when absent) and a float;
-    `diffshade.material(**d)` rebuilds it."""
-    def rgb(value):
-        return None if value is None else np.asarray(value, np.float64).tolist()
-    return {"ka": rgb(mat.ka), "kd": rgb(mat.kd), "ks": rgb(mat.ks),
-            "shininess": float(mat.shininess), "emission": rgb(mat.emission)}
-
-
 def save_checkpoint(path, state: RunState) -> str:
     """Write the state to `path` (JSON, atomically); returns the path."""
     return write_json(path, {
@@ -323,7 +316,13 @@ def save_checkpoint(path, state: RunState) -> str:
             "step": state.best_step, "loss": state.best_loss if state.best_params else None,
             "params": _encode_tree(state.best_params)},
         "quiet": state.quiet, "converged": state.converged, "rejected": state.rejected,
-        "wall_time": state.wall_time})
+        "wall_time": state.wall_time, "n_views": _n_views(state.params)})
+
+
+def _n_views(params):
+    """The views the per-view gains (fitting.gains) of params cover, or None."""
+    gains = [params[name] for name in GAIN_NAMES if name in params]
+    return int(np.shape(gains[0])[0]) + 1 if gains else None
 
 
 def _read(path):
@@ -348,7 +347,7 @@ def load_checkpoint(path) -> RunState:
         spec, init = FitSpec(**data["spec"]), material(**data["init"])
         method, kind = data["method"], data["loss"]
         _check_run(spec, method, kind)
-        template = from_values(material_values(init, spec), spec)
+        template = from_values(material_values(init, spec, n_views=data.get("n_views")), spec)
         params = _decode_tree(data["params"], template, "params")
         opt_state = None
         if method != "linear":

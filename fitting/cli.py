@@ -43,6 +43,7 @@ from fitting.checkpoint import (
     start_run,
 )
 from fitting.fit import DEFAULT_STEPS, FIT_METHODS
+from fitting.gains import GAIN_NAMES
 from fitting.inputs import (
     check_output,
     dataset_fingerprint,
@@ -82,7 +83,8 @@ def register(subparsers):
                         help="step budget, counted across resumes (default: "
                              + ", ".join(f"{m} {n}" for m, n in DEFAULT_STEPS.items()) + ")")
     parser.add_argument("--fit", metavar="NAMES",
-                        help="comma-separated quantities to fit (default ka,kd,ks,shininess)")
+                        help="comma-separated quantities to fit (default ka,kd,ks,shininess; "
+                             "also exposure, white_balance: per-view gains against view 0)")
     parser.add_argument("--grey", metavar="NAMES",
                         help="coefficients fitted as one grey value (default: none, RGB)")
     parser.add_argument("--init", metavar="KA,KD,KS,N|FILE",
@@ -217,7 +219,8 @@ def _extra(args, state, status, signum, message):
     return {"format": RESULT_FORMAT, "version": 1,
             "dataset": os.path.abspath(args.dataset), "loss_kind": state.kind,
             "color_space": args.color_space,
-            "fit": {name: getattr(state.spec, name) for name in (*COEFFICIENTS, "shininess")},
+            "fit": {name: getattr(state.spec, name)
+                    for name in (*COEFFICIENTS, "shininess", *GAIN_NAMES)},
             "status": status, "interrupted": signum is not None,
             "signal": SIGNALS.get(signum), "stop_message": message or None,
             "best_step": state.best_step, "rejected_steps": state.rejected,

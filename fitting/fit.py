@@ -37,6 +37,7 @@ from fitting.params import (
     from_values,
     material_values,
     to_values,
+    value_names,
     values_to_lights,
     values_to_material,
 )
@@ -174,8 +175,8 @@ def fit(dataset: Dataset, spec: FitSpec | None = None, init=None, *, method="lin
     steps = DEFAULT_STEPS[method] if steps is None else steps
     start = time.perf_counter()
     data = build_cache(dataset, init, edge_margin=edge_margin)
-    params = from_values(material_values(init, spec, data.lights if spec.fits_lights else None),
-                         spec)
+    params = from_values(material_values(init, spec, data.lights if spec.fits_lights else None,
+                                         n_views=len(data.views)), spec)
     notify = _notifier(callback, spec, data)
     if method == "linear":
         params = _linear_start(params, data, spec, shininess_range)
@@ -227,11 +228,10 @@ def format_summary(result: FitResult) -> str:
     for name, value in result.values.items():
         if name == "lights":
             continue
-        flat = np.atleast_1d(value)
+        flat = np.ravel(value)
         errs = (np.atleast_1d(result.errors[name]) if result.errors and name in result.errors
                 else [None] * len(flat))
-        for c, v in enumerate(flat):
-            label = name if len(flat) == 1 else f"{name}[{'rgb'[c]}]"
+        for c, (v, label) in enumerate(zip(flat, value_names({name: value}), strict=True)):
             s = se.get(label, (None, None))[1]
             err = errs[c] if c < len(errs) else None
             lines.append(f"{label:<12} {v:>10.5g} {'' if s is None else f'{s:.2g}':>10} "

@@ -25,8 +25,10 @@ import numpy as np
 from diffshade.color import srgb_to_linear
 from diffshade.io import write_json, write_png, write_text
 from diffshade.render import render
-from fitting.checkpoint import material_dict
 from fitting.data import view_scene
+from fitting.dataset import material_dict
+from fitting.gains import GAIN_NAMES, view_materials
+from fitting.params import value_names
 
 ERROR_GAIN = 10.0
 PANEL_GAP = 2
@@ -128,6 +130,10 @@ def _rows(result, truth):
     se = result.uncertainty.as_dict() if result.uncertainty else {}
     for name, value in result.values.items():
         fitted = np.atleast_1d(np.asarray(value, np.float64))
+        if name in GAIN_NAMES:  # per-view gains: no true value, one row per scalar
+            for label, v in zip(value_names({name: value}), fitted.ravel(), strict=True):
+                yield label, None, v, se.get(label, (None, None))[1], None
+            continue
         true = None if truth is None else np.atleast_1d(np.asarray(getattr(truth, name),
                                                                    np.float64))
         errors = (np.atleast_1d(result.errors[name]) if result.errors and name in result.errors
@@ -181,8 +187,9 @@ def write_result(out_dir, dataset, result, init, extra=None, title="") -> list:
                         result_dict(result, init, dataset.truth, extra)),
              write_png(os.path.join(out_dir, files["loss_curve"]),
                        loss_curve(result.loss_history, title))]
+    fitted = view_materials(result.material, result.values, len(names))
     for i, name in enumerate(names):
         image = panel(dataset.views[i].target, _render_rgb(dataset, i, init),
-                      _render_rgb(dataset, i, result.material))
+                      _render_rgb(dataset, i, fitted[i]))
         paths.append(write_png(os.path.join(out_dir, name), image))
     return paths

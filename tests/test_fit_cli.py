@@ -255,7 +255,7 @@ def test_fit_spec_from_names():
     ('{"ka": 0.2, "kd": 0.3, "shininess": "abc"}', "shininess: got 'abc'; expected a number"),
     ('{"ka": 0.2, "kd": [0.3, true, 1], "shininess": 3}', "kd: got [0.3, True, 1]"),
     ('{"ka": 0.2, "gloss": 3}', "has ['gloss']; expected an object with keys"),
-    ('{"ka": 0.2, "kd": [0.3, 0.1], "shininess": 3}', "--init: kd: got [0.3, 0.1]"),
+    ('{"ka": 0.2, "kd": [0.3, 0.1], "shininess": 3}', "material.json': kd: got [0.3, 0.1]"),
     ("[1, 2]", "has list; expected an object"),
     ("{oops", "is not valid JSON"),
 ])
@@ -271,9 +271,7 @@ def test_parse_material_names_the_problem(tmp_path, content, message):
 
 
 def break_dataset(folder, how):
-    if how == "missing_mesh_file":
-        os.remove(folder / "mesh_faces.npy")
-    elif how == "missing_scene_file":
+    if how == "missing_scene_file":
         os.remove(folder / "view_001.json")
     elif how == "wrong_target_size":
         np.save(folder / "view_001.npy", np.zeros((SIZE, SIZE + 1, 3), np.float32))
@@ -281,27 +279,26 @@ def break_dataset(folder, how):
         target = np.load(folder / "view_001.npy")
         target[5, 7, 1] = np.nan
         np.save(folder / "view_001.npy", target)
-    elif how == "face_out_of_range":
-        faces = np.load(folder / "mesh_faces.npy")
-        faces[2, 1] = 10**6
-        np.save(folder / "mesh_faces.npy", faces)
-    elif how == "nan_vertex":
-        vertices = np.load(folder / "mesh_vertices.npy")
-        vertices[4, 0] = np.nan
-        np.save(folder / "mesh_vertices.npy", vertices)
+    elif how in ("face_out_of_range", "nan_vertex"):
+        scene = json.loads((folder / "view_001.json").read_text())
+        if how == "face_out_of_range":
+            scene["mesh"]["faces"][2][1] = 10**6
+        else:
+            scene["mesh"]["vertices"][4][0] = float("nan")
+        (folder / "view_001.json").write_text(json.dumps(scene))
     elif how == "bad_dataset_json":
         (folder / "dataset.json").write_text("{not json")
 
 
 @pytest.mark.parametrize("how, message", [
-    ("missing_mesh_file", "mesh_faces.npy: No such file or directory"),
-    ("missing_scene_file", "dataset file not found"),
+    ("missing_scene_file", "scene file not found: "),
     ("wrong_target_size", "views[1].target: got shape (32, 33, 3); expected (32, 32, 3)"),
     ("nan_target", "target image of view 1 (view_001.npy) contains NaN at pixel "
                    "(row 5, column 7)"),
-    ("bad_dataset_json", "dataset.json': not a JSON object"),
-    ("face_out_of_range", "mesh_faces.npy: index 1e+06 out of range for 162 vertices"),
-    ("nan_vertex", "mesh_vertices.npy: row 4 is [nan,"),
+    ("bad_dataset_json", "dataset.json: line 1, column 2: invalid JSON"),
+    ("face_out_of_range", "view_001.json: mesh.faces: index 1e+06 out of range for 162 "
+                          "vertices"),
+    ("nan_vertex", "view_001.json: mesh.vertices: row 4 is [nan,"),
 ])
 def test_fit_rejects_a_broken_dataset(data_root, tmp_path, capsys, how, message):
     data = copy_dataset(data_root / "clean", tmp_path / "data")
