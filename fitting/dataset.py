@@ -148,6 +148,14 @@ def _saturation(value, where):
     return float(value)
 
 
+def _check_keys(obj, known, where):
+    """A misspelt key is an error, never silently ignored."""
+    unknown = sorted(set(obj) - set(known))
+    if unknown:
+        raise ValueError(f"{where}: {unknown[0]!r}: unknown key; expected one of "
+                         f"{', '.join(known)}")
+
+
 def _file_name(entry, key, where, required=False):
     value = entry.get(key)
     if value is None and not required:
@@ -160,9 +168,7 @@ def _file_name(entry, key, where, required=False):
 def _check_entry(entry, where):
     if not isinstance(entry, dict):
         _fail(where, entry, "an object with 'scene' and 'image' file names")
-    unknown = sorted(set(entry) - set(VIEW_KEYS))
-    if unknown:
-        _fail(f"{where}", unknown[0], f"keys among {', '.join(VIEW_KEYS)}")
+    _check_keys(entry, VIEW_KEYS, where)
     for key in ("scene", "image"):
         _file_name(entry, key, where, required=True)
     for key in ("target", "mask"):
@@ -185,9 +191,7 @@ def read_meta(path) -> dict:
     if meta.get("format") != FORMAT or meta.get("version") != VERSION:
         raise ValueError(f"{meta_path}: format {meta.get('format')!r} version "
                          f"{meta.get('version')!r}; expected {FORMAT!r} version {VERSION}")
-    unknown = sorted(set(meta) - set(TOP_KEYS))
-    if unknown:
-        _fail(meta_path, unknown[0], f"keys among {', '.join(TOP_KEYS)}")
+    _check_keys(meta, TOP_KEYS, meta_path)
     views = meta.get("views")
     if not isinstance(views, list) or not views:
         _fail(f"{meta_path}: views", views, "a non-empty list of view objects")

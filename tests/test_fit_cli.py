@@ -229,7 +229,8 @@ def test_fit_subset_holds_the_rest_at_init(data_root, tmp_path, capsys):
             "--init", init]
     assert run_cli(argv, capsys)[0] == 0
     result = strict_json(out / "result.json")
-    assert result["fit"] == {"ka": None, "kd": "grey", "ks": None, "shininess": True}
+    assert result["fit"] == {"ka": None, "kd": "grey", "ks": None, "shininess": True,
+                             "exposure": False, "white_balance": False}
     assert set(result["values"]) == {"kd", "shininess"} and set(result["errors"]) == {
         "kd", "shininess"}
     np.testing.assert_allclose(result["material"]["ka"], TRUTH["ka"], rtol=1e-6)
@@ -288,6 +289,24 @@ def break_dataset(folder, how):
         (folder / "view_001.json").write_text(json.dumps(scene))
     elif how == "bad_dataset_json":
         (folder / "dataset.json").write_text("{not json")
+    elif how == "no_views":
+        meta = json.loads((folder / "dataset.json").read_text())
+        (folder / "dataset.json").write_text(json.dumps(meta | {"views": []}))
+    elif how == "negative_target":
+        target = np.load(folder / "view_001.npy")
+        target[3, 4, 2] = -0.5
+        np.save(folder / "view_001.npy", target)
+    elif how == "huge_width":
+        scene = json.loads((folder / "view_001.json").read_text())
+        scene["camera"]["width"] = 10**30
+        (folder / "view_001.json").write_text(json.dumps(scene))
+    elif how in ("deep_dataset_json", "deep_scene_file"):
+        name = "dataset.json" if how == "deep_dataset_json" else "view_001.json"
+        (folder / name).write_text("[" * 100_000 + "]" * 100_000)
+    elif how == "other_mesh":
+        scene = json.loads((folder / "view_001.json").read_text())
+        scene["mesh"]["vertices"][4][0] += 0.5
+        (folder / "view_001.json").write_text(json.dumps(scene))
 
 
 @pytest.mark.parametrize("how, message", [
@@ -299,6 +318,14 @@ def break_dataset(folder, how):
     ("face_out_of_range", "view_001.json: mesh.faces: index 1e+06 out of range for 162 "
                           "vertices"),
     ("nan_vertex", "view_001.json: mesh.vertices: row 4 is [nan,"),
+    ("no_views", "dataset.json: views: got []; expected a non-empty list of view objects"),
+    ("negative_target", "target image of view 1 (view_001.npy) contains -0.5 at pixel "
+                        "(row 3, column 4)"),
+    ("huge_width", "view_001.json: camera.width: got 1000000000000000000000000000000; "
+                   "expected a positive integer of pixels, at most 16384"),
+    ("deep_dataset_json", "dataset.json: nested too deeply to parse"),
+    ("deep_scene_file", "view_001.json: nested too deeply to parse"),
+    ("other_mesh", "views[1] (view_001.json): its mesh differs from views[0]'s"),
 ])
 def test_fit_rejects_a_broken_dataset(data_root, tmp_path, capsys, how, message):
     data = copy_dataset(data_root / "clean", tmp_path / "data")
