@@ -357,9 +357,11 @@ _SCENE = {
 
 def _cameras(top):
     """The cameras of "camera" (one) or "cameras" (a non-empty array); exactly one given."""
-    if ("camera" in top) == ("cameras" in top):
-        got = "both" if "camera" in top else "neither"
-        raise SceneFileError(f"camera, cameras: got {got}; expected exactly one of \"camera\" "
+    if "camera" not in top and "cameras" not in top:
+        raise SceneFileError("camera: missing; expected an object (or \"cameras\": an array "
+                             "of them)")
+    if "camera" in top and "cameras" in top:
+        raise SceneFileError("camera, cameras: got both; expected exactly one of \"camera\" "
                              "(an object) or \"cameras\" (an array of them)")
     if "camera" in top:
         return [_camera(top["camera"], "camera")]

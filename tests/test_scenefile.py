@@ -230,7 +230,7 @@ def edited(keys, value):
     (("camera", "width"), 0, "camera.width: got 0; expected a positive integer"),
     (("camera", "width"), 10**30, "camera.width: got 1000000000000000000000000000000; "
                                   "expected a positive integer of pixels, at most 16384"),
-    (("camera",), DELETE, 'camera, cameras: got neither; expected exactly one of "camera"'),
+    (("camera",), DELETE, 'camera: missing; expected an object (or "cameras": an array'),
     (("cameras",), [], 'camera, cameras: got both; expected exactly one of "camera"'),
     (("camera", "fov_y"), "45", 'camera.fov_y: got "45"; expected a number'),
     (("camera", "eye"), [0, 3], "camera.eye: got [0, 3]; expected 3 numbers"),
