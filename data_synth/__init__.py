@@ -1,12 +1,11 @@
 """data_synth: synthetic fitting datasets with known materials.
 
 `make_dataset` renders a built-in shape (or any mesh file) with a given or random
-material from several cameras and lights through `diffshade.render`; `save_dataset` and
-`load_dataset` write and read a dataset folder (images, float targets, scene files, the
-true material). See data_synth/scenes.py for the layout of cameras and lights.
+material from several cameras and lights through `diffshade.render`. The dataset folder
+format (`save_dataset`, `load_dataset`) lives in fitting.dataset; both are re-exported
+here. See data_synth/scenes.py for the layout of cameras and lights.
 """
 
-from data_synth.io import load_dataset, save_dataset
 from data_synth.materials import COEFFICIENT_RANGES, SHININESS_RANGE, random_material
 from data_synth.scenes import (
     GLOBAL_AMBIENT,
@@ -18,6 +17,7 @@ from data_synth.scenes import (
     shape_mesh,
     view_lights,
 )
+from fitting.dataset import load_dataset, save_dataset
 
 __all__ = [
     "COEFFICIENT_RANGES", "GLOBAL_AMBIENT", "LIGHT_INTENSITY", "SHAPES", "SHININESS_RANGE",

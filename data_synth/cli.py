@@ -15,9 +15,9 @@ import os
 import shutil
 import uuid
 
-from data_synth.io import save_dataset
 from data_synth.scenes import make_dataset
 from diffshade.settings import SHADING_MODES
+from fitting.dataset import save_dataset
 from fitting.inputs import non_negative_float, parse_material, positive_int
 
 
@@ -27,7 +27,7 @@ def register(subparsers):
         description="Render a built-in shape or a mesh file with a known (given or random) "
                     "material from several cameras, each with several lights (one image per "
                     "camera and light), and write the dataset folder: targets as float .npy "
-                    "and 8-bit PNG, scene files, mesh arrays and truth.json.")
+                    "and 8-bit PNG, scene files (with the mesh) and truth.json.")
     parser.add_argument("--shape", default="icosphere", metavar="icosphere|torus|box|PATH",
                         help="built-in shape or mesh file (default icosphere)")
     parser.add_argument("--material", default="random", metavar="random|KA,KD,KS,N|FILE",

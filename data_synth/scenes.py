@@ -14,9 +14,12 @@ Layout (chosen so that the data separate every parameter):
   (ambient only: separates ka from kd) and a highlight (ks, shininess);
 - OpenGL's light model otherwise: global ambient GLOBAL_AMBIENT, white lights of
   intensity LIGHT_INTENSITY, infinite viewer, one-sided lighting, black background.
-Targets are float renders, optionally with Gaussian noise and 8-bit quantization.
+Targets are float renders, optionally scaled by a per-image camera gain (exposure and
+white balance, applied to the unclamped render before the [0, 1] clip, as a sensor
+would), with Gaussian noise and 8-bit quantization.
 """
 
+import dataclasses
 import os
 
 import numpy as np
@@ -125,14 +128,41 @@ def _check_counts(n_views, n_lights, size, noise_std):
         raise ValueError(f"noise_std: got {noise_std!r}; expected a number >= 0")
 
 
+def _check_gains(gains, n_images):
+    """gains: None, or per image a positive gain or 3 of them -> [n_images, 3] or None."""
+    if gains is None:
+        return None
+    try:
+        arr = np.asarray(gains, np.float64)
+    except (TypeError, ValueError):
+        arr = np.zeros(0)
+    if arr.ndim == 1:
+        arr = arr[:, None] * np.ones(3)
+    if arr.shape != (n_images, 3) or not np.all(np.isfinite(arr)) or np.any(arr <= 0):
+        raise ValueError(f"gains: got {gains!r}; expected {n_images} positive numbers (one "
+                         "per image) or {n_images} rows of 3 (RGB)")
+    return arr
+
+
+def _render_target(scene, settings, gain):
+    """The float render of scene; with a gain, the unclamped render times the gain (the
+    clip to [0, 1] is degrade's, as a sensor's after its gain)."""
+    if gain is None:
+        return np.asarray(ds.render(scene, settings))[..., :3]
+    unclamped = dataclasses.replace(settings, clamp=False)
+    return np.asarray(ds.render(scene, unclamped))[..., :3] * gain
+
+
 def make_dataset(shape="icosphere", material=None, *, n_views=3, n_lights=2, size=128,
                  seed=0, quantize_8bit=False, noise_std=0.0, shading="phong",
-                 settings=None) -> Dataset:
+                 settings=None, gains=None) -> Dataset:
     """A Dataset of n_views * n_lights images (size x size) of `shape` ('icosphere',
     'torus', 'box', a mesh file path or a Mesh) with `material` (random from `seed` when None),
     laid out as in the module docstring. settings: RenderSettings (default: `shading`
-    with clamping). The true material is the dataset's `truth`."""
+    with clamping). gains: per image a camera gain (a number, or RGB), applied before the
+    clip; None: 1. The true material is the dataset's `truth`."""
     _check_counts(n_views, n_lights, size, noise_std)
+    gains = _check_gains(gains, n_views * n_lights)
     rng = np.random.default_rng(seed)
     material = random_material(rng) if material is None else material
     settings = ds.RenderSettings(shading=shading) if settings is None else settings
@@ -144,12 +174,14 @@ def make_dataset(shape="icosphere", material=None, *, n_views=3, n_lights=2, siz
         views += [View(camera, [light], blank) for light in view_lights(eye, n_lights)]
     dataset = Dataset(mesh, views, model=model, global_ambient=GLOBAL_AMBIENT,
                       settings=settings, truth=material)
-    images = [np.asarray(ds.render(view_scene(dataset, i, material), settings))[..., :3]
-              for i in range(len(views))]
+    images = [_render_target(view_scene(dataset, i, material), settings,
+                             None if gains is None else gains[i]) for i in range(len(views))]
     views = [View(v.camera, v.lights, degrade(img, rng, noise_std, quantize_8bit,
                                               settings.clamp))
              for v, img in zip(views, images, strict=True)]
     info.update(seed=seed, quantize_8bit=quantize_8bit, noise_std=noise_std,
                 n_views=n_views, n_lights=n_lights)
+    if gains is not None:
+        info["gains"] = gains.tolist()
     return Dataset(mesh, views, model=model, global_ambient=GLOBAL_AMBIENT, settings=settings,
                    truth=material, info=info)

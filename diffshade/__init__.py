@@ -38,7 +38,14 @@ from diffshade.render import (
     stack_cameras,
 )
 from diffshade.scene import Scene, make_scene, replace
-from diffshade.scenefile import SceneFileError, load_scene, save_scene, scene_from_dict
+from diffshade.scenefile import (
+    SceneFileError,
+    load_scene,
+    load_scenes,
+    save_scene,
+    scene_from_dict,
+    scenes_from_dict,
+)
 from diffshade.settings import RenderSettings
 from diffshade.shading import shade
 
@@ -51,7 +58,8 @@ __all__ = [
     "ambient_light", "box", "directional_light", "icosphere", "load_mesh", "look_at",
     "make_scene", "material", "mesh_from_arrays", "mesh_from_trimesh", "model_matrix",
     "point_light", "replace", "spot_light", "torus",
-    "BUILTIN_SCENES", "builtin_scene", "load_scene", "save_scene", "scene_from_dict",
+    "BUILTIN_SCENES", "builtin_scene", "load_scene", "load_scenes", "save_scene",
+    "scene_from_dict", "scenes_from_dict",
     # rendering
     "rasterize_scene", "render", "render_fragments", "render_parts", "render_views",
     "stack_cameras",

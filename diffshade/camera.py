@@ -16,6 +16,9 @@ import numpy as np
 from diffshade.numerics import float_dtype, representable, safe_normalize
 
 PROJECTIONS = ("perspective", "orthographic")
+#: The largest image side accepted, in pixels (OpenGL's usual GL_MAX_VIEWPORT_DIMS): a
+#: typo such as 10**30 is refused here rather than failing deep inside XLA.
+MAX_IMAGE_SIZE = 16384
 
 
 @partial(jax.tree_util.register_dataclass,
@@ -65,9 +68,12 @@ def _scalar(name, value, expected):
     return float(arr)
 
 
-def _positive_int(name, value):
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
-        raise ValueError(f"{name}: got {value!r}; expected a positive integer (pixels)")
+def check_image_size(name, value):
+    """value as an int image side in [1, MAX_IMAGE_SIZE], or ValueError naming `name`."""
+    if (isinstance(value, bool) or not isinstance(value, (int, np.integer))
+            or not 0 < value <= MAX_IMAGE_SIZE):
+        raise ValueError(f"{name}: got {value!r}; expected a positive integer of pixels, at "
+                         f"most {MAX_IMAGE_SIZE}")
     return int(value)
 
 
@@ -89,7 +95,7 @@ def look_at(eye, target, up=(0.0, 1.0, 0.0), *, width=256, height=256, fov_y=45.
     """Build a validated Camera. fov_y in degrees, in (0, 180); 0 < near < far."""
     eye, target, up = _vec3("eye", eye), _vec3("target", target), _vec3("up", up)
     _check_look_at(eye, target, up)
-    width, height = _positive_int("width", width), _positive_int("height", height)
+    width, height = check_image_size("width", width), check_image_size("height", height)
     if projection not in PROJECTIONS:
         raise ValueError(f"projection: got {projection!r}; expected one of {PROJECTIONS}")
     if not 0.0 < _scalar("fov_y", fov_y, "degrees in (0, 180)") < 180.0:

@@ -25,6 +25,7 @@ import numpy as np
 
 from data_synth.cli import register as register_synth
 from diffshade.builtin import BUILTIN_SCENES, builtin_scene
+from diffshade.camera import MAX_IMAGE_SIZE
 from diffshade.io import write_npy, write_png
 from diffshade.render import render, render_parts
 from diffshade.scene import replace
@@ -51,8 +52,10 @@ class _Parser(argparse.ArgumentParser):
 def _size(text):
     """'WxH' -> (width, height), both positive integers."""
     width, sep, height = text.lower().partition("x")
-    if not (sep and width.isdigit() and height.isdigit() and int(width) > 0 and int(height) > 0):
-        raise argparse.ArgumentTypeError(f"got {text!r}; expected WxH in pixels, e.g. 256x256")
+    if not (sep and width.isdigit() and height.isdigit()
+            and 0 < int(width) <= MAX_IMAGE_SIZE and 0 < int(height) <= MAX_IMAGE_SIZE):
+        raise argparse.ArgumentTypeError(f"got {text!r}; expected WxH in pixels, e.g. 256x256, "
+                                         f"each at most {MAX_IMAGE_SIZE}")
     return int(width), int(height)
 
 

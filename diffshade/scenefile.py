@@ -10,6 +10,10 @@ of the offending value and says what was expected, e.g.
 the light factories, material, the mesh builders, make_scene, RenderSettings): their
 ValueErrors are re-raised with the key path put in front of the argument name.
 
+A file may give several cameras (`"cameras": [...]` instead of `"camera"`): one scene per
+camera, sharing everything else; `scenes_from_dict` and `load_scenes` return them all,
+while `scene_from_dict` and `load_scene` want exactly one.
+
 `scene_to_dict` is the inverse: scene_from_dict(scene_to_dict(scene, settings)) renders
 as (scene, settings) do. Key names are the builders' keyword arguments throughout.
 """
@@ -51,8 +55,8 @@ from diffshade.mesh import (
 from diffshade.scene import Scene, make_scene
 from diffshade.settings import DATA_FIELDS, RenderSettings
 
-__all__ = ["FORMAT_VERSION", "SceneFileError", "load_scene", "save_scene", "scene_from_dict",
-           "scene_to_dict"]
+__all__ = ["FORMAT_VERSION", "SceneFileError", "load_scene", "load_scenes", "read_json",
+           "save_scene", "scene_from_dict", "scene_to_dict", "scenes_from_dict"]
 
 FORMAT_VERSION = 1
 
@@ -345,21 +349,37 @@ def _settings(value, path):
 
 _SCENE = {
     "version": _VERSION, "mesh": _Required(_OBJECT), "transform": _OBJECT,
-    "camera": _Required(_OBJECT), "lights": _ARRAY, "material": _OBJECT,
+    "camera": _OBJECT, "cameras": _ARRAY, "lights": _ARRAY, "material": _OBJECT,
     "back_material": _nullable(_OBJECT), "global_ambient": _RGB, "background": _RGB,
     "local_viewer": _BOOL, "two_sided": _BOOL, "settings": _OBJECT,
 }
 
 
-def scene_from_dict(data, base_dir=".") -> tuple[Scene, RenderSettings]:
-    """(Scene, RenderSettings) from a parsed scene file; mesh paths are relative to base_dir.
+def _cameras(top):
+    """The cameras of "camera" (one) or "cameras" (a non-empty array); exactly one given."""
+    if "camera" not in top and "cameras" not in top:
+        raise SceneFileError("camera: missing; expected an object (or \"cameras\": an array "
+                             "of them)")
+    if "camera" in top and "cameras" in top:
+        raise SceneFileError("camera, cameras: got both; expected exactly one of \"camera\" "
+                             "(an object) or \"cameras\" (an array of them)")
+    if "camera" in top:
+        return [_camera(top["camera"], "camera")]
+    if not top["cameras"]:
+        raise SceneFileError("cameras: got []; expected at least one camera object")
+    return [_camera(v, f"cameras[{i}]") for i, v in enumerate(top["cameras"])]
+
+
+def scenes_from_dict(data, base_dir=".") -> tuple[tuple[Scene, ...], RenderSettings]:
+    """(one Scene per camera, RenderSettings) from a parsed scene file; the scenes share
+    the mesh, lights, materials and switches. Mesh paths are relative to base_dir.
 
     Raises SceneFileError (a ValueError) naming the key path of the first bad value.
     """
     top = _read_object(data, "", _SCENE)
     mesh = _mesh(top["mesh"], "mesh", os.fspath(base_dir))
     model = _model(top["transform"], "transform") if "transform" in top else None
-    camera = _camera(top["camera"], "camera")
+    cameras = _cameras(top)
     lights = [_light(v, f"lights[{i}]") for i, v in enumerate(top.get("lights", []))]
     front = _material(top.get("material", {}), "material")
     back = top.get("back_material")
@@ -367,9 +387,26 @@ def scene_from_dict(data, base_dir=".") -> tuple[Scene, RenderSettings]:
     kwargs = {k: top[k] for k in ("global_ambient", "background", "local_viewer", "two_sided")
               if k in top}
     with _at("", {"model": "transform"}):
-        scene = make_scene(mesh, camera, lights, front, model=model, back_material=back,
+        scene = make_scene(mesh, cameras[0], lights, front, model=model, back_material=back,
                            **kwargs)
-    return scene, _settings(top.get("settings", {}), "settings")
+    scenes = (scene, *(dataclasses.replace(scene, camera=c) for c in cameras[1:]))
+    return scenes, _settings(top.get("settings", {}), "settings")
+
+
+def _one(scenes, settings):
+    if len(scenes) != 1:
+        raise SceneFileError(f"cameras: got {len(scenes)} cameras; expected one here "
+                             "(load_scenes and scenes_from_dict read several)")
+    return scenes[0], settings
+
+
+def scene_from_dict(data, base_dir=".") -> tuple[Scene, RenderSettings]:
+    """(Scene, RenderSettings) from a parsed scene file of one camera; mesh paths are
+    relative to base_dir.
+
+    Raises SceneFileError (a ValueError) naming the key path of the first bad value.
+    """
+    return _one(*scenes_from_dict(data, base_dir))
 
 
 def _reject_duplicates(pairs):
@@ -381,28 +418,54 @@ def _reject_duplicates(pairs):
     return dict(pairs)
 
 
+def read_json(path, what="JSON file"):
+    """The parsed JSON file at path (duplicate keys refused). Raises FileNotFoundError
+    naming the path when there is no such file, and SceneFileError "<path>: ..." for
+    invalid JSON, text that is not UTF-8 or nesting too deep to parse."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        if os.path.isdir(path):
+            raise IsADirectoryError(f"{what} is a directory: {path!r}; expected a file")
+        raise FileNotFoundError(f"{what} not found: {path!r}")
+    try:
+        with open(path, encoding="utf-8") as file:
+            return json.load(file, object_pairs_hook=_reject_duplicates)
+    except json.JSONDecodeError as err:
+        raise SceneFileError(f"{path}: line {err.lineno}, column {err.colno}: invalid JSON: "
+                             f"{err.msg}") from None
+    except UnicodeDecodeError as err:
+        raise SceneFileError(f"{path}: byte {err.start}: not UTF-8 text; expected a "
+                             f"{what}") from None
+    except RecursionError:
+        raise SceneFileError(f"{path}: nested too deeply to parse; expected a {what}") from None
+    except SceneFileError as err:
+        raise SceneFileError(f"{path}: {err}") from None
+
+
+def load_scenes(path) -> tuple[tuple[Scene, ...], RenderSettings]:
+    """(one Scene per camera, RenderSettings) from a JSON scene file; mesh paths are
+    relative to its folder. Errors as `load_scene`."""
+    path = os.fspath(path)
+    data = read_json(path, "scene file")
+    try:
+        return scenes_from_dict(data, base_dir=os.path.dirname(os.path.abspath(path)))
+    except SceneFileError as err:
+        raise SceneFileError(f"{path}: {err}") from err
+
+
 def load_scene(path) -> tuple[Scene, RenderSettings]:
-    """(Scene, RenderSettings) from a JSON scene file; mesh paths are relative to its folder.
+    """(Scene, RenderSettings) from a JSON scene file of one camera; mesh paths are
+    relative to its folder.
 
     Raises FileNotFoundError naming the path when there is no such file, and
     SceneFileError "<path>: <key path>: ..." (or "<path>: line L, column C: ..." for
     invalid JSON) for a file that does not describe a valid scene.
     """
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"scene file not found: {path!r}")
+    scenes, settings = load_scenes(path)
     try:
-        with open(path, encoding="utf-8") as file:
-            data = json.load(file, object_pairs_hook=_reject_duplicates)
-        return scene_from_dict(data, base_dir=os.path.dirname(os.path.abspath(path)))
-    except json.JSONDecodeError as err:
-        raise SceneFileError(f"{path}: line {err.lineno}, column {err.colno}: invalid JSON: "
-                             f"{err.msg}") from None
-    except UnicodeDecodeError as err:
-        raise SceneFileError(f"{path}: byte {err.start}: not UTF-8 text; expected a JSON "
-                             "scene file") from None
+        return _one(scenes, settings)
     except SceneFileError as err:
-        raise SceneFileError(f"{path}: {err}") from err
+        raise SceneFileError(f"{os.fspath(path)}: {err}") from err
 
 
 # ---- writing ----

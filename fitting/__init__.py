@@ -8,6 +8,7 @@ driver (fitting.run) with the same options (fitting.options).
 
 from fitting.cache import FitData, ViewSamples, build_cache, pixel_parts, predict
 from fitting.data import Dataset, View, view_scene
+from fitting.dataset import load_dataset, save_dataset
 from fitting.fit import FitResult, fit, fit_result, relative_errors
 from fitting.gauss_newton import levenberg_marquardt, lm_step
 from fitting.linear import box_least_squares, normal_equations, solve_linear
@@ -40,9 +41,10 @@ __all__ = [
     "FitOptions", "FitResult", "FitSpec", "IdentifiabilityWarning", "Misfit", "RenderData",
     "RunState", "UncertaintyReport", "View", "ViewSamples", "advance", "at_bound",
     "box_least_squares", "build_cache", "comparison_table", "finish", "fit", "fit_result",
-    "from_values", "levenberg_marquardt", "lm_step", "make_loss", "make_optimizer",
-    "make_render_loss", "make_step", "material_values", "misfit", "normal_equations",
-    "param_labels", "pixel_parts", "predict", "relative_errors", "render_data", "residuals",
-    "solve_linear", "start_run", "to_lights", "to_material", "to_unconstrained", "to_values",
-    "uncertainty", "value_names", "values_to_lights", "values_to_material", "view_scene",
+    "from_values", "levenberg_marquardt", "lm_step", "load_dataset", "make_loss",
+    "make_optimizer", "make_render_loss", "make_step", "material_values", "misfit",
+    "normal_equations", "param_labels", "pixel_parts", "predict", "relative_errors",
+    "render_data", "residuals", "save_dataset", "solve_linear", "start_run", "to_lights",
+    "to_material", "to_unconstrained", "to_values", "uncertainty", "value_names",
+    "values_to_lights", "values_to_material", "view_scene",
 ]

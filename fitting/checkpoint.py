@@ -21,7 +21,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffshade.io import write_json
-from diffshade.material import Material, material
+from diffshade.material import material
+from fitting.dataset import material_dict
+from fitting.gains import GAIN_NAMES
 from fitting.options import FitOptions
 from fitting.params import FitSpec
 from fitting.run import RunState, check_run, initial_opt_state, start_params
@@ -61,15 +63,6 @@ def _decode_tree(entries, template, where):
                                                                        strict=True))])
 
 
-def material_dict(mat: Material) -> dict:
-    """{'ka', 'kd', 'ks', 'shininess', 'emission'}: RGB lists (None when absent) and a float;
-    `diffshade.material(**d)` rebuilds it."""
-    def rgb(value):
-        return None if value is None else np.asarray(value, np.float64).tolist()
-    return {"ka": rgb(mat.ka), "kd": rgb(mat.kd), "ks": rgb(mat.ks),
-            "shininess": float(mat.shininess), "emission": rgb(mat.emission)}
-
-
 def save_checkpoint(path, state: RunState) -> str:
     """Write the state to `path` (JSON, atomically); returns the path."""
     return write_json(path, {
@@ -81,7 +74,13 @@ def save_checkpoint(path, state: RunState) -> str:
             "step": state.best_step, "loss": state.best_loss if state.best_params else None,
             "params": _encode_tree(state.best_params)},
         "quiet": state.quiet, "converged": state.converged, "rejected": state.rejected,
-        "wall_time": state.wall_time})
+        "wall_time": state.wall_time, "n_views": _n_views(state.params)})
+
+
+def _n_views(params):
+    """The views the per-view gains (fitting.gains) of params cover, or None."""
+    gains = [params[name] for name in GAIN_NAMES if name in params]
+    return int(np.shape(gains[0])[0]) + 1 if gains else None
 
 
 def read_checkpoint(path) -> dict:
@@ -115,7 +114,7 @@ def load_checkpoint(path, lights=None) -> RunState:
         check_run(spec, init, options)
         if spec.fits_lights and lights is None:
             raise ValueError("the run fits lights; expected the dataset's lights")
-        template = start_params(spec, init, lights)
+        template = start_params(spec, init, lights, data.get("n_views"))
         params = _decode_tree(data["params"], template, "params")
         opt_state = _decode_tree(data["optimizer_state"],
                                  initial_opt_state(spec, options, params), "optimizer_state")

@@ -127,7 +127,8 @@ def register(subparsers):
                         help="result folder (created if missing)")
     parser.add_argument("--fit", metavar="NAMES",
                         help="comma-separated quantities to fit among ka, kd, ks, "
-                             "shininess, light_colors, light_positions (default "
+                             "shininess, light_colors, light_positions, and the per-view "
+                             "gains against view 0 exposure, white_balance (default "
                              "ka,kd,ks,shininess)")
     parser.add_argument("--grey", metavar="NAMES",
                         help="coefficients fitted as one grey value (default: none, RGB)")

@@ -2,21 +2,20 @@
 
 argparse types (`positive_int`, `non_negative_float`), materials from text or a JSON file
 (`parse_material`), the FitSpec from --fit and --grey names (`fit_spec`), the output
-folder (`check_output`), and the dataset folder (`load_checked_dataset`: data_synth's
-load_dataset after checks that name the file, and the first non-finite target pixel).
+folder (`check_output`), and the dataset folder (`load_checked_dataset`:
+fitting.dataset.load_dataset, which checks the folder and names the file at fault).
 Every problem is a ValueError or an OSError whose message names the option or the file,
 the value and what was expected; diffshade.cli prints it as one line.
 """
 
 import argparse
-import hashlib
-import json
 import os
 
 import numpy as np
 
-from data_synth.io import load_dataset
 from diffshade.material import material
+from diffshade.scenefile import read_json
+from fitting.dataset import fingerprint, load_dataset, material_from_dict
 from fitting.params import COEFFICIENTS, FIT_NAMES, FitSpec
 
 DEFAULT_FIT = tuple(name for name, value in FitSpec().fitted.items() if value)
@@ -48,34 +47,16 @@ def non_negative_float(text):
 
 
 def _material_file(path, option):
+    """The fields of a JSON material file (a result.json: its 'material')."""
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{option}: material file not found: {path!r}")
     try:
-        with open(path, encoding="utf-8") as file:
-            data = json.load(file)
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        data = read_json(path, "material file")
+    except ValueError as err:
         raise ValueError(f"{option}: {path!r} is not valid JSON ({err})") from err
     if isinstance(data, dict) and isinstance(data.get("material"), dict):
         data = data["material"]  # a result.json
-    allowed = ("ka", "kd", "ks", "shininess", "emission")
-    if not isinstance(data, dict) or set(data) - set(allowed):
-        extra = sorted(set(data) - set(allowed)) if isinstance(data, dict) else type(data).__name__
-        raise ValueError(f"{option}: {path!r} has {extra}; expected an object with keys "
-                         f"among {allowed}")
-    for key, value in data.items():
-        _check_material_value(key, value, f"{option}: {path!r}: {key}")
     return data
-
-
-def _check_material_value(key, value, where):
-    """JSON material values: numbers ([r, g, b] for a coefficient; null for ks and
-    emission, which may be absent). material() checks the ranges and lengths."""
-    if value is None and key in ("ks", "emission"):
-        return
-    items = value if isinstance(value, list) and key != "shininess" else [value]
-    if not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in items):
-        expected = "a number" if key == "shininess" else "a number or [r, g, b]"
-        raise ValueError(f"{where}: got {value!r}; expected {expected}")
 
 
 def parse_material(text, option):
@@ -90,12 +71,11 @@ def parse_material(text, option):
             raise ValueError(f"{option}: got {text!r}; expected KA,KD,KS,N (4 numbers) or a "
                              "JSON file") from None
         fields = {"ka": ka, "kd": kd, "ks": ks, "shininess": shininess}
-    else:
-        fields = _material_file(text, option)
-    try:
-        return material(**fields)
-    except ValueError as err:
-        raise ValueError(f"{option}: {err}") from err
+        try:
+            return material(**fields)
+        except ValueError as err:
+            raise ValueError(f"{option}: {err}") from err
+    return material_from_dict(_material_file(text, option), f"{option}: {text!r}")
 
 
 def _names(text, option, allowed):
@@ -108,8 +88,9 @@ def _names(text, option, allowed):
 
 
 def fit_spec(fit_text=None, grey_text=None) -> FitSpec:
-    """FitSpec from --fit (names among fitting.params.FIT_NAMES; default: ka, kd, ks,
-    shininess) and --grey (fitted coefficients that get one value for all channels)."""
+    """FitSpec from --fit (names among fitting.params.FIT_NAMES, the per-view gains
+    exposure and white_balance included; default: ka, kd, ks, shininess) and --grey (fitted
+    coefficients that get one value for all channels)."""
     fitted = _names(fit_text, "--fit", FIT_NAMES) if fit_text is not None else DEFAULT_FIT
     grey = _names(grey_text, "--grey", COEFFICIENTS) if grey_text is not None else []
     for name in grey:
@@ -133,68 +114,16 @@ def check_output(path):
                          "writable folder)")
 
 
-def _dataset_entries(path):
-    """dataset.json's view entries, checked enough for load_dataset not to stumble."""
-    meta_path = os.path.join(path, "dataset.json")
-    if not os.path.isfile(meta_path):
-        raise FileNotFoundError(f"DATASET: {path!r} has no dataset.json; expected a dataset "
-                                "folder (see 'diffshade synth')")
-    try:
-        with open(meta_path, encoding="utf-8") as file:
-            views = json.load(file).get("views")
-    except (json.JSONDecodeError, UnicodeDecodeError, AttributeError) as err:
-        raise ValueError(f"{meta_path!r}: not a JSON object ({err})") from err
-    if not isinstance(views, list) or not all(
-            isinstance(v, dict) and isinstance(v.get("scene"), str)
-            and isinstance(v.get("image"), str) for v in views):
-        raise ValueError(f"{meta_path!r}: 'views' must be a list of objects with 'scene' and "
-                         "'image' file names")
-    return views
-
-
-def _check_targets(path, entries):
-    """Name the first non-finite pixel of any float target (load_dataset only says that
-    there is one)."""
-    for index, entry in enumerate(entries):
-        npy = entry.get("target")
-        if not (isinstance(npy, str) and os.path.isfile(os.path.join(path, npy))):
-            continue
-        try:
-            target = np.load(os.path.join(path, npy), allow_pickle=False)
-        except (OSError, ValueError):
-            continue  # load_dataset reports an unreadable file
-        if not np.issubdtype(target.dtype, np.floating):
-            continue
-        bad = np.argwhere(~np.isfinite(target))
-        if bad.size:
-            row, column = (int(i) for i in bad[0][:2])
-            kind = "NaN" if np.isnan(target[tuple(bad[0])]) else "infinity"
-            raise ValueError(f"target image of view {index} ({npy}) contains {kind} at pixel "
-                             f"(row {row}, column {column}) ({len(bad)} non-finite values); "
-                             "expected finite colours")
-
-
 def load_checked_dataset(path, color_space=None):
-    """load_dataset with the CLI's checks first: the folder, dataset.json, finite targets.
+    """fitting.dataset.load_dataset, after checking that DATASET is a folder.
     color_space: 'srgb' or 'linear' decodes every image target so (--color-space)."""
     if not os.path.exists(path):
         raise FileNotFoundError(f"DATASET: folder not found: {path!r}")
     if not os.path.isdir(path):
         raise ValueError(f"DATASET: {path!r} is a file; expected a dataset folder")
-    _check_targets(path, _dataset_entries(path))
-    try:
-        return load_dataset(path, color_space)
-    except (KeyError, TypeError) as err:
-        raise ValueError(f"DATASET: {path!r} is malformed ({err!r})") from err
+    return load_dataset(path, color_space)
 
 
 def dataset_fingerprint(dataset) -> str:
-    """sha256 of the targets (shapes and float32 bytes): resume only on the same data."""
-    digest = hashlib.sha256()
-    for view in dataset.views:
-        target = np.ascontiguousarray(view.target, np.float32)
-        digest.update(repr(target.shape).encode())
-        digest.update(target.tobytes())
-    return digest.hexdigest()
-
-
+    """sha256 of the targets and masks: resume only on the same data."""
+    return fingerprint(dataset)

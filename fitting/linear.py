@@ -20,6 +20,12 @@ likewise only exact after the polish).
 The outer problem in log-shininess is 1-D: evaluated on a log grid (so that a flat or
 multi-modal profile cannot trap it), then refined by Brent's bounded method around the
 best grid point. This removes the ks-shininess ridge that slows plain gradient descent.
+
+Per-view gains (fitting.gains) multiply a view's parts, so with the gains fixed the
+coefficients are still a linear problem, and with the coefficients fixed each view's gain
+per channel is a 1-D least-squares ratio. When the spec fits gains, the two alternate
+(`GAIN_ROUNDS` times at the searched shininess, which is then searched again with the
+gains found): a start close enough for Levenberg-Marquardt to polish everything jointly.
 """
 
 import dataclasses
@@ -31,9 +37,11 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from fitting.cache import FitData, pixel_parts
-from fitting.params import COEFFICIENTS, FitSpec
+from fitting.gains import fitted_gains
+from fitting.params import COEFFICIENTS, FitSpec, values_to_material
 
 SATURATION_EPS = 1e-6
+GAIN_ROUNDS = 6
 
 
 def _unit_material(base, spec, log_shininess):
@@ -75,14 +83,17 @@ def _usable(target, settings):
 
 
 @partial(jax.jit, static_argnames=("spec",))
-def normal_equations(log_shininess, data: FitData, spec: FitSpec):
+def normal_equations(log_shininess, data: FitData, spec: FitSpec, gains=None):
     """At shininess exp(log_shininess): G = X^T X [p, p], b = X^T y [p], c = y^T y and n
     (the number of usable pixel-channels), for the design X whose columns are the parts
-    scaled by each fitted coefficient, and y = target - emission - fixed parts."""
+    scaled by each fitted coefficient, and y = target - emission - fixed parts. gains:
+    [V, 3] per-view gains that multiply the parts (None: 1)."""
     material = _unit_material(data.material, spec, log_shininess)
     gram, rhs, sq, count = 0.0, 0.0, 0.0, 0.0
-    for samples, lights in zip(data.views, data.lights, strict=True):
+    for v, (samples, lights) in enumerate(zip(data.views, data.lights, strict=True)):
         parts = pixel_parts(material, lights, data.global_ambient, samples, data.settings)
+        if gains is not None:
+            parts = parts.map(lambda a, g=gains[v]: a * g)
         w = _usable(samples.target, data.settings)
         y = samples.target - _offset(parts, spec, data.material)
         stacked = jnp.stack([parts.ambient, parts.diffuse, parts.specular])
@@ -138,21 +149,21 @@ def _advance(x, step, state, lower, upper):
     return x, state
 
 
-def _solve(log_shininess, data, spec):
+def _solve(log_shininess, data, spec, gains=None):
     """(coefficients [p], mean squared residual) at shininess exp(log_shininess)."""
     gram, rhs, sq, count = (np.asarray(a, np.float64)
-                            for a in normal_equations(log_shininess, data, spec))
+                            for a in normal_equations(log_shininess, data, spec, gains))
     coef = box_least_squares(gram, rhs, 0.0, spec.upper)
     return coef, float(coef @ gram @ coef - 2 * coef @ rhs + sq) / max(float(count), 1.0)
 
 
-def _search_shininess(data, spec, shininess_range, grid_size):
+def _search_shininess(data, spec, shininess_range, grid_size, gains=None):
     """Best log-shininess: the best point of a log grid, refined by bounded Brent."""
     grid = np.linspace(np.log(shininess_range[0]), np.log(shininess_range[1]), grid_size)
-    profile = np.array([_solve(g, data, spec)[1] for g in grid])
+    profile = np.array([_solve(g, data, spec, gains)[1] for g in grid])
     best = int(np.argmin(profile))
     lo, hi = grid[max(best - 1, 0)], grid[min(best + 1, grid_size - 1)]
-    refined = minimize_scalar(lambda g: _solve(g, data, spec)[1], bounds=(lo, hi),
+    refined = minimize_scalar(lambda g: _solve(g, data, spec, gains)[1], bounds=(lo, hi),
                               method="bounded", options={"xatol": 1e-3})
     return float(refined.x) if refined.fun <= profile[best] else float(grid[best])
 
@@ -167,19 +178,69 @@ def _split(coef, spec, dtype):
     return values
 
 
+@partial(jax.jit, static_argnames=("spec",))
+def gain_moments(values, data: FitData, spec: FitSpec):
+    """([V, 3] sum of w p t, [V, 3] sum of w p p) per view and channel: p the unclamped
+    colour of the values' material at unit gain, t the target, w 1 at usable pixels."""
+    material = values_to_material(values, spec, data.material)
+    num, den = [], []
+    for samples, lights in zip(data.views, data.lights, strict=True):
+        p = pixel_parts(material, lights, data.global_ambient, samples, data.settings).total
+        w = _usable(samples.target, data.settings)
+        num.append(jnp.sum(w * p * samples.target, 0))
+        den.append(jnp.sum(w * p * p, 0))
+    return jnp.stack(num), jnp.stack(den)
+
+
+def _best_gains(values, data, spec):
+    """[V, 3] least-squares gains for the values' material: per channel with white
+    balance, shared by the channels for an exposure alone, green 1 for white balance
+    alone; view 0 stays the reference (1)."""
+    num, den = (np.asarray(a, np.float64) for a in gain_moments(values, data, spec))
+    if not spec.white_balance:
+        num, den = np.repeat(num.sum(1, keepdims=True), 3, 1), np.repeat(
+            den.sum(1, keepdims=True), 3, 1)
+    gains = np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
+    if not spec.exposure:
+        gains = gains / gains[:, 1:2]
+    gains[0] = 1.0
+    return np.maximum(gains, 1e-6)
+
+
+def _gain_values(gains, spec, dtype):
+    """The values ('exposure' [V - 1], 'white_balance' [V - 1, 2]) of [V, 3] gains."""
+    rest = jnp.asarray(gains[1:], dtype)
+    values = {"exposure": rest[:, 1]} if spec.exposure else {}
+    if spec.white_balance:
+        values["white_balance"] = jnp.stack([rest[:, 0], rest[:, 2]], -1) / rest[:, 1:2]
+    return values
+
+
 def solve_linear(data: FitData, spec: FitSpec, *, shininess_range=(1.0, 2000.0),
                  grid_size=24) -> dict:
     """Physical values of the spec's material quantities: the coefficients in closed form,
-    shininess (when fitted) by a 1-D search within `shininess_range`. Lights are held at
-    `data.lights`. Returns the values dict (see fitting.params)."""
+    shininess (when fitted) by a 1-D search within `shininess_range`, and the per-view
+    gains the spec fits (module docstring). Lights are held at `data.lights`. Returns the
+    values dict (see fitting.params)."""
     lo, hi = shininess_range
     if not (0 < lo < hi < float("inf")):
         raise ValueError(f"shininess_range: got {shininess_range!r}; expected 0 < low < high")
     dtype = data.material.ka.dtype
-    log_s = (_search_shininess(data, spec, shininess_range, grid_size) if spec.shininess
-             else jnp.log(jnp.maximum(data.material.shininess, 1e-6)))
-    coef, _ = _solve(log_s, data, spec)
-    values = _split(coef, spec, dtype)
-    if spec.shininess:
-        values["shininess"] = jnp.exp(jnp.asarray(log_s, dtype))
-    return values
+    gains = np.ones((len(data.views), 3)) if fitted_gains(spec) else None
+
+    def solve(gains):
+        log_s = (_search_shininess(data, spec, shininess_range, grid_size, gains)
+                 if spec.shininess else jnp.log(jnp.maximum(data.material.shininess, 1e-6)))
+        values = _split(_solve(log_s, data, spec, gains)[0], spec, dtype)
+        if spec.shininess:
+            values["shininess"] = jnp.exp(jnp.asarray(log_s, dtype))
+        return values, log_s
+
+    values, log_s = solve(gains)
+    if gains is None:
+        return values
+    for _ in range(GAIN_ROUNDS):
+        gains = _best_gains(values, data, spec)
+        values = {**values, **_split(_solve(log_s, data, spec, gains)[0], spec, dtype)}
+    values, _ = solve(gains)
+    return values | _gain_values(gains, spec, dtype)

@@ -24,6 +24,7 @@ from diffshade.render import render
 from diffshade.scene import replace
 from fitting.cache import FitData, predict
 from fitting.data import view_scene
+from fitting.gains import scaled_material, view_gains, view_materials
 from fitting.params import FitSpec, to_values, values_to_lights, values_to_material
 
 LOSSES = ("mse", "l1", "charbonnier", "huber")
@@ -62,11 +63,13 @@ def irls_weight(kind, r):
 
 
 def values_residuals(values, spec: FitSpec, data: FitData):
-    """Physical values -> residuals (rendered - target) per view: tuple of [N_v, 3]."""
-    material = values_to_material(values, spec, data.material)
+    """Physical values -> residuals (rendered - target) per view: tuple of [N_v, 3]. Each
+    view is rendered with its own gain (fitting.gains) when the spec fits gains."""
+    materials = view_materials(values_to_material(values, spec, data.material), values,
+                               len(data.views))
     lights = values_to_lights(values, spec, data.lights)
     return tuple(predict(material, light, data.global_ambient, view, data.settings) - view.target
-                 for view, light in zip(data.views, lights, strict=True))
+                 for view, light, material in zip(data.views, lights, materials, strict=True))
 
 
 def residuals(params, spec: FitSpec, data: FitData):
@@ -131,8 +134,13 @@ def make_render_loss(spec: FitSpec, kind: str = "mse"):
     def loss_fn(params, data):
         values = to_values(params, spec)
         lights = values_to_lights(values, spec, [s.lights for s in data.scenes])
-        scenes = [replace(scene, material=values_to_material(values, spec, scene.material),
-                          lights=light) for scene, light in zip(data.scenes, lights, strict=True)]
+        gains = view_gains(values, len(data.scenes))
+        scenes = []
+        for v, (scene, light) in enumerate(zip(data.scenes, lights, strict=True)):
+            material = values_to_material(values, spec, scene.material)
+            if gains is not None:
+                material = scaled_material(material, gains[v])
+            scenes.append(replace(scene, material=material, lights=light))
         res = [img[..., :3] - t for img, t in zip(render_all(scenes, data.settings),
                                                    data.targets, strict=True)]
         return mean_rho(kind, res, list(data.weights))

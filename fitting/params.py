@@ -2,17 +2,19 @@
 
 A `FitSpec` (frozen, hashable, static under `jit`) names the fitted quantities: each of
 ka, kd, ks as 'rgb' (3 values), 'grey' (1 value for all channels) or None (held fixed),
-shininess (bool), and optionally every light's colour and position. Held-fixed values come
-from a base `Material` (and the dataset's lights).
+shininess (bool), optionally every light's colour and position, and each view's exposure
+and white-balance gain relative to view 0 (fitting.gains). Held-fixed values come from a
+base `Material` (and the dataset's lights).
 
 Three representations of the same quantities, each a dict pytree with the same keys:
 - params (unconstrained, what the optimizer moves): coefficient = upper * sigmoid(u);
-  shininess = exp(u); light colour = exp(u) (diffuse = specular); light position = u.
+  shininess = exp(u); light colour = exp(u) (diffuse = specular); light position = u;
+  exposure, white balance = exp(u).
 - values (physical): the coefficients, shininess, colours and positions themselves.
 - Material / LightGroups: what `diffshade.shade` consumes.
 Keys: 'ka', 'kd', 'ks' ([3] or []), 'shininess' ([]), 'lights' (a tuple over views of
 {group: {'color': [L, 3], 'position': [L, 3]}} for the 'directional', 'point', 'spot'
-groups present).
+groups present), 'exposure' ([V - 1]), 'white_balance' ([V - 1, 2]: red, blue).
 
 `KINDS` is the one table of parameter kinds, keyed by a leaf's last dict key: its map to
 physical values (`TRANSFORMS`), its optimizer group for per-group learning rates
@@ -29,6 +31,7 @@ import numpy as np
 
 from diffshade.material import Material, material
 from diffshade.numerics import float_dtype
+from fitting.gains import GAIN_NAMES, fitted_gains, gain_values
 
 COEFFICIENTS = ("ka", "kd", "ks")
 MODES = ("rgb", "grey")
@@ -38,7 +41,7 @@ POSITIONED_GROUPS = ("point", "spot")
 _EDGE = 1e-6
 
 DEFAULT_INIT = material(ka=0.3, kd=0.5, ks=0.3, shininess=20.0)
-FIT_NAMES = (*COEFFICIENTS, "shininess", "light_colors", "light_positions")
+FIT_NAMES = (*COEFFICIENTS, "shininess", "light_colors", "light_positions", *GAIN_NAMES)
 # A value within this fraction of its bound (of 1 for a bound at 0 with no upper one) is
 # at the bound: its standard error is not defined (the Gaussian approximation fails).
 BOUND_TOL = 1e-3
@@ -84,6 +87,8 @@ KINDS = {
     "shininess": Kind("log", "shininess"),
     "color": Kind("log", "colour"),  # a light's colour (diffuse = specular)
     "position": Kind("identity", "position"),
+    "exposure": Kind("log", "colour"),  # per-view gains (fitting.gains)
+    "white_balance": Kind("log", "colour"),
 }
 
 
@@ -91,7 +96,8 @@ KINDS = {
 class FitSpec:
     """ka, kd, ks: 'rgb' | 'grey' | None; shininess: fitted or not; light_colors,
     light_positions: fit every light's colour (diffuse = specular) / position (point and spot
-    lights); upper: the coefficients' upper bound (they live in [0, upper])."""
+    lights); exposure, white_balance: fit a gain per view relative to view 0
+    (fitting.gains); upper: the coefficients' upper bound (they live in [0, upper])."""
 
     ka: str | None = "rgb"
     kd: str | None = "rgb"
@@ -100,6 +106,8 @@ class FitSpec:
     light_colors: bool = False
     light_positions: bool = False
     upper: float = 1.0
+    exposure: bool = False
+    white_balance: bool = False
 
     def __post_init__(self):
         for name in COEFFICIENTS:
@@ -165,10 +173,16 @@ def _light_values(lights, spec):
     return tuple(per_view)
 
 
-def material_values(material_: Material, spec: FitSpec, lights=None) -> dict:
+def material_values(material_: Material, spec: FitSpec, lights=None, n_views=None) -> dict:
     """Physical values of the fitted quantities of `material_` (and `lights`, a sequence of
-    LightGroups, one per view; needed when the spec fits lights)."""
+    LightGroups, one per view; needed when the spec fits lights). Fitted gains start at 1;
+    they need the number of views: n_views, or len(lights)."""
     values = {name: _coefficient_value(name, material_, spec) for name in spec.coefficients}
+    if fitted_gains(spec):
+        if n_views is None and lights is None:
+            raise ValueError("n_views: got None; expected the number of views, because the "
+                             "spec fits per-view gains")
+        values |= gain_values(spec, len(lights) if n_views is None else n_views)
     if spec.shininess:
         values["shininess"] = jnp.asarray(material_.shininess, float_dtype())
     if spec.fits_lights:
@@ -269,6 +283,10 @@ def param_labels(params: dict):
 
 def _leaf_names(path, leaf):
     keys = [getattr(k, "key", getattr(k, "idx", None)) for k in path]
+    if keys[0] == "exposure":
+        return [f"exposure[{v + 1}]" for v in range(np.shape(leaf)[0])]
+    if keys[0] == "white_balance":
+        return [f"white_balance[{v + 1}][{c}]" for v in range(np.shape(leaf)[0]) for c in "rb"]
     if keys[0] != "lights":
         return [keys[0]] if np.ndim(leaf) == 0 else [f"{keys[0]}[{c}]" for c in "rgb"]
     _, view, group, field = keys
@@ -280,6 +298,7 @@ def _leaf_names(path, leaf):
 def value_names(values: dict) -> list:
     """Readable name of every scalar of `values`, in the order of
     `jax.flatten_util.ravel_pytree(values)`: 'ka[r]', 'kd' (grey), 'shininess',
+    'exposure[1]' (view 1's), 'white_balance[2][b]',
     'lights[0].point[1].color[g]', 'lights[2].point[0].position[x]', ..."""
     leaves = jax.tree_util.tree_flatten_with_path(values)[0]
     return [name for path, leaf in leaves for name in _leaf_names(path, leaf)]

@@ -30,8 +30,9 @@ import numpy as np
 from diffshade.color import srgb_to_linear
 from diffshade.io import write_json, write_npy, write_png, write_text
 from diffshade.render import render
-from fitting.checkpoint import material_dict
 from fitting.data import view_scene
+from fitting.dataset import material_dict
+from fitting.gains import GAIN_NAMES, view_materials
 from fitting.params import value_names
 
 ERROR_GAIN = 10.0
@@ -142,6 +143,10 @@ def _material_rows(result, truth, se):
         if name == "lights":
             continue
         fitted = np.atleast_1d(np.asarray(value, np.float64))
+        if name in GAIN_NAMES:  # per-view gains: no true value, one row per scalar
+            for label, v in zip(value_names({name: value}), fitted.ravel(), strict=True):
+                yield label, None, v, se.get(label), label in result.at_bound, None
+            continue
         true = None if truth is None else np.atleast_1d(np.asarray(getattr(truth, name),
                                                                    np.float64))
         errors = (np.atleast_1d(result.errors[name]) if result.errors and name in result.errors
@@ -214,7 +219,8 @@ def write_result(out_dir, dataset, result, init, extra=None, title="", kept=None
     every pixel), for residual_scale."""
     out_dir = os.fspath(out_dir)
     count = len(dataset.views)
-    fitted = [_render_rgb(dataset, i, result.material, result.lights[i]) for i in range(count)]
+    materials = view_materials(result.material, result.values, count)  # per-view gains
+    fitted = [_render_rgb(dataset, i, materials[i], result.lights[i]) for i in range(count)]
     residuals = [f - v.target for f, v in zip(fitted, dataset.views, strict=True)]
     kept = kept or [np.arange(v.target.shape[0] * v.target.shape[1]) for v in dataset.views]
     scale = residual_scale(residuals, kept)

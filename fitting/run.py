@@ -108,10 +108,13 @@ def check_run(spec, init, options):
         raise TypeError(f"options: got {type(options).__name__}; expected FitOptions")
 
 
-def start_params(spec, init, lights):
+def start_params(spec, init, lights, n_views=None):
     """Unconstrained params of `init` (and `lights`, one LightGroups per view, when the
-    spec fits them)."""
-    return from_values(material_values(init, spec, lights if spec.fits_lights else None), spec)
+    spec fits them; per-view gains start at 1 for n_views views, default len(lights))."""
+    if n_views is None and lights is not None:
+        n_views = len(lights)
+    return from_values(material_values(init, spec, lights if spec.fits_lights else None,
+                                       n_views=n_views), spec)
 
 
 def start_run(data, spec: FitSpec, init: Material, options: FitOptions | None = None,

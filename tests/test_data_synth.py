@@ -107,7 +107,13 @@ def test_save_load_round_trip(sphere_data, tmp_path):
     loaded = load_dataset(tmp_path)
     assert loaded.settings == sphere_data.settings
     np.testing.assert_array_equal(loaded.model, sphere_data.model.astype(np.float32))
-    np.testing.assert_array_equal(loaded.mesh.normals, sphere_data.mesh.normals)
+    # the mesh comes from the scene files: exact vertices and faces; the normals are
+    # normalized again on reading (a float32 rounding apart)
+    np.testing.assert_array_equal(loaded.mesh.vertices, sphere_data.mesh.vertices)
+    np.testing.assert_array_equal(loaded.mesh.faces, sphere_data.mesh.faces)
+    np.testing.assert_allclose(loaded.mesh.normals, sphere_data.mesh.normals, rtol=0,
+                               atol=2.5e-7)
+    assert not [f for f in files if f.startswith("mesh_")]  # no separate mesh arrays
     for a, b in zip(sphere_data.views, loaded.views, strict=True):
         np.testing.assert_array_equal(a.target, b.target)
         for x, y in zip(jax.tree.leaves((a.camera, a.lights)), jax.tree.leaves((b.camera,
@@ -174,19 +180,31 @@ def test_make_dataset_rejects_bad_arguments(kwargs, message):
         make_dataset(**kwargs)
 
 
-@pytest.mark.parametrize("name, change, shown", [
-    ("faces", lambda faces: faces.__setitem__((3, 1), 500), "mesh_faces.npy: index 500 out of "
-                                                             "range for 162 vertices"),
-    ("faces", lambda faces: faces.__setitem__((0, 0), -1), "mesh_faces.npy: index -1"),
-    ("vertices", lambda verts: verts.__setitem__((7, 2), np.nan), "mesh_vertices.npy: row 7"),
-    ("normals", lambda normals: normals.__setitem__((1, 0), np.inf), "mesh_normals.npy: row 1"),
+@pytest.mark.parametrize("change, shown", [
+    (lambda mesh: mesh["faces"][3].__setitem__(1, 500),
+     "view_001.json: mesh.faces: index 500 out of range for 162 vertices"),
+    (lambda mesh: mesh["faces"][0].__setitem__(0, -1), "view_001.json: mesh.faces: index -1"),
+    (lambda mesh: mesh["vertices"][7].__setitem__(2, "nan"), "view_001.json: mesh.vertices[7]"),
+    (lambda mesh: mesh["vertices"][7].__setitem__(2, 1e39), "mesh.vertices: row 7"),
+    (lambda mesh: mesh["normals"][1].__setitem__(0, 1e39), "mesh.normals: row 1"),
 ])
-def test_load_dataset_checks_the_saved_mesh(sphere_data, tmp_path, name, change, shown):
-    """A corrupted mesh_*.npy is refused naming the file (a bad face index used to reach
-    the rasterizer and crash it; a NaN vertex used to fit silently)."""
+def test_load_dataset_checks_the_scene_files_mesh(sphere_data, tmp_path, change, shown):
+    """The dataset's mesh is its scene files' mesh, checked as every mesh is (a bad face
+    index used to reach the rasterizer and crash it; a NaN vertex used to fit silently)."""
     save_dataset(sphere_data, tmp_path)
-    array = np.load(tmp_path / f"mesh_{name}.npy")
-    change(array)
-    np.save(tmp_path / f"mesh_{name}.npy", array)
+    scene = json.loads((tmp_path / "view_001.json").read_text())
+    change(scene["mesh"])
+    (tmp_path / "view_001.json").write_text(json.dumps(scene))
     with pytest.raises(ValueError, match=re.escape(shown)):
+        load_dataset(tmp_path)
+
+
+def test_load_dataset_refuses_views_of_different_meshes(sphere_data, tmp_path):
+    """One dataset, one mesh: a scene file that shows another one is named."""
+    save_dataset(sphere_data, tmp_path)
+    scene = json.loads((tmp_path / "view_002.json").read_text())
+    scene["mesh"]["vertices"][5][0] += 0.25
+    (tmp_path / "view_002.json").write_text(json.dumps(scene))
+    with pytest.raises(ValueError, match=re.escape("views[2] (view_002.json): its mesh "
+                                                   "differs from views[0]'s")):
         load_dataset(tmp_path)

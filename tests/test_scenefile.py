@@ -16,9 +16,11 @@ from diffshade.builtin import builtin_scene
 from diffshade.scenefile import (
     SceneFileError,
     load_scene,
+    load_scenes,
     save_scene,
     scene_from_dict,
     scene_to_dict,
+    scenes_from_dict,
 )
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -226,6 +228,10 @@ def edited(keys, value):
 @pytest.mark.parametrize("keys, value, message", [
     (("camera", "width"), DELETE, "camera.width: missing; expected a positive integer"),
     (("camera", "width"), 0, "camera.width: got 0; expected a positive integer"),
+    (("camera", "width"), 10**30, "camera.width: got 1000000000000000000000000000000; "
+                                  "expected a positive integer of pixels, at most 16384"),
+    (("camera",), DELETE, 'camera: missing; expected an object (or "cameras": an array'),
+    (("cameras",), [], 'camera, cameras: got both; expected exactly one of "camera"'),
     (("camera", "fov_y"), "45", 'camera.fov_y: got "45"; expected a number'),
     (("camera", "eye"), [0, 3], "camera.eye: got [0, 3]; expected 3 numbers"),
     (("camera", "target"), [0, 0, 3], "camera.eye, camera.target: both are [0.0, 0.0, 3.0]"),
@@ -343,3 +349,40 @@ def test_the_documented_example_is_valid():
     scene, settings = scene_from_dict(json.loads(example))
     assert scene.lights.spot.cutoff.tolist() == [15.0]
     assert settings.spot_edge == "smooth"
+
+
+# ---- several cameras ----
+
+
+def test_several_cameras_give_one_scene_each(tmp_path):
+    """"cameras": one scene per camera, each the API scene with that camera."""
+    second = {**FULL["camera"], "eye": [2, 1, 2], "width": 10, "height": 8}
+    data = {k: v for k, v in copy.deepcopy(FULL).items() if k != "camera"}
+    data["cameras"] = [FULL["camera"], second]
+    want, want_settings = full_scene_by_api()
+    want_second = ds.replace(want, camera=ds.look_at((2, 1, 2), (0, 0, 0), (0, 1, 0), fov_y=50,
+                                                     near=0.5, far=20, width=10, height=8))
+    path = tmp_path / "shots.json"
+    path.write_text(json.dumps(data))
+    for scenes, settings in (scenes_from_dict(data), load_scenes(path)):
+        assert len(scenes) == 2 and settings == want_settings
+        assert_same_tree(scenes[0], want)
+        assert_same_tree(scenes[1], want_second)
+    with pytest.raises(SceneFileError, match="shots.json: cameras: got 2 cameras; expected "
+                                             "one here"):
+        load_scene(path)
+    path.write_text(json.dumps({**data, "cameras": [FULL["camera"], {**second, "width": 10**30}]}))
+    with pytest.raises(SceneFileError, match=r"cameras\[1\].width: got 1000000000000000000000000"
+                                             r"000000; expected a positive integer of pixels"):
+        load_scenes(path)
+    with pytest.raises(SceneFileError, match="cameras: got \\[\\]; expected at least one"):
+        scenes_from_dict({**data, "cameras": []})
+    # one camera given as a one-element list is a single-camera file
+    assert_same_tree(scene_from_dict({**data, "cameras": [FULL["camera"]]})[0], want)
+
+
+def test_json_nested_too_deeply_is_a_scene_file_error(tmp_path):
+    path = tmp_path / "deep.json"
+    path.write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(SceneFileError, match="deep.json: nested too deeply to parse"):
+        load_scene(path)
