@@ -21,8 +21,9 @@ The cameras are checked to match: a diffshade render with a Lambert-only materia
 ambient, no specular) against Mitsuba's image; printed: the IoU of the coverage masks
 (alpha > 0.5) and the largest colour difference inside both masks (away from the outline).
 
-Each engine runs in its own process (--rounds times, alternating). Printed: compile
-seconds (the first call) and the median of --repeats calls after a warm-up. Mitsuba is an
+Each engine runs in its own process (--rounds times, alternating; Mitsuba with an empty
+kernel cache in the first round). Printed: compile seconds (the first call: tracing and
+compilation, cold) and the median of --repeats calls after a warm-up. Mitsuba is an
 optional extra (pip install '.[peers]'); where it cannot run (not installed, or Dr.Jit
 finds no libLLVM: see docs/performance.md), one line says so and the script exits with
 status 0 after diffshade's figures.
@@ -213,6 +214,11 @@ def spawn(worker, args, exchange):
            "--repeats", str(args.repeats), "--only", ",".join(args.only)]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(
         [ROOT] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]))
+    if worker == "mitsuba":
+        # Dr.Jit keeps compiled kernels in ~/.drjit: a fresh home makes its first call a
+        # cold compile, as diffshade's is (JAX keeps no compilation cache on disk here)
+        env["HOME"] = os.path.join(os.path.dirname(exchange), "mitsuba-home")
+        os.makedirs(env["HOME"], exist_ok=True)
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, env=env)
     if proc.returncode != 0:
         return {"error": proc.stderr[-3000:]}

@@ -65,7 +65,9 @@ def loss_fn(render, settings, scene, target_image):
 
 
 def measure(fn, args, repeats, budget_s=None, max_bytes=None):
-    """Compile seconds, warm-up seconds, steady-state median seconds and memory stats.
+    """Compile seconds, warm-up seconds, steady-state median seconds (wall clock, and CPU
+    seconds of all the process's threads: on a loaded machine the steadier measure of the
+    work done) and memory stats.
     budget_s: stop timing once the timed calls add up to this (at least one is timed);
     max_bytes: when XLA's compiled memory (temp + output) exceeds it, do not run: the
     result then holds 'skipped' (the reason) and the compile figures only."""
@@ -85,13 +87,14 @@ def measure(fn, args, repeats, budget_s=None, max_bytes=None):
     t0 = time.perf_counter()
     jax.block_until_ready(compiled(*args))
     warmup_s = time.perf_counter() - t0
-    times = []
+    times, cpu_times = [], []
     while len(times) < repeats and (budget_s is None or not times or sum(times) < budget_s):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         jax.block_until_ready(compiled(*args))
         times.append(time.perf_counter() - t0)
+        cpu_times.append(time.process_time() - c0)
     return {**out, "warmup_s": warmup_s, "median_s": statistics.median(times),
-            "times_s": times}
+            "times_s": times, "cpu_median_s": statistics.median(cpu_times)}
 
 
 def largest_divisor(n, at_most):

@@ -12,7 +12,11 @@ Timed: forward (render / render_views) and forward + backward (value_and_grad of
 to a grey image with respect to vertices, kd and ks). Counted (by `rasterize_scene`, over
 all views): the covered (pixel, face) pairs that the candidate search finds, i.e. the
 fragments kept in the K slots plus those dropped beyond K (`Fragments.dropped`); and the
-fragments kept. Cost per pair = time / pairs.
+fragments kept. Times: the median wall clock, and the median CPU seconds of the process's
+threads per call (on a machine loaded by others the steadier measure of the work; with
+2 cores idle it is up to twice the wall time). Cost per pair = CPU time / pairs, and a
+least-squares cost model (CPU time against pairs, kept fragments, pixels and faces) says
+where the cost is not linear in pairs.
 
 Each point runs in its own process, so that its peak resident memory (getrusage
 ru_maxrss: imports, scene, compilation and runs) is its own: measured after forward (which
@@ -144,14 +148,14 @@ def spawn(config, args):
 
 
 def cell(result, mode):
-    """'time ms (ns/pair)' of one mode, or why it is missing."""
+    """'wall ms / CPU ms (CPU ns per pair)' of one mode, or why it is missing."""
     r = result.get(mode)
     if r is None:
         return "—"
     if "skipped" in r:
         return "not run: " + r["skipped"]
-    per_pair = r["median_s"] / result["pairs"] * 1e9 if result.get("pairs") else float("nan")
-    return f"{r['median_s'] * 1e3:.1f} ms ({per_pair:.0f} ns)"
+    per_pair = r["cpu_median_s"] / result["pairs"] * 1e9 if result.get("pairs") else math.nan
+    return f"{r['median_s'] * 1e3:.0f} / {r['cpu_median_s'] * 1e3:.0f} ms ({per_pair:.0f} ns)"
 
 
 def rss(result, mode):
@@ -161,8 +165,9 @@ def rss(result, mode):
 
 def table(results):
     """Markdown table of all points."""
-    lines = ["| sweep | faces | pixels | K | views | pairs | kept | forward (ns/pair) | "
-             "f+b (ns/pair) | peak RSS GiB fwd / f+b | XLA temp f+b GiB |",
+    lines = ["| sweep | faces | pixels | K | views | pairs | kept | forward: wall / CPU "
+             "(CPU per pair) | f+b: wall / CPU (CPU per pair) | peak RSS GiB fwd / f+b | "
+             "XLA temp f+b GiB |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         fb = r.get("forward_backward") or {}
@@ -193,7 +198,7 @@ def short(value, _=None):
 
 
 def cost_model(results, mode):
-    """Least-squares fit (relative error, non-negative coefficients) of the median time to
+    """Least-squares fit (relative error, non-negative coefficients) of the CPU time to
     a * pairs + b * kept + c * pixels + d * faces (pixels and faces summed over views):
     ({term: seconds per unit}, [model / measured per point])."""
     import numpy as np
@@ -203,7 +208,7 @@ def cost_model(results, mode):
     if len(done) < len(MODEL_TERMS):
         return None, []
     x = np.array([[term(r) for term in MODEL_TERMS.values()] for r in done], float)
-    t = np.array([r[mode]["median_s"] for r in done])
+    t = np.array([r[mode]["cpu_median_s"] for r in done])
     scale = x.max(0)
     coef, _ = nnls(x / scale / t[:, None], np.ones(len(t)))
     coef = coef / scale
@@ -229,7 +234,8 @@ def print_model(results):
 
 
 def plot(results, path):
-    """Per sweep (columns): median time, time per covered pair and peak RSS (rows)."""
+    """Per sweep (columns): median wall time, CPU time per covered pair and peak RSS
+    (rows)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -244,8 +250,8 @@ def plot(results, path):
             x = [swept_value(r) for r in done]
             label = "forward" if mode == "forward" else "forward + backward"
             axes[0, col].loglog(x, [r[mode]["median_s"] * 1e3 for r in done], style, label=label)
-            axes[1, col].semilogx(x, [r[mode]["median_s"] / r["pairs"] * 1e9 for r in done],
-                                  style, label=label)
+            axes[1, col].semilogx(x, [r[mode]["cpu_median_s"] / r["pairs"] * 1e9
+                                      for r in done], style, label=label)
             axes[2, col].semilogx(x, [r[mode]["peak_rss_bytes"] / 2**30 for r in done], style,
                                   label=label)
         for ax in axes[:, col]:
@@ -259,7 +265,7 @@ def plot(results, path):
         axes[2, col].set_ylim(bottom=0)
         axes[0, col].set_title(f"{sweep} sweep")
         axes[2, col].set_xlabel(AXIS_LABELS[sweep])
-    for row, label in enumerate(("median time (ms)", "time per covered pair (ns)",
+    for row, label in enumerate(("median time, wall (ms)", "CPU time per covered pair (ns)",
                                  "peak RSS (GiB)")):
         axes[row, 0].set_ylabel(label)
     axes[0, 0].legend(fontsize=8)
