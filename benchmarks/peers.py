@@ -229,7 +229,8 @@ def pooled(rounds):
     """One result from several rounds: compile time of the first, median of the medians."""
     first = rounds[0]
     return {key: ({"compile_s": first[key]["compile_s"],
-                   "median_s": statistics.median(r[key]["median_s"] for r in rounds)}
+                   "median_s": statistics.median(r[key]["median_s"] for r in rounds),
+                   "round_medians_s": [r[key]["median_s"] for r in rounds]}
                   if isinstance(first[key], dict) else first[key]) for key in first}
 
 

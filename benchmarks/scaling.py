@@ -180,7 +180,7 @@ def table(results):
     return "\n".join(lines)
 
 
-AXIS_LABELS = {"faces": "faces", "pixels": "pixels (width x height)",
+AXIS_LABELS = {"faces": "faces", "pixels": "pixels (image size)",
                "k": "K (fragment slots per pixel)", "views": "views (one render_views call)"}
 
 
@@ -190,11 +190,17 @@ def swept_value(r):
 
 
 def short(value, _=None):
-    """1280 -> '1.3k', 1310720 -> '1.3M' (tick labels)."""
+    """1280 -> '1.3k', 327680 -> '328k', 1310720 -> '1.3M' (tick labels)."""
     for div, suffix in ((1e6, "M"), (1e3, "k")):
         if value >= div:
-            return f"{value / div:.2g}{suffix}"
+            digits = ".2g" if value < 100 * div else ".0f"
+            return f"{value / div:{digits}}{suffix}"
     return f"{value:g}"
+
+
+def side(value, _=None):
+    """Pixels as the image side: 65536 -> '256²'."""
+    return f"{math.isqrt(int(value))}²"
 
 
 def cost_model(results, mode):
@@ -256,7 +262,8 @@ def plot(results, path):
                                   label=label)
         for ax in axes[:, col]:
             ax.set_xticks(sorted({swept_value(r) for r in rows}))
-            ax.xaxis.set_major_formatter(ticker.FuncFormatter(short))
+            ax.xaxis.set_major_formatter(ticker.FuncFormatter(side if sweep == "pixels"
+                                                               else short))
             ax.xaxis.set_minor_locator(ticker.NullLocator())
         axes[0, col].yaxis.set_major_locator(ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
         axes[0, col].yaxis.set_major_formatter(ticker.FuncFormatter(lambda v, _: f"{v:g}"))
