@@ -221,8 +221,16 @@ def spawn(worker, args, exchange):
         os.makedirs(env["HOME"], exist_ok=True)
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, env=env)
     if proc.returncode != 0:
-        return {"error": proc.stderr[-3000:]}
+        return {"error": proc.stderr[-3000:], "why": f"its process exited with status "
+                f"{proc.returncode}: {error_line(proc.stderr)}"}
     return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def error_line(stderr):
+    """The last line of stderr that names an error (else its last line)."""
+    lines = [line.strip() for line in stderr.splitlines() if line.strip()] or ["no output"]
+    named = [line for line in lines if "error" in line.lower()]
+    return (named or lines)[-1][:300]
 
 
 def pooled(rounds):
@@ -263,7 +271,7 @@ def run_rounds(args, exchange):
             raise SystemExit(f"diffshade worker failed:\n{ours[-1]['error']}")
         if why is None:
             result = spawn("mitsuba", args, exchange)
-            why = result.get("unavailable") or result.get("error")
+            why = result.get("unavailable") or result.get("why")
             if why is None:
                 theirs.append(result)
     return pooled(ours), pooled(theirs) if theirs else None, why
@@ -305,7 +313,7 @@ def main():
                "repeats": args.repeats, "rounds": args.rounds, "cpus": os.cpu_count(),
                "loadavg": os.getloadavg()}
     if theirs is None:
-        print(f"Mitsuba 3 did not run ({why.strip().splitlines()[-1]}); "
+        print(f"Mitsuba 3 did not run ({why}); "
               "pip install '.[peers]' and see docs/performance.md")
     else:
         iou, max_diff = camera_check(*images)
