@@ -64,26 +64,37 @@ def loss_fn(render, settings, scene, target_image):
     return loss
 
 
-def measure(fn, args, repeats):
-    """Compile seconds, warm-up seconds, steady-state median seconds and memory stats."""
+def measure(fn, args, repeats, budget_s=None, max_bytes=None):
+    """Compile seconds, warm-up seconds, steady-state median seconds (wall clock, and CPU
+    seconds of all the process's threads: on a loaded machine the steadier measure of the
+    work done) and memory stats.
+    budget_s: stop timing once the timed calls add up to this (at least one is timed);
+    max_bytes: when XLA's compiled memory (temp + output) exceeds it, do not run: the
+    result then holds 'skipped' (the reason) and the compile figures only."""
     import jax
 
     t0 = time.perf_counter()
     compiled = jax.jit(fn).lower(*args).compile()
     compile_s = time.perf_counter() - t0
+    mem = compiled.memory_analysis()
+    out = {"compile_s": compile_s, "temp_bytes": int(mem.temp_size_in_bytes),
+           "output_bytes": int(mem.output_size_in_bytes),
+           "argument_bytes": int(mem.argument_size_in_bytes)}
+    needed = out["temp_bytes"] + out["output_bytes"]
+    if max_bytes is not None and needed > max_bytes:
+        return {**out, "skipped": f"XLA needs {needed / 2**30:.1f} GiB "
+                                  f"(> {max_bytes / 2**30:.1f} GiB allowed)"}
     t0 = time.perf_counter()
     jax.block_until_ready(compiled(*args))
     warmup_s = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
+    times, cpu_times = [], []
+    while len(times) < repeats and (budget_s is None or not times or sum(times) < budget_s):
+        t0, c0 = time.perf_counter(), time.process_time()
         jax.block_until_ready(compiled(*args))
         times.append(time.perf_counter() - t0)
-    mem = compiled.memory_analysis()
-    return {"compile_s": compile_s, "warmup_s": warmup_s, "median_s": statistics.median(times),
-            "times_s": times, "temp_bytes": int(mem.temp_size_in_bytes),
-            "output_bytes": int(mem.output_size_in_bytes),
-            "argument_bytes": int(mem.argument_size_in_bytes)}
+        cpu_times.append(time.process_time() - c0)
+    return {**out, "warmup_s": warmup_s, "median_s": statistics.median(times),
+            "times_s": times, "cpu_median_s": statistics.median(cpu_times)}
 
 
 def largest_divisor(n, at_most):
