@@ -24,6 +24,7 @@ import sys
 
 import numpy as np
 
+from diffshade import compile_cache
 from diffshade.builtin import BUILTIN_SCENES, builtin_scene
 from diffshade.io import write_npy, write_png
 from diffshade.render import render, render_parts
@@ -150,6 +151,7 @@ def _one_line(err):
 
 def main(argv=None) -> int:
     """Run the command line on argv (default sys.argv[1:]); returns the exit status."""
+    compile_cache.enable()
     parser = build_parser()
     try:
         try:

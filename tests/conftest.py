@@ -14,6 +14,8 @@ normals given as they are (`mesh_from_arrays` computes or renormalizes them), so
 closed-form tests see exactly the vertices and normals they wrote down.
 """
 
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -21,6 +23,11 @@ import pytest
 
 from diffshade.mesh import Mesh
 from diffshade.numerics import float_dtype
+
+# The command line turns JAX's persistent compilation cache on (diffshade.compile_cache).
+# Tests run it in-process and in subprocesses; they must not write into the user's cache
+# folder, nor switch the cache on for the rest of the session.
+os.environ["DIFFSHADE_COMPILE_CACHE"] = "0"
 
 
 @pytest.fixture
