@@ -6,9 +6,12 @@ The README's first line runs `diffshade synth -o out/data` and then `diffshade f
 out/data -o out/fit`. Each is run here as its own fresh process (`python -m diffshade`,
 this checkout first on PYTHONPATH) in a temporary folder:
 - cold: an empty persistent compilation cache (DIFFSHADE_COMPILE_CACHE_DIR, a new
-  temporary folder per run), so everything is compiled;
-- warm: the same command again with the cache the cold run filled;
-- off: DIFFSHADE_COMPILE_CACHE=0 (what every run cost before the cache).
+  temporary folder per run) and an empty numba cache (NUMBA_CACHE_DIR, likewise: numba
+  otherwise keeps its compiled kernels beside the installed package), so everything is
+  compiled, as on the first run after installing;
+- warm: the same command again with the caches the cold run filled;
+- off: DIFFSHADE_COMPILE_CACHE=0 with a warm numba cache (what every run after the
+  first cost before the compilation cache).
 Each figure is the median over --runs such processes (interpreter start included).
 
 Then one more cold and one warm `fit` run inside an instrumented process break the time
@@ -16,7 +19,8 @@ down: imports (diffshade.cli and the command modules), JAX tracing, lowering to 
 XLA compilation (or loading from the cache), and the rest (running the fit, rendering
 and writing the result files), read from JAX's compile log (JAX_LOG_COMPILES). Tracing
 of a jitted function nested in another is counted in both, so the tracing figure is an
-upper bound. It also counts the programs loaded from the cache and those JAX refuses to
+upper bound; in the cold run, "rest" includes numba compiling the host kernels. It also
+counts the programs loaded from the cache and those JAX refuses to
 cache because they contain host callbacks (diffshade.compile_cache explains why).
 Writes JSON (default benchmarks/results/time_to_first_result.json).
 """
@@ -60,9 +64,10 @@ _PHASES = {"tracing_s": "Finished tracing " + ".*" + _SECONDS,
            "compile_or_load_s": "Finished XLA compilation of .*" + _SECONDS}
 
 
-def _env(cache_dir):
+def _env(cache_dir, numba_dir):
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(
-        [ROOT] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]))
+        [ROOT] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]),
+        NUMBA_CACHE_DIR=numba_dir)
     env.pop("JAX_COMPILATION_CACHE_DIR", None)
     if cache_dir is None:
         env["DIFFSHADE_COMPILE_CACHE"] = "0"
@@ -72,18 +77,19 @@ def _env(cache_dir):
     return env
 
 
-def run_wall(args, cwd, cache_dir):
+def run_wall(args, cwd, cache_dir, numba_dir):
     """Wall seconds of `python -m diffshade ARGS` as a fresh process."""
     start = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "diffshade", *args], cwd=cwd, env=_env(cache_dir),
+    subprocess.run([sys.executable, "-m", "diffshade", *args], cwd=cwd,
+                   env=_env(cache_dir, numba_dir),
                    check=True, stdout=subprocess.DEVNULL)
     return time.perf_counter() - start
 
 
-def run_instrumented(args, cwd, cache_dir):
+def run_instrumented(args, cwd, cache_dir, numba_dir):
     """The breakdown of one run of the command line (see the module docstring)."""
     report = os.path.join(cwd, "instrumented.json")
-    env = _env(cache_dir) | {"JAX_LOG_COMPILES": "1", "JAX_EXPLAIN_CACHE_MISSES": "1"}
+    env = _env(cache_dir, numba_dir) | {"JAX_LOG_COMPILES": "1", "JAX_EXPLAIN_CACHE_MISSES": "1"}
     start = time.perf_counter()
     subprocess.run([sys.executable, "-c", _INSTRUMENTED, report, *args], cwd=cwd, env=env,
                    check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -98,7 +104,7 @@ def run_instrumented(args, cwd, cache_dir):
     return {"wall_s": wall, "interpreter_start_s": wall - run["total_s"],
             "imports_s": run["imports_s"], **phases,
             "rest_s": run["total_s"] - run["imports_s"] - sum(phases.values()),
-            "programs_compiled": sum("Finished XLA compilation" in line for line in log),
+            "programs": sum("Finished XLA compilation" in line for line in log),
             "cache_hits": sum("Persistent compilation cache hit" in line for line in log),
             "not_cacheable_host_callbacks": no_cache}
 
@@ -108,9 +114,10 @@ def cold_warm(args, cwd, runs):
     walls = {"cold": [], "warm": [], "off": []}
     for i in range(runs):
         cache_dir = os.path.join(cwd, f"cache_{args[0]}_{i}")
-        walls["cold"].append(run_wall(args, cwd, cache_dir))
-        walls["warm"].append(run_wall(args, cwd, cache_dir))
-        walls["off"].append(run_wall(args, cwd, None))
+        numba_dir = cache_dir + "_numba"
+        walls["cold"].append(run_wall(args, cwd, cache_dir, numba_dir))
+        walls["warm"].append(run_wall(args, cwd, cache_dir, numba_dir))
+        walls["off"].append(run_wall(args, cwd, None, numba_dir))
     return walls
 
 
@@ -132,13 +139,14 @@ def main():
                 f"{k} {statistics.median(v):.1f} s" for k, v in walls.items()),
                 f"(median of {runs})")
         cache_dir = os.path.join(cwd, "cache_breakdown")
-        results["fit_breakdown"] = {kind: run_instrumented(FIT, cwd, cache_dir)
+        results["fit_breakdown"] = {kind: run_instrumented(FIT, cwd, cache_dir,
+                                                           cache_dir + "_numba")
                                     for kind in ("cold", "warm")}
     results["load_average_after"] = os.getloadavg()
     for kind, row in results["fit_breakdown"].items():
         print(f"fit {kind}: " + ", ".join(f"{k[:-2]} {v:.2f} s" for k, v in row.items()
                                            if k.endswith("_s")))
-        print(f"  {row['programs_compiled']} programs, {row['cache_hits']} from the cache; "
+        print(f"  {row['programs']} programs, {row['cache_hits']} from the cache; "
               f"not cacheable (host callbacks): {', '.join(row['not_cacheable_host_callbacks'])}")
     print("load average before / after:", results["load_average_before"],
           results["load_average_after"])
