@@ -12,7 +12,10 @@ this checkout first on PYTHONPATH) in a temporary folder:
 - warm: the same command again with the caches the cold run filled;
 - off: DIFFSHADE_COMPILE_CACHE=0 with a warm numba cache (what every run after the
   first cost before the compilation cache).
-Each figure is the median over --runs such processes (interpreter start included).
+Each figure is the median over --runs such processes (interpreter start included), as
+wall time and as CPU time (user + system, all threads): on a machine shared with other
+jobs the wall time grows with the load, the CPU time much less; on an idle machine the
+wall time lies between the CPU time divided by the cores XLA keeps busy and the CPU time.
 
 Then one more cold and one warm `fit` run inside an instrumented process break the time
 down: imports (diffshade.cli and the command modules), JAX tracing, lowering to MLIR,
@@ -29,6 +32,7 @@ import argparse
 import json
 import os
 import re
+import resource
 import statistics
 import subprocess
 import sys
@@ -77,13 +81,18 @@ def _env(cache_dir, numba_dir):
     return env
 
 
+def _children_cpu():
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
 def run_wall(args, cwd, cache_dir, numba_dir):
-    """Wall seconds of `python -m diffshade ARGS` as a fresh process."""
-    start = time.perf_counter()
+    """(wall seconds, CPU seconds) of `python -m diffshade ARGS` as a fresh process."""
+    start, cpu = time.perf_counter(), _children_cpu()
     subprocess.run([sys.executable, "-m", "diffshade", *args], cwd=cwd,
                    env=_env(cache_dir, numba_dir),
                    check=True, stdout=subprocess.DEVNULL)
-    return time.perf_counter() - start
+    return time.perf_counter() - start, _children_cpu() - cpu
 
 
 def run_instrumented(args, cwd, cache_dir, numba_dir):
@@ -110,7 +119,7 @@ def run_instrumented(args, cwd, cache_dir, numba_dir):
 
 
 def cold_warm(args, cwd, runs):
-    """{cold, warm, off: [wall seconds]} of `runs` processes each."""
+    """{cold, warm, off: [(wall, CPU) seconds]} of `runs` processes each."""
     walls = {"cold": [], "warm": [], "off": []}
     for i in range(runs):
         cache_dir = os.path.join(cwd, f"cache_{args[0]}_{i}")
@@ -125,19 +134,25 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=3)
     parser.add_argument("--quick", action="store_true", help="one run of each")
+    parser.add_argument("--fit-only", action="store_true",
+                        help="time only `fit` (synth runs once, untimed, to make the data)")
     parser.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results",
                                                       "time_to_first_result.json"))
     opts = parser.parse_args()
     runs = 1 if opts.quick else opts.runs
     results = {"load_average_before": os.getloadavg()}
     with tempfile.TemporaryDirectory() as cwd:
-        for name, args in (("synth", SYNTH), ("fit", FIT)):
+        if opts.fit_only:
+            run_wall(SYNTH, cwd, None, os.path.join(cwd, "numba"))
+        for name, args in (("synth", SYNTH), ("fit", FIT))[opts.fit_only:]:
             walls = cold_warm(args, cwd, runs)
+            medians = {kind: [statistics.median(r[i] for r in rows) for i in (0, 1)]
+                       for kind, rows in walls.items()}
             results[name] = {"command": "diffshade " + " ".join(args), "runs": walls,
-                             **{f"{k}_median_s": statistics.median(v) for k, v in walls.items()}}
-            print(f"{results[name]['command']}: " + ", ".join(
-                f"{k} {statistics.median(v):.1f} s" for k, v in walls.items()),
-                f"(median of {runs})")
+                             **{f"{k}_median_wall_s": m[0] for k, m in medians.items()},
+                             **{f"{k}_median_cpu_s": m[1] for k, m in medians.items()}}
+            print(f"{results[name]['command']} (median of {runs}): " + ", ".join(
+                f"{k} {m[0]:.1f} s wall / {m[1]:.1f} s CPU" for k, m in medians.items()))
         cache_dir = os.path.join(cwd, "cache_breakdown")
         results["fit_breakdown"] = {kind: run_instrumented(FIT, cwd, cache_dir,
                                                            cache_dir + "_numba")
