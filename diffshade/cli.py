@@ -24,6 +24,7 @@ import sys
 import numpy as np
 
 from data_synth.cli import register as register_synth
+from diffshade import compile_cache
 from diffshade.builtin import BUILTIN_SCENES, builtin_scene
 from diffshade.camera import MAX_IMAGE_SIZE
 from diffshade.io import write_npy, write_png
@@ -144,6 +145,7 @@ def _one_line(err):
 
 def main(argv=None) -> int:
     """Run the command line on argv (default sys.argv[1:]); returns the exit status."""
+    compile_cache.enable()
     parser = build_parser()
     try:
         try:

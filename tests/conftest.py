@@ -38,6 +38,11 @@ import pytest  # noqa: E402
 from diffshade.mesh import Mesh  # noqa: E402
 from diffshade.numerics import float_dtype  # noqa: E402
 
+# The command line turns JAX's persistent compilation cache on (diffshade.compile_cache).
+# Tests run it in-process and in subprocesses; they must not write into the user's cache
+# folder, nor switch the cache on for the rest of the session.
+os.environ["DIFFSHADE_COMPILE_CACHE"] = "0"
+
 
 @pytest.fixture
 def x64():

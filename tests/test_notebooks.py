@@ -1,7 +1,8 @@
 """The notebooks run from top to bottom without an error (each also asserts its own
 checks: the parts add up to the render, the fit recovers the truth, the identifiability
 warning appears), with DIFFSHADE_NB_QUICK=1 cutting image sizes and steps; and they are
-kept in the repository without outputs."""
+kept in the repository without outputs. They run with an empty temporary folder as the
+working directory, not notebooks/, to show that they find their files from any directory."""
 
 from pathlib import Path
 
@@ -14,11 +15,11 @@ NAMES = ["01_quickstart.ipynb", "02_fit_material.ipynb", "03_accuracy_vs_time.ip
 
 
 @pytest.mark.parametrize("name", NAMES)
-def test_notebook_executes_without_errors(name, monkeypatch):
+def test_notebook_executes_without_errors(name, monkeypatch, tmp_path):
     monkeypatch.setenv("DIFFSHADE_NB_QUICK", "1")
     notebook = nbformat.read(NOTEBOOKS / name, as_version=4)
     client = NotebookClient(notebook, timeout=300, kernel_name="python3",
-                            resources={"metadata": {"path": str(NOTEBOOKS)}})
+                            resources={"metadata": {"path": str(tmp_path)}})
     client.execute()  # raises CellExecutionError naming the cell that failed
     code = [cell for cell in notebook.cells if cell.cell_type == "code"]
     assert all(cell.execution_count for cell in code)

@@ -1,0 +1,174 @@
+"""Time to first result: the README's commands, wall time for the whole process, cold and warm.
+
+    python benchmarks/time_to_first_result.py [--runs 3] [--quick] [--out PATH]
+
+The README's first line runs `diffshade synth -o out/data` and then `diffshade fit
+out/data -o out/fit`. Each is run here as its own fresh process (`python -m diffshade`,
+this checkout first on PYTHONPATH) in a temporary folder:
+- cold: an empty persistent compilation cache (DIFFSHADE_COMPILE_CACHE_DIR, a new
+  temporary folder per run) and an empty numba cache (NUMBA_CACHE_DIR, likewise: numba
+  otherwise keeps its compiled kernels beside the installed package), so everything is
+  compiled, as on the first run after installing;
+- warm: the same command again with the caches the cold run filled;
+- off: DIFFSHADE_COMPILE_CACHE=0 with a warm numba cache (what every run after the
+  first cost before the compilation cache).
+Each figure is the median over --runs such processes (interpreter start included), as
+wall time and as CPU time (user + system, all threads): on a machine shared with other
+jobs the wall time grows with the load, the CPU time much less; on an idle machine the
+wall time lies between the CPU time divided by the cores XLA keeps busy and the CPU time.
+
+Then one more cold and one warm `fit` run inside an instrumented process break the time
+down: imports (diffshade.cli and the command modules), JAX tracing, lowering to MLIR,
+XLA compilation (or loading from the cache), and the rest (running the fit, rendering
+and writing the result files), read from JAX's compile log (JAX_LOG_COMPILES). Tracing
+of a jitted function nested in another is counted in both, so the tracing figure is an
+upper bound; in the cold run, "rest" includes numba compiling the host kernels. It also
+counts the programs loaded from the cache and those JAX refuses to
+cache because they contain host callbacks (diffshade.compile_cache explains why).
+Writes JSON (default benchmarks/results/time_to_first_result.json).
+"""
+
+import argparse
+import json
+import os
+import re
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SYNTH = ["synth", "-o", "out/data"]
+FIT = ["fit", "out/data", "-o", "out/fit", "--quiet"]
+
+# Runs the command line in this process, timing the imports and capturing JAX's log.
+_INSTRUMENTED = """
+import json, logging, sys, time
+start = time.perf_counter()
+records = []
+class Keep(logging.Handler):
+    def emit(self, record):
+        records.append(record.getMessage())
+logging.getLogger("jax").addHandler(Keep())
+logging.getLogger("jax").setLevel(logging.WARNING)
+import diffshade.cli
+diffshade.cli.build_parser()
+imported = time.perf_counter()
+status = diffshade.cli.main(sys.argv[2:])
+end = time.perf_counter()
+json.dump({"status": status, "imports_s": imported - start, "total_s": end - start,
+           "log": records}, open(sys.argv[1], "w"))
+"""
+
+_SECONDS = r" in ([0-9.eE+-]+) sec"
+_PHASES = {"tracing_s": "Finished tracing " + ".*" + _SECONDS,
+           "lowering_s": "Finished jaxpr to MLIR module conversion .*" + _SECONDS,
+           "compile_or_load_s": "Finished XLA compilation of .*" + _SECONDS}
+
+
+def _env(cache_dir, numba_dir):
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        [ROOT] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]),
+        NUMBA_CACHE_DIR=numba_dir)
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)
+    if cache_dir is None:
+        env["DIFFSHADE_COMPILE_CACHE"] = "0"
+    else:
+        env["DIFFSHADE_COMPILE_CACHE"] = "1"
+        env["DIFFSHADE_COMPILE_CACHE_DIR"] = cache_dir
+    return env
+
+
+def _children_cpu():
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def run_wall(args, cwd, cache_dir, numba_dir):
+    """(wall seconds, CPU seconds) of `python -m diffshade ARGS` as a fresh process."""
+    start, cpu = time.perf_counter(), _children_cpu()
+    subprocess.run([sys.executable, "-m", "diffshade", *args], cwd=cwd,
+                   env=_env(cache_dir, numba_dir),
+                   check=True, stdout=subprocess.DEVNULL)
+    return time.perf_counter() - start, _children_cpu() - cpu
+
+
+def run_instrumented(args, cwd, cache_dir, numba_dir):
+    """The breakdown of one run of the command line (see the module docstring)."""
+    report = os.path.join(cwd, "instrumented.json")
+    env = _env(cache_dir, numba_dir) | {"JAX_LOG_COMPILES": "1", "JAX_EXPLAIN_CACHE_MISSES": "1"}
+    start = time.perf_counter()
+    subprocess.run([sys.executable, "-c", _INSTRUMENTED, report, *args], cwd=cwd, env=env,
+                   check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    wall = time.perf_counter() - start
+    with open(report) as f:
+        run = json.load(f)
+    log = run["log"]
+    phases = {name: sum(float(m.group(1)) for line in log if (m := re.search(pattern, line)))
+              for name, pattern in _PHASES.items()}
+    no_cache = sorted({m.group(1) for line in log if "because it uses host callbacks" in line
+                       and (m := re.search(r"entry for '([^']+)'", line))})
+    return {"wall_s": wall, "interpreter_start_s": wall - run["total_s"],
+            "imports_s": run["imports_s"], **phases,
+            "rest_s": run["total_s"] - run["imports_s"] - sum(phases.values()),
+            "programs": sum("Finished XLA compilation" in line for line in log),
+            "cache_hits": sum("Persistent compilation cache hit" in line for line in log),
+            "not_cacheable_host_callbacks": no_cache}
+
+
+def cold_warm(args, cwd, runs):
+    """{cold, warm, off: [(wall, CPU) seconds]} of `runs` processes each."""
+    walls = {"cold": [], "warm": [], "off": []}
+    for i in range(runs):
+        cache_dir = os.path.join(cwd, f"cache_{args[0]}_{i}")
+        numba_dir = cache_dir + "_numba"
+        walls["cold"].append(run_wall(args, cwd, cache_dir, numba_dir))
+        walls["warm"].append(run_wall(args, cwd, cache_dir, numba_dir))
+        walls["off"].append(run_wall(args, cwd, None, numba_dir))
+    return walls
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=3)
+    parser.add_argument("--quick", action="store_true", help="one run of each")
+    parser.add_argument("--fit-only", action="store_true",
+                        help="time only `fit` (synth runs once, untimed, to make the data)")
+    parser.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results",
+                                                      "time_to_first_result.json"))
+    opts = parser.parse_args()
+    runs = 1 if opts.quick else opts.runs
+    results = {"load_average_before": os.getloadavg()}
+    with tempfile.TemporaryDirectory() as cwd:
+        if opts.fit_only:
+            run_wall(SYNTH, cwd, None, os.path.join(cwd, "numba"))
+        for name, args in (("synth", SYNTH), ("fit", FIT))[opts.fit_only:]:
+            walls = cold_warm(args, cwd, runs)
+            medians = {kind: [statistics.median(r[i] for r in rows) for i in (0, 1)]
+                       for kind, rows in walls.items()}
+            results[name] = {"command": "diffshade " + " ".join(args), "runs": walls,
+                             **{f"{k}_median_wall_s": m[0] for k, m in medians.items()},
+                             **{f"{k}_median_cpu_s": m[1] for k, m in medians.items()}}
+            print(f"{results[name]['command']} (median of {runs}): " + ", ".join(
+                f"{k} {m[0]:.1f} s wall / {m[1]:.1f} s CPU" for k, m in medians.items()))
+        cache_dir = os.path.join(cwd, "cache_breakdown")
+        results["fit_breakdown"] = {kind: run_instrumented(FIT, cwd, cache_dir,
+                                                           cache_dir + "_numba")
+                                    for kind in ("cold", "warm")}
+    results["load_average_after"] = os.getloadavg()
+    for kind, row in results["fit_breakdown"].items():
+        print(f"fit {kind}: " + ", ".join(f"{k[:-2]} {v:.2f} s" for k, v in row.items()
+                                           if k.endswith("_s")))
+        print(f"  {row['programs']} programs, {row['cache_hits']} from the cache; "
+              f"not cacheable (host callbacks): {', '.join(row['not_cacheable_host_callbacks'])}")
+    print("load average before / after:", results["load_average_before"],
+          results["load_average_after"])
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    from common import write_results
+    write_results(opts.out, results)
+
+
+if __name__ == "__main__":
+    main()
