@@ -11,6 +11,8 @@
 - Gradients with respect to the light's centre and kd equal central differences.
 """
 
+import re
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -26,10 +28,12 @@ from diffshade import (
     point_light,
     render,
     replace,
+    scene_from_dict,
     sphere_light,
     spot_light,
 )
 from diffshade.area_lights import orthonormal_frame, rect_irradiance, sample_incidence, terms
+from diffshade.scenefile import SceneFileError, scene_to_dict
 from diffshade.shading import _light_terms
 
 pytestmark = pytest.mark.usefixtures("x64")
@@ -260,3 +264,34 @@ def test_bad_area_lights_are_rejected_with_the_argument_named():
     two = [sphere_light((0, 0, 1), 0.1, samples=4), sphere_light((0, 0, 2), 0.1, samples=8)]
     with pytest.raises(ValueError, match=r"lights\[1\].samples: got 8; expected 4"):
         make_scene(base.mesh, base.camera, two)
+
+
+def test_scene_files_read_and_write_area_lights_and_kt():
+    data = {
+        "mesh": {"builtin": {"box": {"size": [1, 1, 1]}}},
+        "camera": {"eye": [0, 0, 3], "target": [0, 0, 0], "width": 8, "height": 8},
+        "lights": [
+            {"type": "area", "center": [0, 0, 2], "edge_u": [1, 0, 0], "edge_v": [0, -1, 0],
+             "color": 2, "samples": 8},
+            {"type": "area", "center": [1, 0, 2], "normal": [0, 0, -1], "radius": 0.5},
+            {"type": "sphere", "position": [0, 1, 2], "radius": 0.2, "ambient": 0.1},
+        ],
+        "material": {"kd": 0.5, "kt": [0.1, 0.2, 0.3]},
+    }
+    scene, settings = scene_from_dict(data)
+    assert scene.lights.rect.samples == 8 and scene.lights.disk.samples == 16
+    np.testing.assert_allclose(scene.lights.rect.diffuse[0], 2.0)
+    np.testing.assert_allclose(scene.lights.sphere.radius[0], 0.2)
+    np.testing.assert_allclose(scene.material.kt, [0.1, 0.2, 0.3])
+    back, _ = scene_from_dict(scene_to_dict(scene, settings))
+    np.testing.assert_allclose(render(back), render(scene), atol=1e-12)
+    for light, message in (
+            ({"type": "area", "center": [0, 0, 2]},
+             "lights[0].edge_u, lights[0].normal: got neither"),
+            ({"type": "sphere", "position": [0, 0, 2], "radius": -1}, "lights[0].radius: got -1"),
+            ({"type": "area", "center": [0, 0, 2], "normal": [0, 0, 1], "radius": 1,
+              "samples": 0}, "lights[0].samples: got 0; expected a positive integer")):
+        with pytest.raises(SceneFileError, match=re.escape(message)):
+            scene_from_dict({**data, "lights": [light]})
+    with pytest.raises(SceneFileError, match=re.escape("material.kt: got 2")):
+        scene_from_dict({**data, "material": {"kt": 2}})
