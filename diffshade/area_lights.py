@@ -38,7 +38,15 @@ from diffshade.lights import (
     _direction,
     _scalar,
 )
-from diffshade.numerics import dot, float_dtype, safe_div, safe_norm, safe_normalize, safe_sqrt
+from diffshade.numerics import (
+    dot,
+    float_dtype,
+    safe_div,
+    safe_norm,
+    safe_normalize,
+    safe_sqrt,
+    tiny,
+)
 
 KINDS = ("rect", "disk", "sphere")
 SEED = 1995
@@ -192,54 +200,80 @@ def sample_incidence(kind, light, points):
 # ------------------------------------------------------- the rectangle's closed form
 
 
-def _edge_term(a, b, normals):
+# Written on (x, y, z) component arrays: per-fragment [..., 3] vectors with jnp.cross
+# compile to chains of slices and concatenations (pads in the backward pass), several
+# times slower to compile and to run than this.
+
+
+def _cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _where(cond, a, b):
+    return tuple(jnp.where(cond, x, y) for x, y in zip(a, b, strict=True))
+
+
+def _edge_term(a, b, n):
     """Theta n.Gamma of Lambert's formula for the edge a -> b (relative to the shading
     point): (n . (a x b)) atan2(|a x b|, a.b) / |a x b|, finite and smooth at a = b."""
-    c = jnp.cross(a, b)
-    s, d = safe_norm(c, keepdims=True), dot(a, b, keepdims=True)
-    ok = s > 0.0
-    ratio = jnp.where(ok, jnp.arctan2(s, d) / jnp.where(ok, s, 1.0), safe_div(1.0, d))
-    return dot(normals, c, keepdims=True) * ratio
+    c = _cross(a, b)
+    s2, d = _dot(c, c), _dot(a, b)
+    ok = s2 > tiny(d.dtype) ** 2
+    s = jnp.sqrt(jnp.where(ok, s2, 1.0))
+    d_ok = jnp.where(ok, d, 1.0)  # atan2(0, 0) has no gradient
+    ratio = jnp.where(ok, jnp.arctan2(s, d_ok) / s, safe_div(jnp.ones_like(d), d))
+    return _dot(n, c) * ratio
 
 
-def _clipped_polygon_sum(corners, normals):
-    """sum_i Theta_i n.Gamma_i over the polygon `corners` (relative to the point) clipped
-    to the half-space n.x > 0; each edge is clipped, and the closing edge runs along the
-    horizon from where the polygon leaves it to where it comes back."""
-    heights = [dot(normals, a, keepdims=True) for a in corners]
-    total = exit_point = entry_point = jnp.zeros_like(heights[0])
-    for i, (a, ha) in enumerate(zip(corners, heights, strict=True)):
-        b, hb = corners[(i + 1) % len(corners)], heights[(i + 1) % len(corners)]
-        crossing = a + safe_div(ha, ha - hb) * (b - a)
-        a_in, b_in = ha > 0.0, hb > 0.0
-        total = total + _edge_term(jnp.where(a_in, a, crossing), jnp.where(b_in, b, crossing),
-                                   normals)
-        exit_point = exit_point + jnp.where(a_in & ~b_in, crossing, 0.0)
-        entry_point = entry_point + jnp.where(~a_in & b_in, crossing, 0.0)
-    return total + _edge_term(exit_point, entry_point, normals)
+def _clipped_polygon_sum(corners, n):
+    """sum_i Theta_i n.Gamma_i over the polygon `corners` (relative to the point; each
+    component [..., C], the corners along the last axis) clipped to the half-space
+    n.x > 0: each edge is clipped, and the closing edge runs along the horizon from where
+    the polygon leaves it to where it comes back. n: components [..., 1]."""
+    nexts = tuple(jnp.roll(x, -1, axis=-1) for x in corners)
+    heights = _dot(n, corners)
+    next_heights = jnp.roll(heights, -1, axis=-1)
+    t = safe_div(heights, heights - next_heights)
+    crossing = tuple(a + t * (b - a) for a, b in zip(corners, nexts, strict=True))
+    a_in, b_in = heights > 0.0, next_heights > 0.0
+    exit_point = tuple(jnp.sum(jnp.where(a_in & ~b_in, x, 0.0), -1, keepdims=True)
+                       for x in crossing)
+    entry_point = tuple(jnp.sum(jnp.where(~a_in & b_in, x, 0.0), -1, keepdims=True)
+                        for x in crossing)
+    # the clipped edges and the closing edge, as one batch of C + 1 edges
+    starts = tuple(jnp.concatenate(pair, -1) for pair in
+                   zip(_where(a_in, corners, crossing), exit_point, strict=True))
+    ends = tuple(jnp.concatenate(pair, -1) for pair in
+                 zip(_where(b_in, nexts, crossing), entry_point, strict=True))
+    return jnp.sum(_edge_term(starts, ends, n), -1)
 
 
 def rect_irradiance(light, points, normals):
     """E per unit colour [..., 1] of a rectangle light at points with unit normals [..., 3]
     (module docstring): Lambert's formula over the area; for a light too small for the
     formula's rounding (A / d^2 below eps^(2/3)) its point limit cos cos' / d^2."""
+    p = tuple(points[..., i] for i in range(3))
+    n = tuple(normals[..., i] for i in range(3))
+    centre = tuple(light.center[i] - p[i] for i in range(3))
     u, v = light.edge_u, light.edge_v
-    half_u, half_v = 0.5 * u, 0.5 * v
-    rel = [light.center + su * half_u + sv * half_v - points
-           for su, sv in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
-    omega = -0.5 * _clipped_polygon_sum(rel, normals)
+    su, sv = jnp.array([-0.5, 0.5, 0.5, -0.5]), jnp.array([-0.5, -0.5, 0.5, 0.5])
+    rel = tuple(centre[i][..., None] + su * u[i] + sv * v[i] for i in range(3))
+    omega = -0.5 * _clipped_polygon_sum(rel, tuple(x[..., None] for x in n))
     emit = jnp.cross(u, v)
     area = safe_norm(emit)
-    emit_normal = safe_normalize(emit)
-    to_centre = light.center - points
-    dist2 = dot(to_centre, to_centre, keepdims=True)
-    centre_dir = safe_normalize(to_centre)
-    point = safe_div(jnp.maximum(dot(normals, centre_dir, keepdims=True), 0.0)
-                     * jnp.maximum(-dot(emit_normal, centre_dir, keepdims=True), 0.0), dist2)
+    emit_normal = tuple(safe_normalize(emit))
+    dist2 = _dot(centre, centre)
+    facing = -_dot(emit_normal, centre)  # |to centre| cos(theta') from the light's side
+    point = safe_div(jnp.maximum(_dot(n, centre), 0.0) * jnp.maximum(facing, 0.0),
+                     dist2 * dist2)
     small = area < jnp.finfo(points.dtype).eps ** (2.0 / 3.0) * dist2
-    front = dot(emit_normal, -to_centre, keepdims=True) > 0.0
-    return jnp.where(front, jnp.where(small, point, safe_div(jnp.maximum(omega, 0.0), area)),
-                     0.0)
+    out = jnp.where(facing > 0.0,
+                    jnp.where(small, point, safe_div(jnp.maximum(omega, 0.0), area)), 0.0)
+    return out[..., None]
 
 
 # --------------------------------------------------------------------- the terms

@@ -32,6 +32,7 @@ from diffshade import (
 from diffshade.project import project
 from diffshade.render import shade_fragments
 from diffshade.transparency import soft_composite
+from fitting.report import mtl_text
 
 pytestmark = pytest.mark.usefixtures("x64")
 
@@ -225,3 +226,9 @@ def test_kt_is_validated():
         with pytest.raises(ValueError, match="kt: got"):
             material(kt=bad)
     assert collections.Counter(np.asarray(material(kt=0.25).kt).tolist()) == {0.25: 3}
+
+
+def test_mtl_writes_kt_as_tr():
+    text = mtl_text(material(kd=0.5, kt=(0.2, 0.4, 0.9)))
+    assert "Tr 0.500000" in text.splitlines() and "Tf 0.200000 0.400000 0.900000" in text
+    assert "Tr" not in mtl_text(material(kd=0.5))
