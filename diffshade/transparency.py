@@ -9,14 +9,17 @@ modes; in short, with layers nearest first, c_k the lit colour and kt_k the tran
       rgb = sum_k T_k (1 - kt_k) c_k + T_K background,   T_0 = 1, T_{k+1} = T_k kt_k,
   so the nearest opaque layer (kt = 0) ends it. alpha = 1 - mean_rgb(T_K) (opacity).
 - soft: SoftRas aggregation applied recursively. What lies behind layer k is the SoftRas
-  blend of the layers behind it and the background, B_k; layer k shows
+  blend B_k of the layers behind it (each weighted by a soft depth test at the blend's
+  own depth scale gamma, BEHIND_MARGIN) and the background; layer k shows
   (1 - kt_k) c_k + kt_k B_k, and the pixel is the SoftRas blend of those over all layers.
-  Computed from the farthest layer forward in log space (a running logsumexp of the
-  blend logits), so tiny gamma cannot overflow. kt = 0 gives soft_blend exactly (to
-  rounding). alpha = 1 - prod_k (1 - D_k (1 - mean_rgb(kt_k))).
+  Computed from the farthest layer forward, every blend a softmax of logits, so tiny
+  gamma cannot overflow. kt = 0 gives soft_blend exactly (to rounding).
+  alpha = 1 - prod_k (1 - D_k (1 - mean_rgb(kt_k))).
 Layers beyond K are dropped (Fragments.dropped counts them): what they would have shown
 is replaced by the background.
 """
+
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -79,6 +82,12 @@ def _by_depth(frags, *per_slot):
     return [take(a) for a in per_slot]
 
 
+#: a layer counts as behind another by sigmoid((zt_front - zt_back) / gamma - BEHIND_MARGIN):
+#: layers within a few gamma of each other in depth are one surface (SoftRas blends them as
+#: peers, e.g. the two faces at a shared edge), not one seen through the other
+BEHIND_MARGIN = 4.0
+
+
 def soft_composite(colours, kt, frags, background, near, far, sigma, gamma):
     """colours, kt: [H, W, K, 3]; background: [3]; sigma (pixels^2), gamma: scalars ->
     [H, W, 4] RGBA, the recursive SoftRas aggregation of the module docstring."""
@@ -86,15 +95,32 @@ def soft_composite(colours, kt, frags, background, near, far, sigma, gamma):
     logits = jnp.where(frags.valid, jax.nn.log_sigmoid(frags.dist / sigma) + zt / gamma,
                        -jnp.inf)
     cover = jnp.where(frags.valid, jax.nn.sigmoid(frags.dist / sigma), 0.0)
-    colours, kt, logits, cover = _by_depth(frags, colours, kt, logits, cover)
-    total = jnp.full(logits.shape[:-1] + (1,), BACKGROUND_EPS / gamma, logits.dtype)
-    behind = jnp.broadcast_to(background, colours.shape[:-2] + (3,)).astype(colours.dtype)
-    clear = jnp.ones(logits.shape[:-1], logits.dtype)
-    for k in reversed(range(colours.shape[-2])):
-        shown = (1.0 - kt[..., k, :]) * colours[..., k, :] + kt[..., k, :] * behind
-        logit = logits[..., k, None]
-        merged = jnp.logaddexp(total, logit)
-        behind = jnp.exp(total - merged) * behind + jnp.exp(logit - merged) * shown
-        total = merged
-        clear = clear * (1.0 - cover[..., k] * (1.0 - jnp.mean(kt[..., k, :], -1)))
-    return jnp.concatenate([behind, 1.0 - clear[..., None]], -1)
+    colours, kt, logits, cover, zt = _by_depth(frags, colours, kt, logits, cover, zt)
+    bg_logit = jnp.full(logits.shape[:-1] + (1,), BACKGROUND_EPS / gamma, logits.dtype)
+    background = jnp.broadcast_to(background, colours.shape[:-2] + (3,)).astype(colours.dtype)
+    k_slots = colours.shape[-2]
+    shown = [None] * k_slots
+    for k in reversed(range(k_slots)):
+        behind = _blend_behind(k, logits, zt, gamma, shown, bg_logit, background)
+        shown[k] = (1.0 - kt[..., k, :]) * colours[..., k, :] + kt[..., k, :] * behind
+    layers = jnp.stack(shown, -2)
+    weights = jax.nn.softmax(jnp.concatenate([logits, bg_logit], -1), axis=-1)
+    rgb = jnp.sum(weights[..., :-1, None] * layers, -2) + weights[..., -1:] * background
+    opacity = cover * (1.0 - jnp.mean(kt, -1))
+    clear = functools.reduce(lambda acc, k: acc * (1.0 - opacity[..., k]), range(k_slots),
+                             jnp.ones(opacity.shape[:-1], opacity.dtype))
+    return jnp.concatenate([rgb, 1.0 - clear[..., None]], -1)
+
+
+def _blend_behind(k, logits, zt, gamma, shown, bg_logit, background):
+    """B_k: the SoftRas blend of the layers behind layer k (gated by depth, BEHIND_MARGIN)
+    and the background: [H, W, 3]."""
+    later = logits[..., k + 1:]
+    if later.shape[-1] == 0:
+        return background
+    gate = jax.nn.log_sigmoid((zt[..., k, None] - zt[..., k + 1:]) / gamma - BEHIND_MARGIN)
+    weights = jax.nn.softmax(jnp.concatenate([later + gate, bg_logit], -1), axis=-1)
+    rgb = weights[..., -1:] * background
+    for j in range(k + 1, logits.shape[-1]):
+        rgb = rgb + weights[..., j - k - 1, None] * shown[j]
+    return rgb

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 from conftest import make_mesh
 from jax.test_util import check_grads
+from test_structure import primitive_counts
 
 from diffshade import (
     RenderSettings,
@@ -295,3 +296,14 @@ def test_scene_files_read_and_write_area_lights_and_kt():
             scene_from_dict({**data, "lights": [light]})
     with pytest.raises(SceneFileError, match=re.escape("material.kt: got 2")):
         scene_from_dict({**data, "material": {"kt": 2}})
+
+
+def test_only_scenes_with_extended_lights_compile_their_code():
+    plain = primitive_counts(scene_with(point_light(AT, 1.0), material(kd=0.5)))
+    rect = primitive_counts(scene_with(LIGHTS["rect"](), material(kd=0.5)))
+    rect_glossy = primitive_counts(scene_with(LIGHTS["rect"]()))
+    disk = primitive_counts(scene_with(LIGHTS["disk"](), material(kd=0.5)))
+    assert plain["atan2"] == plain["scan"] == 0
+    assert rect["atan2"] >= 1 and rect["scan"] == 0  # the closed form: no samples
+    assert rect_glossy["scan"] == 1  # the specular term is sampled
+    assert disk["scan"] == 1 and disk["atan2"] == 0

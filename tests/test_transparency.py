@@ -107,26 +107,28 @@ def test_kt_zero_renders_as_the_opaque_material(mesh, settings):
     np.testing.assert_allclose(render(glass, settings), render(opaque, settings), atol=1e-12)
 
 
-def recursive_blend(colours, kt, logits, valid, depth, background):
-    """The soft composite of one pixel written out: sort by depth, then from the farthest
-    layer forward B_k = normalized-weight sum over the layers behind k and the background
-    (softmax computed directly over that set), layer k shows (1 - kt) c + kt B_k."""
-    order = sorted((d, k) for k, d in enumerate(depth) if valid[k])
-    layers = [k for _, k in order]
+def recursive_blend(colours, kt, logits, valid, zt, background):
+    """The soft composite of one pixel written out: sort by depth (nearest first), then
+    from the farthest layer forward B_k = the normalized-weight sum over the layers behind
+    k, each weight D e^(zt / gamma) times the soft depth test sigmoid((zt_k - zt_j) / gamma
+    - 4), and the background; layer k shows (1 - kt) c + kt B_k; the pixel is the plain
+    SoftRas blend of what the layers show."""
+    layers = [k for _, k in sorted((-zt[k], k) for k in range(len(zt)) if valid[k])]
     bg_logit = 1e-3 / SOFT.gamma
+
+    def blend(members, extra):
+        w = np.array([logits[j] + extra(j) for j in members] + [bg_logit])
+        w = np.exp(w - w.max())
+        w = w / w.sum()
+        return sum(w[n] * shown[j] for n, j in enumerate(members)) + w[-1] * background
+
     shown = {}
     for i in reversed(range(len(layers))):
-        behind = layers[i + 1:]
-        w = np.exp(np.array([logits[j] for j in behind] + [bg_logit]) - max(
-            [logits[j] for j in behind] + [bg_logit]))
-        w = w / w.sum()
-        b = sum(w[n] * shown[j] for n, j in enumerate(behind)) + w[-1] * background
         k = layers[i]
-        shown[k] = (1 - kt[k]) * colours[k] + kt[k] * b
-    w = np.exp(np.array([logits[k] for k in layers] + [bg_logit]) - max(
-        [logits[k] for k in layers] + [bg_logit]))
-    w = w / w.sum()
-    return sum(w[n] * shown[k] for n, k in enumerate(layers)) + w[-1] * background
+        behind = blend(layers[i + 1:], lambda j, k=k: -np.logaddexp(
+            0.0, -((zt[k] - zt[j]) / SOFT.gamma - 4.0)))
+        shown[k] = (1 - kt[k]) * colours[k] + kt[k] * behind
+    return blend(layers, lambda j: 0.0)
 
 
 def test_soft_composite_equals_a_per_pixel_recursion(mesh):
@@ -146,8 +148,7 @@ def test_soft_composite_equals_a_per_pixel_recursion(mesh):
     for row in range(SIZE):
         for col in range(SIZE):
             want = recursive_blend(colours[row, col], kt[row, col], logits[row, col],
-                                   valid[row, col], np.asarray(frags.depth)[row, col],
-                                   BACKGROUND)
+                                   valid[row, col], zt[row, col], BACKGROUND)
             np.testing.assert_allclose(got[row, col, :3], want, atol=1e-12)
     cover = 1 / (1 + np.exp(-dist / SOFT.sigma))
     clear = np.prod(np.where(valid, 1 - cover * (1 - kt.mean(-1)), 1.0), -1)
