@@ -30,7 +30,7 @@ import diffshade as ds  # noqa: E402
 SIZE = 64
 REFERENCE_SAMPLES = 4096
 AT = (1.2, 1.8, 1.0)
-COLOUR = 6.0
+COLOUR = 2.5
 
 
 def _frame():

@@ -44,7 +44,9 @@ def transparency_panels(size):
         front = ds.material(ka=0.2, kd=(0.8, 0.3, 0.2), ks=0.6, shininess=40.0, kt=kt)
         scene = ds.make_scene(mesh, camera(size), [light], front, back_material=back,
                               two_sided=True, background=(0.9, 0.9, 0.95))
-        settings = ds.RenderSettings(raster=raster, sigma=0.5, gamma=1e-3)
+        # soft: K must hold the faces whose footprint reaches a pixel (up to 6 at a vertex)
+        # and the layers behind them
+        settings = ds.RenderSettings(raster=raster, sigma=0.1, gamma=1e-3, faces_per_pixel=16)
         panels.append((f"kt = {kt:g}, {raster} raster", ds.render(scene, settings)))
     return panels
 
@@ -52,7 +54,7 @@ def transparency_panels(size):
 def area_light_panels(size):
     mesh = sphere_and_floor(floor_clockwise=False)
     mat = ds.material(ka=0.1, kd=(0.75, 0.7, 0.6), ks=0.5, shininess=30.0)
-    at, colour = (1.2, 1.8, 1.0), 6.0
+    at, colour = (1.2, 1.8, 1.0), 2.5
     down = np.array([-1.2, -1.8, -1.0]) / np.linalg.norm([1.2, 1.8, 1.0])
     tangent = np.cross(down, [0.0, 1.0, 0.0])
     tangent /= np.linalg.norm(tangent)

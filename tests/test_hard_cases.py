@@ -297,8 +297,8 @@ EFFECT_CASES = {
     "zero_size_lights_at_apex": Case(lambda: effects_scene(size=0.0, at=[TENT[0][4]] * 3),
                                      "zero-size lights at the tent's apex", smooth=NOT_SMOOTH),
 }
-EFFECT_PLAN = (("plain", RenderSettings(faces_per_pixel=4)),
-               ("plain", RenderSettings(raster="soft", faces_per_pixel=4)))
+EFFECT_PLAN = (("plain", RenderSettings(faces_per_pixel=2)),
+               ("plain", RenderSettings(raster="soft", faces_per_pixel=2)))
 
 
 def label(variant, settings):
