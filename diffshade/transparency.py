@@ -9,8 +9,8 @@ modes; in short, with layers nearest first, c_k the lit colour and kt_k the tran
       rgb = sum_k T_k (1 - kt_k) c_k + T_K background,   T_0 = 1, T_{k+1} = T_k kt_k,
   so the nearest opaque layer (kt = 0) ends it. alpha = 1 - mean_rgb(T_K) (opacity).
 - soft: SoftRas aggregation applied recursively. What lies behind layer k is the SoftRas
-  blend B_k of the layers behind it (each weighted by a soft depth test at the blend's
-  own depth scale gamma, BEHIND_MARGIN) and the background; layer k shows
+  blend B_k of the layers behind it (by more than BEHIND_MARGIN times the blend's own
+  depth scale gamma) and the background; layer k shows
   (1 - kt_k) c_k + kt_k B_k, and the pixel is the SoftRas blend of those over all layers.
   Computed from the farthest layer forward, every blend a softmax of logits, so tiny
   gamma cannot overflow. kt = 0 gives soft_blend exactly (to rounding).
@@ -82,9 +82,10 @@ def _by_depth(frags, *per_slot):
     return [take(a) for a in per_slot]
 
 
-#: a layer counts as behind another by sigmoid((zt_front - zt_back) / gamma - BEHIND_MARGIN):
-#: layers within a few gamma of each other in depth are one surface (SoftRas blends them as
-#: peers, e.g. the two faces at a shared edge), not one seen through the other
+#: a layer is behind another where its normalized inverse depth is lower by more than
+#: BEHIND_MARGIN * gamma: layers closer than that are one surface (SoftRas blends them as
+#: peers, e.g. the two faces at a shared edge), not one seen through the other. A hard
+#: test: a soft one would leave the peers, the nearest layers, the largest blend weight.
 BEHIND_MARGIN = 4.0
 
 
@@ -113,13 +114,14 @@ def soft_composite(colours, kt, frags, background, near, far, sigma, gamma):
 
 
 def _blend_behind(k, logits, zt, gamma, shown, bg_logit, background):
-    """B_k: the SoftRas blend of the layers behind layer k (gated by depth, BEHIND_MARGIN)
-    and the background: [H, W, 3]."""
+    """B_k: the SoftRas blend of the layers behind layer k (by more than BEHIND_MARGIN
+    gamma) and the background: [H, W, 3]."""
     later = logits[..., k + 1:]
     if later.shape[-1] == 0:
         return background
-    gate = jax.nn.log_sigmoid((zt[..., k, None] - zt[..., k + 1:]) / gamma - BEHIND_MARGIN)
-    weights = jax.nn.softmax(jnp.concatenate([later + gate, bg_logit], -1), axis=-1)
+    gap = jax.lax.stop_gradient(zt[..., k, None] - zt[..., k + 1:])
+    later = jnp.where(gap > BEHIND_MARGIN * gamma, later, -jnp.inf)
+    weights = jax.nn.softmax(jnp.concatenate([later, bg_logit], -1), axis=-1)
     rgb = weights[..., -1:] * background
     for j in range(k + 1, logits.shape[-1]):
         rgb = rgb + weights[..., j - k - 1, None] * shown[j]

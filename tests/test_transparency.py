@@ -41,7 +41,7 @@ FRONT_BOX = (-0.5, 1.5, -0.5, 0.5)  # x0, x1, y0, y1 at z = 0.5
 REAR_BOX = (-1.0, 1.0, -1.0, 0.75)  # at z = 0; no diagonal through a pixel centre
 KT = (0.3, 0.6, 0.9)
 BACKGROUND = np.array([0.05, 0.1, 0.2])
-HARD, SOFT = RenderSettings(), RenderSettings(raster="soft", sigma=0.5, gamma=0.05)
+HARD, SOFT = RenderSettings(), RenderSettings(raster="soft", sigma=0.5, gamma=0.005)
 
 
 def quad(box, z, clockwise):
@@ -109,15 +109,14 @@ def test_kt_zero_renders_as_the_opaque_material(mesh, settings):
 
 def recursive_blend(colours, kt, logits, valid, zt, background):
     """The soft composite of one pixel written out: sort by depth (nearest first), then
-    from the farthest layer forward B_k = the normalized-weight sum over the layers behind
-    k, each weight D e^(zt / gamma) times the soft depth test sigmoid((zt_k - zt_j) / gamma
-    - 4), and the background; layer k shows (1 - kt) c + kt B_k; the pixel is the plain
-    SoftRas blend of what the layers show."""
+    from the farthest layer forward B_k = the normalized-weight (D e^(zt / gamma)) sum over
+    the layers j with zt_k - zt_j > 4 gamma and the background; layer k shows
+    (1 - kt) c + kt B_k; the pixel is the plain SoftRas blend of what the layers show."""
     layers = [k for _, k in sorted((-zt[k], k) for k in range(len(zt)) if valid[k])]
     bg_logit = 1e-3 / SOFT.gamma
 
-    def blend(members, extra):
-        w = np.array([logits[j] + extra(j) for j in members] + [bg_logit])
+    def blend(members):
+        w = np.array([logits[j] for j in members] + [bg_logit])
         w = np.exp(w - w.max())
         w = w / w.sum()
         return sum(w[n] * shown[j] for n, j in enumerate(members)) + w[-1] * background
@@ -125,10 +124,9 @@ def recursive_blend(colours, kt, logits, valid, zt, background):
     shown = {}
     for i in reversed(range(len(layers))):
         k = layers[i]
-        behind = blend(layers[i + 1:], lambda j, k=k: -np.logaddexp(
-            0.0, -((zt[k] - zt[j]) / SOFT.gamma - 4.0)))
+        behind = blend([j for j in layers[i + 1:] if zt[k] - zt[j] > 4.0 * SOFT.gamma])
         shown[k] = (1 - kt[k]) * colours[k] + kt[k] * behind
-    return blend(layers, lambda j: 0.0)
+    return blend(layers)
 
 
 def test_soft_composite_equals_a_per_pixel_recursion(mesh):
