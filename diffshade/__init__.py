@@ -9,6 +9,7 @@ from diffshade import cputune
 #: a module that could start XLA)
 CPU_TUNING = cputune.apply()
 
+from diffshade.area_lights import area_light, sphere_light
 from diffshade.builtin import BUILTIN_SCENES, builtin_scene
 from diffshade.camera import Camera, look_at
 from diffshade.color import linear_to_srgb, srgb_to_linear
@@ -55,9 +56,10 @@ __all__ = [
     # the types a user holds
     "Camera", "Fragments", "Material", "Mesh", "RenderSettings", "Scene", "SceneFileError",
     # building a scene
-    "ambient_light", "box", "directional_light", "icosphere", "load_mesh", "look_at",
+    "ambient_light", "area_light", "box", "directional_light", "icosphere", "load_mesh",
+    "look_at",
     "make_scene", "material", "mesh_from_arrays", "mesh_from_trimesh", "model_matrix",
-    "point_light", "replace", "spot_light", "torus",
+    "point_light", "replace", "sphere_light", "spot_light", "torus",
     "BUILTIN_SCENES", "builtin_scene", "load_scene", "load_scenes", "save_scene",
     "scene_from_dict", "scenes_from_dict",
     # rendering

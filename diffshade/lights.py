@@ -5,7 +5,8 @@ functions (`ambient_light`, `directional_light`, `point_light`, `spot_light`) va
 their input; `color=` sets diffuse = specular = color and leaves ambient at 0.
 `group_lights` stacks the lights of one type into one pytree with a leading light axis,
 and leaves a type absent (`None`) when the scene has none, so that no code for it is
-traced or compiled.
+traced or compiled. Area and extended lights (rectangle, disk, sphere) are declared here
+too; their factories and shading are diffshade.area_lights (docs/area-lights.md).
 
 Conventions: positions are world-space points; a `direction` is the direction the light
 *travels* (from the light into the scene), as for `GL_SPOT_DIRECTION`; attenuation is
@@ -72,6 +73,55 @@ class SpotLight:
     exponent: jax.Array
 
 
+def _sampled(cls):
+    """A light pytree whose `samples` (the static sample count) is metadata."""
+    cls = dataclasses.dataclass(frozen=True)(cls)
+    fields = [f.name for f in dataclasses.fields(cls) if f.name != "samples"]
+    return jax.tree_util.register_dataclass(cls, data_fields=fields, meta_fields=["samples"])
+
+
+@_sampled
+class RectLight:
+    """A one-sided rectangular (parallelogram) emitter: center [..., 3], edge vectors
+    edge_u, edge_v [..., 3] (it emits towards edge_u x edge_v); colours [..., 3];
+    samples: the static sample count of its sampled terms (area_lights.py)."""
+
+    center: jax.Array
+    edge_u: jax.Array
+    edge_v: jax.Array
+    ambient: jax.Array
+    diffuse: jax.Array
+    specular: jax.Array
+    samples: int = 16
+
+
+@_sampled
+class DiskLight:
+    """A one-sided disk emitter: center [..., 3], normal [..., 3] (it emits towards the
+    normal), radius [...]; colours [..., 3]; samples as RectLight."""
+
+    center: jax.Array
+    normal: jax.Array
+    radius: jax.Array
+    ambient: jax.Array
+    diffuse: jax.Array
+    specular: jax.Array
+    samples: int = 16
+
+
+@_sampled
+class SphereLight:
+    """A spherical emitter: position [..., 3], radius [...]; colours [..., 3]; samples as
+    RectLight."""
+
+    position: jax.Array
+    radius: jax.Array
+    ambient: jax.Array
+    diffuse: jax.Array
+    specular: jax.Array
+    samples: int = 16
+
+
 @_pytree
 class LightGroups:
     """Lights stacked by type (leading axis = light index); a type with no light is None."""
@@ -80,6 +130,9 @@ class LightGroups:
     directional: DirectionalLight | None = None
     point: PointLight | None = None
     spot: SpotLight | None = None
+    rect: RectLight | None = None
+    disk: DiskLight | None = None
+    sphere: SphereLight | None = None
 
 
 def _array(name, value, shape, *, nonneg=False):
@@ -166,7 +219,17 @@ def spot_light(position, direction, color=None, *, cutoff=30.0, exponent=0.0, am
 
 
 _GROUP_OF = {AmbientLight: "ambient", DirectionalLight: "directional", PointLight: "point",
-             SpotLight: "spot"}
+             SpotLight: "spot", RectLight: "rect", DiskLight: "disk", SphereLight: "sphere"}
+
+
+def _check_sample_counts(items, indices):
+    """Lights of one type stack only with one (static) sample count."""
+    counts = [getattr(light, "samples", None) for light in items]
+    for light, i in zip(items, indices, strict=True):
+        if getattr(light, "samples", None) != counts[0]:
+            raise ValueError(f"lights[{i}].samples: got {light.samples}; expected "
+                             f"{counts[0]}, the sample count of lights[{indices[0]}] (lights "
+                             "of one type share one sample count)")
 
 
 def group_lights(lights) -> LightGroups:
@@ -177,11 +240,15 @@ def group_lights(lights) -> LightGroups:
         raise TypeError(f"lights: got {type(lights).__name__}; expected a list of lights "
                         "or a LightGroups")
     groups = {name: [] for name in _GROUP_OF.values()}
+    indices = {name: [] for name in _GROUP_OF.values()}
     for i, light in enumerate(lights):
         if type(light) not in _GROUP_OF:
             raise TypeError(f"lights[{i}]: got {type(light).__name__}; expected one of "
                             f"{[c.__name__ for c in _GROUP_OF]}")
         groups[_GROUP_OF[type(light)]].append(light)
+        indices[_GROUP_OF[type(light)]].append(i)
+    for name, items in groups.items():
+        _check_sample_counts(items, indices[name])
     stacked = {name: jax.tree.map(lambda *xs: jnp.stack(xs), *items) if items else None
                for name, items in groups.items()}
     return LightGroups(**stacked)

@@ -216,12 +216,13 @@ def fragments_from_ids(proj: Projected, faces, face_ids, dropped, soft=False,
                      dist if soft else None)
 
 
-def rasterize(proj: Projected, faces, camera, settings) -> Fragments:
-    """Hard mode: the nearest covering face per pixel (K = 1, z-buffer). Soft mode: up to
-    settings.faces_per_pixel faces whose soft footprint reaches the pixel, ranked by their
-    weight in the soft blend (candidates.find_candidates)."""
+def rasterize(proj: Projected, faces, camera, settings, layers=1) -> Fragments:
+    """Hard mode: the `layers` nearest covering faces per pixel, nearest first (1: a
+    z-buffer; transparency composites several). Soft mode: up to settings.faces_per_pixel
+    faces whose soft footprint reaches the pixel, ranked by their weight in the soft blend
+    (candidates.find_candidates)."""
     soft = settings.raster == "soft"
-    k = settings.faces_per_pixel if soft else 1
+    k = settings.faces_per_pixel if soft else layers
     face_ids, dropped = search_faces(proj.clip, faces, camera, k, settings, soft)
     return fragments_from_ids(proj, faces, face_ids, dropped, soft=soft,
                               host=settings.use_host_kernels())

@@ -14,6 +14,9 @@ screen and lights them with the back material, when the scene has one, as OpenGL
 
 In soft mode the blend weights are computed once, before shading: Phong shading then
 lights only the fragments whose weight is not 0 (diffshade.compact).
+
+A scene with a transparent material (kt) keeps K layers in hard mode too and composites
+them (diffshade.transparency); an opaque scene compiles none of that.
 """
 
 import dataclasses
@@ -33,6 +36,12 @@ from diffshade.samples import Samples, read, shading_samples
 from diffshade.scene import Scene
 from diffshade.settings import RenderSettings
 from diffshade.shading import ShadingParts, shade
+from diffshade.transparency import (
+    fragment_kt,
+    hard_composite,
+    layers_needed,
+    soft_composite,
+)
 
 DEFAULT_SETTINGS = RenderSettings()
 
@@ -52,7 +61,7 @@ def view_dirs(scene, points):
 def _fill_absent(material, other):
     """`material` with each absent optional term (ks, emission) set to zeros shaped like
     `other`'s, so that front and back materials share one structure."""
-    changes = {name: jnp.zeros_like(getattr(other, name)) for name in ("ks", "emission")
+    changes = {name: jnp.zeros_like(getattr(other, name)) for name in ("ks", "emission", "kt")
                if getattr(material, name) is None and getattr(other, name) is not None}
     shininess = material.shininess if material.shininess is not None else other.shininess
     return dataclasses.replace(material, shininess=shininess, **changes)
@@ -125,7 +134,8 @@ def _checked(jitted):
 @jax.jit
 def _rasterize_scene(scene, settings=DEFAULT_SETTINGS) -> Fragments:
     """Project and rasterize the scene's mesh (cache the result when geometry is fixed)."""
-    return rasterize(project(scene), scene.mesh.faces, scene.camera, settings)
+    return rasterize(project(scene), scene.mesh.faces, scene.camera, settings,
+                     layers=layers_needed(scene, settings))
 
 
 def blend_weights(scene, frags: Fragments, settings):
@@ -137,14 +147,25 @@ def blend_weights(scene, frags: Fragments, settings):
     return soft_weights(frags, cam.near, cam.far, settings.sigma, settings.gamma)
 
 
-def blend(scene, colours, frags: Fragments, settings, weights=None):
-    """Hard (nearest fragment) or soft (SoftRas) blending by settings.raster: [H, W, 4].
-    weights: blend_weights, when the caller has them already."""
+def _composite(scene, colours, frags, settings, kt):
+    """blend for a transparent scene: the layers composited (diffshade.transparency)."""
     if settings.raster == "hard":
+        return hard_composite(colours, kt, frags, scene.background)
+    cam = scene.camera
+    return soft_composite(colours, kt, frags, scene.background, cam.near, cam.far,
+                          settings.sigma, settings.gamma)
+
+
+def blend(scene, colours, frags: Fragments, settings, weights=None, kt=None):
+    """Hard (nearest fragment) or soft (SoftRas) blending by settings.raster: [H, W, 4].
+    weights: blend_weights, when the caller has them already. kt: [H, W, K, 3] per-fragment
+    transparency (transparency.fragment_kt) composites the layers instead."""
+    if settings.raster == "hard" and kt is None:
         return hard_blend(colours, frags, scene.background)
     cam = scene.camera
-    image = soft_blend(colours, frags, scene.background, cam.near, cam.far, settings.sigma,
-                       settings.gamma, weights)
+    image = (_composite(scene, colours, frags, settings, kt) if kt is not None else
+             soft_blend(colours, frags, scene.background, cam.near, cam.far, settings.sigma,
+                        settings.gamma, weights))
     if not settings.clamp:
         return image
     # the weights sum to 1 only up to rounding: keep a blend of clamped colours in [0, 1]
@@ -153,11 +174,13 @@ def blend(scene, colours, frags: Fragments, settings, weights=None):
 
 def render_fragments(scene, frags: Fragments, settings=DEFAULT_SETTINGS, axis_name=None):
     """Shade and blend cached fragments: [H, W, 4] RGBA. In soft mode only the fragments
-    with a non-zero blend weight need a colour (shade_fragments' `active`)."""
-    weights = blend_weights(scene, frags, settings)
+    with a non-zero blend weight need a colour (shade_fragments' `active`); transparent
+    layers behind them may show, so a transparent scene shades every fragment."""
+    kt = fragment_kt(scene, frags)
+    weights = None if kt is not None else blend_weights(scene, frags, settings)
     active = None if weights is None else weights[..., :-1] > 0.0
     _, colours = shade_fragments(scene, project(scene), frags, settings, active, axis_name)
-    return blend(scene, colours, frags, settings, weights)
+    return blend(scene, colours, frags, settings, weights, kt)
 
 
 @jax.jit

@@ -30,12 +30,16 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
+from diffshade.area_lights import area_light, sphere_light
 from diffshade.camera import PROJECTIONS, look_at
 from diffshade.io import write_json
 from diffshade.lights import (
     AmbientLight,
     DirectionalLight,
+    DiskLight,
     PointLight,
+    RectLight,
+    SphereLight,
     SpotLight,
     ambient_light,
     directional_light,
@@ -307,6 +311,11 @@ _LIGHTS = {
     "point": (point_light, _POINT),
     "spot": (spot_light, {**_POINT, "direction": _Required(_VEC3), "cutoff": _NUMBER,
                           "exponent": _NUMBER}),
+    # a rectangle (edge_u, edge_v) or a disk (normal, radius): area_light says which
+    "area": (area_light, {"center": _Required(_VEC3), "edge_u": _VEC3, "edge_v": _VEC3,
+                          "normal": _VEC3, "radius": _NUMBER, **_COLOURS, "samples": _PIXELS}),
+    "sphere": (sphere_light, {"position": _Required(_VEC3), "radius": _Required(_NUMBER),
+                              **_COLOURS, "samples": _PIXELS}),
 }
 _LIGHT_TYPE = _choice(tuple(_LIGHTS))
 
@@ -324,7 +333,7 @@ def _light(value, path):
 
 
 _MATERIAL = {"ka": _RGB, "kd": _RGB, "ks": _nullable(_RGB), "shininess": _NUMBER,
-             "emission": _nullable(_RGB)}
+             "emission": _nullable(_RGB), "kt": _nullable(_RGB)}
 
 
 def _material(value, path):
@@ -496,7 +505,7 @@ def _mesh_to_dict(mesh, mesh_ref):
 
 
 _LIGHT_TYPE_OF = {AmbientLight: "ambient", DirectionalLight: "directional", PointLight: "point",
-                  SpotLight: "spot"}
+                  SpotLight: "spot", RectLight: "area", DiskLight: "area", SphereLight: "sphere"}
 
 
 def _light_to_dict(light, i):
@@ -505,6 +514,9 @@ def _light_to_dict(light, i):
     kind = _LIGHT_TYPE_OF[type(light)]
     out = {"type": kind}
     for field in dataclasses.fields(light):
+        if field.name == "samples":  # static: one count for the whole group
+            out["samples"] = light.samples
+            continue
         value = np.asarray(getattr(light, field.name))[i]
         key = "color" if kind == "ambient" else field.name
         out[key] = _rgb(value) if key in _COLOURS else _plain(value)
@@ -513,7 +525,8 @@ def _light_to_dict(light, i):
 
 def _lights_to_list(groups):
     lights = []
-    for group in (groups.ambient, groups.directional, groups.point, groups.spot):
+    for group in (groups.ambient, groups.directional, groups.point, groups.spot, groups.rect,
+                  groups.disk, groups.sphere):
         count = 0 if group is None else len(jax.tree.leaves(group)[0])
         lights += [_light_to_dict(group, i) for i in range(count)]
     return lights
@@ -526,7 +539,8 @@ def _optional_rgb(value):
 def _material_to_dict(mat):
     return {"ka": _rgb(mat.ka), "kd": _rgb(mat.kd), "ks": _optional_rgb(mat.ks),
             "shininess": 0.0 if mat.shininess is None else _plain(mat.shininess),
-            "emission": _optional_rgb(mat.emission)}
+            "emission": _optional_rgb(mat.emission)} | (
+                {} if mat.kt is None else {"kt": _rgb(mat.kt)})
 
 
 def _camera_to_dict(camera):
@@ -542,7 +556,8 @@ def scene_to_dict(scene: Scene, settings: RenderSettings, mesh_ref=None) -> dict
     mesh_ref: None writes the mesh inline (vertices, faces and its normals); a path
     (str or PathLike, relative to the scene file's folder) or a mesh object such as
     {"builtin": {"icosphere": {"subdivisions": 3}}} is written as given instead.
-    Lights are written grouped by type (ambient, directional, point, spot).
+    Lights are written grouped by type (ambient, directional, point, spot, area
+    rectangles, area disks, sphere).
     """
     out = {"version": FORMAT_VERSION, "mesh": _mesh_to_dict(scene.mesh, mesh_ref)}
     if not np.array_equal(np.asarray(scene.model), np.eye(4)):

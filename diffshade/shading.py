@@ -12,6 +12,8 @@ and view_dirs are [..., 3]; material fields broadcast against [..., 3] (so a per
 material, as two-sided lighting needs, works too). All vectors are world space; the
 caller passes unit normals and unit directions *towards* the viewer. Absent light types,
 `ks=None` and `emission=None` are skipped at trace time: no code is compiled for them.
+Area and sphere lights (diffshade.area_lights) add their terms through the same
+`_light_terms`, once per light sample.
 """
 
 import dataclasses
@@ -19,6 +21,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
+from diffshade import area_lights
 from diffshade.lights import LightGroups
 from diffshade.material import Material
 from diffshade.numerics import dot, safe_div, safe_norm, safe_normalize, safe_pow
@@ -107,9 +110,9 @@ def _light_terms(material, light, light_dir, scale, normals, view_dirs, settings
     return ambient, diffuse, scaled(material.ks * light.specular * lit)
 
 
-def _lights(lights: LightGroups):
-    """(kind, single light) for every directional, point and spot light of the scene."""
-    return [(kind, light) for kind in ("directional", "point", "spot")
+def _lights(lights: LightGroups, kinds=("directional", "point", "spot")):
+    """(kind, single light) for every light of the scene of the given kinds."""
+    return [(kind, light) for kind in kinds
             if getattr(lights, kind) is not None for light in _unstack(getattr(lights, kind))]
 
 
@@ -136,6 +139,11 @@ def shade(material: Material, lights: LightGroups, global_ambient, points, norma
         incidence = _incidence(kind, light, points, settings)
         light_dir, scale = jax.lax.optimization_barrier(incidence)
         a, d, s = _light_terms(material, light, light_dir, scale, normals, view_dirs, settings)
+        ambient, diffuse = ambient + a, diffuse + d
+        specular = specular if s is None else specular + s
+    for kind, light in _lights(lights, area_lights.KINDS):
+        a, d, s = area_lights.terms(kind, light, material, points, normals, view_dirs,
+                                    settings, _light_terms)
         ambient, diffuse = ambient + a, diffuse + d
         specular = specular if s is None else specular + s
     emission = (jnp.zeros(shape, points.dtype) if material.emission is None

@@ -82,7 +82,8 @@ def _rgb_line(key, value):
 
 def mtl_text(material, name="diffshade_fit", comment=""):
     """Wavefront MTL text of a Material: Ka, Kd, Ks (0 without specular), Ns (the Blinn-
-    Phong exponent, written as fitted), Ke when it emits, illum 2 (1 without specular)."""
+    Phong exponent, written as fitted), Ke when it emits, Tr (the mean of kt) and Tf (kt
+    per channel) when it is transparent, illum 2 (1 without specular)."""
     shininess = float(material.shininess)
     lines = ["# diffshade: Blinn-Phong material, linear RGB, OpenGL 1.x lighting",
              f"# Ns is the specular exponent as fitted; many OBJ viewers clamp Ns to "
@@ -96,6 +97,9 @@ def mtl_text(material, name="diffshade_fit", comment=""):
               _rgb_line("Ks", material.ks if specular else 0.0), f"Ns {shininess:.6f}"]
     if material.emission is not None:
         lines.append(_rgb_line("Ke", material.emission))
+    if getattr(material, "kt", None) is not None:
+        kt = np.broadcast_to(np.asarray(material.kt, np.float64), (3,))
+        lines += [f"Tr {kt.mean():.6f}", _rgb_line("Tf", kt)]
     lines.append(f"illum {2 if specular else 1}")
     return "\n".join(lines) + "\n"
 

@@ -32,6 +32,7 @@ from diffshade import (
     Mesh,
     RenderSettings,
     ambient_light,
+    area_light,
     directional_light,
     icosphere,
     look_at,
@@ -41,6 +42,7 @@ from diffshade import (
     point_light,
     render,
     replace,
+    sphere_light,
     spot_light,
 )
 from diffshade.mesh import vertex_normals
@@ -252,6 +254,53 @@ PLAN = (
 )
 
 
+# ---------------------------------------- the effects catalogue: transparency, area lights
+# Its own shared structure (a transparent material over two layers, a rectangle, a disk and
+# a sphere light), so that the main catalogue keeps compiling what it compiled before.
+
+BEHIND_QUAD = [[-1.5, -1.5, -0.6], [1.5, -1.5, -0.6], [1.5, 1.5, -0.6], [-1.5, 1.5, -0.6]]
+ZERO_RECT = ("['lights'].rect.edge_u", "['lights'].rect.edge_v")
+
+
+EXTENDED_AT = ((0.4, 0.3, 2.0), (-0.5, 0.2, 1.5), (0.2, -0.6, 1.8))
+
+
+def effects_scene(kt=(0.3, 0.6, 0.9), size=1.0, at=EXTENDED_AT):
+    """The tent with a quad behind it; a rectangle, a disk and a sphere light centred at
+    `at`, `size` times their generic size (0: zero-size lights)."""
+    cam = look_at((0.3, 0.4, 3.0), (0.0, 0.0, 0.0), width=SIZE, height=SIZE, fov_y=50.0,
+                  near=0.5, far=10.0)
+    lights = [ambient_light(0.1),
+              area_light(at[0], (0.8 * size, 0.1 * size, 0.0), (0.0, -0.6 * size, 0.1 * size),
+                         color=(0.7, 0.6, 0.8), ambient=0.05, samples=4),
+              area_light(at[1], normal=(0.3, -0.1, -1.0), radius=0.5 * size,
+                         color=(0.6, 0.7, 0.5), samples=4),
+              sphere_light(at[2], 0.3 * size, (0.5, 0.45, 0.4), samples=4)]
+    mat = material(ka=0.2, kd=(0.7, 0.5, 0.3), ks=(0.5, 0.4, 0.6), shininess=20.0,
+                   emission=0.05, kt=kt)
+    return make_scene(padded_mesh(*plus(BEHIND_QUAD, [[0, 1, 2], [0, 2, 3]])), cam, lights,
+                      mat, global_ambient=(0.1, 0.15, 0.2), background=(0.2, 0.1, 0.3))
+
+
+EFFECT_CASES = {
+    "effects_generic": Case(effects_scene, "transparency and extended lights, generic"),
+    "kt_0": Case(lambda: effects_scene(kt=0.0), "kt exactly 0 (opaque layers composited)"),
+    "kt_1": Case(lambda: effects_scene(kt=1.0), "kt exactly 1 (invisible surfaces)"),
+    "kt_0_and_1": Case(lambda: effects_scene(kt=(0.0, 1.0, 0.0)), "kt 0, 1, 0 per channel"),
+    # a zero rectangle has no normal and emits nothing, the smallest one a point light's
+    # worth: its edges are not moved by the central differences
+    "zero_size_lights": Case(lambda: effects_scene(size=0.0),
+                             "a zero-size rectangle, disk and sphere light", fixed=ZERO_RECT),
+    "extended_lights_at_apex": Case(lambda: effects_scene(at=[TENT[0][4]] * 3),
+                                    "extended lights centred on the tent's apex",
+                                    smooth=NOT_SMOOTH),
+    "zero_size_lights_at_apex": Case(lambda: effects_scene(size=0.0, at=[TENT[0][4]] * 3),
+                                     "zero-size lights at the tent's apex", smooth=NOT_SMOOTH),
+}
+EFFECT_PLAN = (("plain", RenderSettings(faces_per_pixel=2)),
+               ("plain", RenderSettings(raster="soft", faces_per_pixel=2)))
+
+
 def label(variant, settings):
     default = RenderSettings()
     changed = [f"{f.name}={getattr(settings, f.name)}" for f in dataclasses.fields(settings)
@@ -264,6 +313,10 @@ def fd_applies(case, settings):
     (a step of 1e-6 of a coordinate moves a logit x / 1e-8 by ~100)."""
     soft_ok = settings.sigma >= 1.0 and settings.gamma >= 1e-4
     return settings.raster in case.smooth and (settings.raster == "hard" or soft_ok)
+
+
+CATALOGUES = {"catalogue": (CASES, PLAN), "effects": (EFFECT_CASES, EFFECT_PLAN)}
+ALL_CASES = {**CASES, **EFFECT_CASES}
 
 
 # --------------------------------------------------------------- loss and gradients
@@ -353,19 +406,19 @@ def stack(trees):
     return jax.tree.map(lambda *xs: np.stack(xs), *trees)
 
 
-def catalogue_batch(x64):
+def catalogue_batch(x64, cases=CASES):
     """(params stacked, faces [N, F, 3], a scene of the shared structure, directions):
-    every case in CASES order, then, in float64, each smooth case moved by +EPS and -EPS
+    every case in `cases` order, then, in float64, each smooth case moved by +EPS and -EPS
     along its random direction (directions: {case: direction}, in that order)."""
-    scenes = {name: c.build() for name, c in CASES.items()}
+    scenes = {name: c.build() for name, c in cases.items()}
     params = {name: jax.tree.map(np.asarray, params_of(s)) for name, s in scenes.items()}
     directions = {name: random_direction(params[name], i, c.length, c.fixed)
-                  for i, (name, c) in enumerate(CASES.items()) if x64 and c.smooth}
-    members = [(name, params[name]) for name in CASES] + [
+                  for i, (name, c) in enumerate(cases.items()) if x64 and c.smooth}
+    members = [(name, params[name]) for name in cases] + [
         (name, moved(params[name], d, sign * EPS)) for name, d in directions.items()
         for sign in (1.0, -1.0)]
     faces = np.stack([np.asarray(scenes[name].mesh.faces) for name, _ in members])
-    return stack([p for _, p in members]), faces, scenes["generic"], directions
+    return stack([p for _, p in members]), faces, scenes[next(iter(cases))], directions
 
 
 def make_row(entry, out, i, direction=None, j=None):
@@ -380,18 +433,20 @@ def make_row(entry, out, i, direction=None, j=None):
 
 
 @functools.cache
-def results(x64):
-    """{case: [Row per PLAN entry]}: the whole catalogue in one compiled call per dtype."""
+def results(x64, catalogue="catalogue"):
+    """{case: [Row per plan entry]}: the whole catalogue (or the effects catalogue) in one
+    compiled call per dtype."""
+    cases, plan = CATALOGUES[catalogue]
     with jax.enable_x64(x64):
-        params, faces, like, directions = catalogue_batch(x64)
+        params, faces, like, directions = catalogue_batch(x64, cases)
         weights = np.random.default_rng(5).uniform(0.5, 1.5, (SIZE, SIZE, 4))
         out = losses_and_grads(params, jnp.asarray(faces), like,
-                               jnp.asarray(weights, float_dtype()), PLAN)
+                               jnp.asarray(weights, float_dtype()), plan)
         out = jax.tree.map(np.asarray, out)
-    moved_at = {name: len(CASES) + 2 * k for k, name in enumerate(directions)}
+    moved_at = {name: len(cases) + 2 * k for k, name in enumerate(directions)}
     return {name: [make_row(entry, o, i, directions.get(name), moved_at.get(name))
-                   for entry, o in zip(PLAN, out, strict=True)]
-            for i, name in enumerate(CASES)}
+                   for entry, o in zip(plan, out, strict=True)]
+            for i, name in enumerate(cases)}
 
 
 # ----------------------------------------------------------------------------- checks
@@ -404,7 +459,7 @@ BACKGROUND = np.array([0.2, 0.1, 0.3])
 
 
 def where(name, row):
-    return f"{name} ({CASES[name].what}), {label(row.variant, row.settings)}"
+    return f"{name} ({ALL_CASES[name].what}), {label(row.variant, row.settings)}"
 
 
 def nonfinite_leaves(tree):
@@ -440,7 +495,7 @@ def check_central_differences(table, dtype):
     found = []
     for name, rows in table.items():
         for row in rows:
-            if row.fd is None or not fd_applies(CASES[name], row.settings):
+            if row.fd is None or not fd_applies(ALL_CASES[name], row.settings):
                 continue
             slope, scale, fd = row.fd
             if abs(slope - fd) > 1e-6 * scale + 1e-9:
@@ -526,6 +581,17 @@ def test_catalogue(dtype):
     hard cases must have."""
     table = results(DTYPES[dtype])
     found = [msg for check in CHECKS for msg in check(table, dtype)]
+    assert not found, f"{len(found)} failures ({dtype}):\n" + "\n".join(found)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_effects_catalogue(dtype):
+    """Transparency (kt 0, 1, mixed) and zero-size area and sphere lights, in hard and
+    soft raster: finite values and gradients, colours in range, and gradients equal to
+    central differences (float64)."""
+    table = results(DTYPES[dtype], "effects")
+    found = [msg for check in (check_finite, check_central_differences)
+             for msg in check(table, dtype)]
     assert not found, f"{len(found)} failures ({dtype}):\n" + "\n".join(found)
 
 

@@ -240,8 +240,9 @@ def edited(keys, value):
     (("camera", "colour"), 1, "camera.colour: unknown key; expected one of: eye, far, fov_y"),
     (("lights", 1, "colour"), 1, 'lights[1].colour: unknown key; did you mean "color"?'),
     (("lights", 0, "cutoff"), 10, "lights[0].cutoff: unknown key"),
-    (("lights", 0, "type"), "area",
-     'lights[0].type: got "area"; expected one of "ambient", "directional", "point", "spot"'),
+    (("lights", 0, "type"), "panel",
+     'lights[0].type: got "panel"; expected one of "ambient", "directional", "point", "spot", '
+     '"area", "sphere"'),
     (("lights", 0, "type"), DELETE, "lights[0].type: missing; expected one of"),
     (("lights", 1, "cutoff"), 120,
      "lights[1].cutoff: got 120; expected degrees in [0, 90], or 180"),

@@ -1,0 +1,117 @@
+"""Area and sphere lights: light samples against error against time.
+
+    python benchmarks/accuracy_area_lights.py            # the table (a few minutes)
+    python benchmarks/accuracy_area_lights.py --quick    # fewer sample counts
+
+The scene: a sphere (icosphere, subdivision 3) on a floor, 64², Phong shading, lit by
+one light of each kind in turn (a rectangle 1.6 x 1.6, a disk of radius 0.9, a sphere of
+radius 0.6) close to the sphere, so that the light's extent matters. Reference: the same
+light with REFERENCE_SAMPLES samples (the rectangle's diffuse term is exact at every
+count: Lambert's formula; its samples serve the specular term). The material is glossy
+(ks 0.5, shininess 30), so the sampled specular term shows. Errors in 1/255 units over the
+RGB channels of the clamped image: RMSE and the maximum absolute error. Times: steady-state
+median of forward renders after warm-up, the first call (trace + compile + run) separately;
+'fwd+bwd' is the gradient of an MSE loss with respect to the material and the light.
+"""
+
+import argparse
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import print_table, time_call, write_results  # noqa: E402
+
+import diffshade as ds  # noqa: E402
+
+SIZE = 64
+REFERENCE_SAMPLES = 4096
+AT = (1.2, 1.8, 1.0)
+COLOUR = 2.5
+
+
+def _frame():
+    down = -np.asarray(AT) / np.linalg.norm(AT)
+    tangent = np.cross(down, [0.0, 1.0, 0.0])
+    tangent /= np.linalg.norm(tangent)
+    return down, tangent, np.cross(down, tangent)
+
+
+def light(kind, samples):
+    down, u, v = _frame()
+    if kind == "rect":
+        return ds.area_light(AT, 1.6 * u, 1.6 * v, color=COLOUR, samples=samples)
+    if kind == "disk":
+        return ds.area_light(AT, normal=down, radius=0.9, color=COLOUR, samples=samples)
+    return ds.sphere_light(AT, 0.6, COLOUR, samples=samples)
+
+
+def scene(kind, samples):
+    ball = ds.icosphere(3)
+    verts = np.asarray(ball.vertices, np.float64)
+    floor = np.array([[-3, -1, -3], [3, -1, -3], [3, -1, 3], [-3, -1, 3]], np.float64)
+    mesh = ds.mesh_from_arrays(np.concatenate([verts, floor]),
+                               np.concatenate([np.asarray(ball.faces),
+                                               np.array([[0, 2, 1], [0, 3, 2]]) + len(verts)]))
+    cam = ds.look_at((0.0, 1.6, 4.2), (0.0, -0.3, 0.0), width=SIZE, height=SIZE, fov_y=45.0)
+    mat = ds.material(ka=0.1, kd=(0.75, 0.7, 0.6), ks=0.5, shininess=30.0)
+    return ds.make_scene(mesh, cam, [light(kind, samples)], mat, global_ambient=0.05)
+
+
+@jax.jit
+def render(s):
+    return ds.render(s)
+
+
+@jax.jit
+def loss_grad(s, target):
+    def loss(mat, lights):
+        return jnp.mean((ds.render(ds.replace(s, material=mat, lights=lights)) - target) ** 2)
+    return jax.grad(loss, argnums=(0, 1))(s.material, s.lights)
+
+
+def measure(kind, counts, repeats):
+    reference = np.asarray(render(scene(kind, REFERENCE_SAMPLES)), np.float64)
+    rows = []
+    for count in counts:
+        s = scene(kind, count)
+        compile_s, fwd_s, _ = time_call(render, s, repeats=repeats)
+        _, grad_s, _ = time_call(loss_grad, s, jnp.asarray(reference, jnp.float32),
+                                 repeats=repeats)
+        diff = np.asarray(render(s), np.float64)[..., :3] - reference[..., :3]
+        rows.append({"light": kind, "samples": count,
+                     "rmse_255": 255 * float(np.sqrt(np.mean(diff ** 2))),
+                     "max_255": 255 * float(np.abs(diff).max()),
+                     "compile_s": compile_s, "fwd_ms": 1e3 * fwd_s, "grad_ms": 1e3 * grad_s})
+        print(f"{kind}, {count} samples: done", flush=True)
+    return rows
+
+
+COLUMNS = [("light", "light", "{}"), ("samples", "samples", "{}"),
+           ("rmse_255", "RMSE/255", "{:.3f}"), ("max_255", "max/255", "{:.2f}"),
+           ("fwd_ms", "fwd ms", "{:.1f}"), ("grad_ms", "fwd+bwd ms", "{:.1f}"),
+           ("compile_s", "first call s", "{:.1f}")]
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--out", default=None, help="also write the rows as JSON")
+    args = parser.parse_args(argv)
+    counts = (1, 4, 16) if args.quick else (1, 4, 16, 64, 256)
+    rows = []
+    for kind in ("rect", "disk", "sphere"):
+        rows += measure(kind, counts, args.repeats)
+    print()
+    print(f"{SIZE}x{SIZE}, reference: {REFERENCE_SAMPLES} samples; errors in 1/255 units")
+    print_table(rows, COLUMNS)
+    if args.out:
+        write_results(args.out, {"rows": rows, "reference_samples": REFERENCE_SAMPLES})
+
+
+if __name__ == "__main__":
+    main()
