@@ -69,7 +69,7 @@ class RenderSettings:
     kernels: str = "auto"
     shadow_map_size: int = 256
     shadow_bias: float = 1.5
-    shadow_softness: float = 0.5
+    shadow_softness: float = 0.1
 
     def __post_init__(self):
         for name, allowed in (("shading", SHADING_MODES), ("specular", SPECULAR_MODELS),

@@ -64,12 +64,16 @@ class ShadowMap:
 
 
 def _bounds(world):
-    """Centre [3] and radius [] of a sphere around the vertices (not differentiated: the
-    maps' framing changes no visibility)."""
-    world = jax.lax.stop_gradient(world)
-    centre = 0.5 * (world.min(0) + world.max(0))
-    radius = jnp.max(safe_norm(world - centre, keepdims=False))
-    return centre, jnp.maximum(radius, tiny(world.dtype) ** 0.25)
+    """Centre [3] and radius [] of a sphere around the vertices [V, 3], both smooth in the
+    vertices (the framing moves the texel grid and sets the texel size, which the
+    filtered visibility and the bias depend on, so it is differentiated like the rest):
+    the mean, and the p-norm of the distances from it (p = 32: at least the largest
+    distance and at most V^(1/32) times it), scaled by their maximum so that no power
+    overflows; the p-norm does not depend on that scale, so it carries no gradient."""
+    centre = jnp.mean(world, 0)
+    dist = safe_norm(world - centre)
+    scale = jax.lax.stop_gradient(jnp.maximum(jnp.max(dist), tiny(world.dtype) ** 0.25))
+    return centre, scale * jnp.sum((dist / scale) ** 32) ** (1.0 / 32)
 
 
 def _depth_map(world, faces, camera, settings):
@@ -111,7 +115,7 @@ def _cameras(eye, target, up, fov_y, near, far, ortho_height, size, projection):
 def _range_from(position, world):
     """near, far of a map at `position` holding the whole scene."""
     centre, radius = _bounds(world)
-    far = 1.01 * (safe_norm(jax.lax.stop_gradient(position) - centre) + radius)
+    far = 1.01 * (safe_norm(position - centre) + radius)
     return 1e-3 * far, far
 
 
@@ -129,8 +133,10 @@ def point_map(position, world, faces, settings) -> ShadowMap:
 
 def spot_map(position, direction, cutoff, world, faces, settings) -> ShadowMap:
     """One perspective map around `direction` [3] from `position` [3], covering the cone
-    of half-angle `cutoff` [] degrees plus 1 degree (at most SHADOW_SPOT_CUTOFF + 1)."""
-    fov = 2.0 * jnp.minimum(cutoff, SHADOW_SPOT_CUTOFF) + 2.0
+    of half-angle `cutoff` [] degrees (at most SHADOW_SPOT_CUTOFF) and its edge: 1 degree
+    beyond it, or 8 edge widths for settings.spot_edge 'smooth' (at most 85 degrees)."""
+    edge = 8.0 * settings.spot_softness if settings.spot_edge == "smooth" else 1.0
+    fov = 2.0 * jnp.minimum(jnp.minimum(cutoff, SHADOW_SPOT_CUTOFF) + edge, 85.0)
     near, far = _range_from(position, world)
     size = settings.shadow_map_size
     cams = _cameras(position[None], (position + safe_normalize(direction))[None],
@@ -149,12 +155,14 @@ def directional_map(direction, world, faces, settings) -> ShadowMap:
     return _build(cams, world, faces, settings, 2.0 * radius / size, False)
 
 
-def _light_map(kind, light, world, faces, settings):
+def _light_map(kind, group, i, world, faces, settings):
+    """The map of light i of a stacked group (only the fields a map needs are read)."""
     if kind == "point":
-        return point_map(light.position, world, faces, settings)
+        return point_map(group.position[i], world, faces, settings)
     if kind == "spot":
-        return spot_map(light.position, light.direction, light.cutoff, world, faces, settings)
-    return directional_map(light.direction, world, faces, settings)
+        return spot_map(group.position[i], group.direction[i], group.cutoff[i], world, faces,
+                        settings)
+    return directional_map(group.direction[i], world, faces, settings)
 
 
 def shadow_maps(scene, settings):
@@ -169,8 +177,7 @@ def shadow_maps(scene, settings):
         count = jax.tree.leaves(group)[0].shape[0]
         for i, flag in enumerate(shadow_flags(group, count)):
             if flag:
-                light = jax.tree.map(lambda a, i=i: a[i], group)
-                maps[(kind, i)] = _light_map(kind, light, world, scene.mesh.faces, settings)
+                maps[(kind, i)] = _light_map(kind, group, i, world, scene.mesh.faces, settings)
     return maps or None
 
 
