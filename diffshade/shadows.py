@@ -219,6 +219,10 @@ def visibility(shadow_map: ShadowMap, points, normals, light_dir, settings):
     light_dir (unit, towards the light): [..., 3] world space; settings: raster mode,
     shadow_bias and shadow_softness (module docstring)."""
     index, x, y, depth, inside = _texel_coords(shadow_map, points)
+    # double where: a point outside the map (at the light itself, say: an empty fragment
+    # slot interpolates to the origin) must not divide by its depth even in the branch
+    # the final `where` discards, or its gradient turns 0 * inf into NaN
+    depth, x, y = (jnp.where(inside, v, fill) for v, fill in ((depth, 1.0), (x, 0.0), (y, 0.0)))
     texel = shadow_map.texel * depth if shadow_map.perspective else shadow_map.texel
     cos = jnp.maximum(dot(normals, light_dir), 1.0 / MAX_SLOPE)
     slope = jnp.minimum(safe_div(safe_norm(jnp.cross(normals, light_dir)), cos), MAX_SLOPE)

@@ -41,7 +41,7 @@ def main(argv=None):
     maps = ds.RenderSettings(shadow_map_size=512)
     soft = ds.RenderSettings(raster="soft", sigma=0.5, gamma=1e-4, shadow_map_size=512)
     plain = np.asarray(ds.render(scene(False)))[..., :3]
-    hard = np.asarray(ds.render(scene(True), maps))[..., :3]
+    hard = np.array(ds.render(scene(True), maps))[..., :3]
     hard[exact_edge(scene(True).camera)] = (1.0, 0.0, 0.0)
     smooth = np.asarray(ds.render(scene(True), soft))[..., :3]
     gap = np.ones((SIZE, 4, 3))

@@ -575,8 +575,13 @@ def test_2048_square_hard_render_fits_in_memory_and_covers_the_sphere():
 # mesh, the lights and the material must be finite.
 
 SHADOW_SIZE = 10
-SHADOW_SETTINGS = (RenderSettings(shadow_map_size=8),
-                   RenderSettings(raster="soft", spot_edge="smooth", shadow_map_size=8))
+# soft raster differentiates through the depth comparisons; hard raster's step passes no
+# gradient to the maps, so float32 covers it alone
+SHADOW_SETTINGS = {"float32": (RenderSettings(shadow_map_size=8),
+                               RenderSettings(raster="soft", spot_edge="smooth",
+                                              shadow_map_size=8)),
+                   "float64": (RenderSettings(raster="soft", spot_edge="smooth",
+                                              shadow_map_size=8),)}
 SPHERE_RADIUS = 0.5
 
 
@@ -635,7 +640,7 @@ def test_shadow_cases_have_finite_values_and_gradients(dtype):
         params = stack([jax.tree.map(np.asarray, shadow_params(s)) for s in scenes.values()])
         weights = jnp.asarray(np.random.default_rng(6).uniform(0.5, 1.5, (SHADOW_SIZE,) * 2
                                                                 + (4,)), float_dtype())
-        for settings in SHADOW_SETTINGS:
+        for settings in SHADOW_SETTINGS[dtype]:
             (_, images), grads = shadow_losses_and_grads(params, scenes["shadow_generic"],
                                                          weights, settings)
             for i, name in enumerate(SHADOW_CASES):
