@@ -14,8 +14,8 @@ Columns: map (texels a side of each of the cube's six maps); wrong px (floor pix
 shadow state differs from the reference); edge px (the reference shadow's boundary
 pixels, 4-neighbour); edge error px = wrong / edge (the mean displacement of the
 rendered shadow edge, in image pixels); fwd ms (steady-state median render time after
-warm-up); compile s (first call). The first row renders without shadows: the cost of the
-shadow pass is the difference.
+warm-up, 15 runs by default); compile s (first call). The last row renders without
+shadows: the cost of the shadow pass is the difference.
 """
 
 import argparse
@@ -84,17 +84,21 @@ def printable(r):
             "edge_error": "-" if error is None else f"{error:.3f}"}
 
 
-def run(quick=False):
-    size, maps, repeats = (64, (32, 64), 2) if quick else (128, (32, 64, 128, 256, 512), 5)
-    return [row(size, None, repeats)] + [row(size, m, repeats) for m in maps]
+def run(quick=False, repeats=15):
+    size, maps = (64, (32, 64)) if quick else (128, (32, 64, 128, 256, 512))
+    repeats = 2 if quick else repeats
+    # the row without shadows goes last: the first rows of a process measured several
+    # times slower here (129 ms first, 6.2 ms after a shadowed row)
+    return [row(size, m, repeats) for m in maps] + [row(size, None, repeats)]
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="a seconds-long subset")
     parser.add_argument("--out", default="benchmarks/results/accuracy_shadows.json")
+    parser.add_argument("--repeats", type=int, default=15, help="timed runs per row")
     args = parser.parse_args(argv)
-    rows = run(args.quick)
+    rows = run(args.quick, args.repeats)
     print("== shadows: shadow-map size vs the exact shadow of a sphere over a floor")
     print_table([printable(r) for r in rows], COLUMNS)
     write_results(args.out, {"shadows": rows})
