@@ -5,12 +5,19 @@ and the hit point is shaded with its exact normal by the same lighting core (`sh
 so the difference between a mesh render and this image is the error of tessellation,
 interpolation, resolution and rasterization alone. `supersample=s` shoots s x s rays per
 pixel on a regular grid and averages the composited colour and the coverage.
+
+`SphereOverPlane` is the reference for shadows: its mesh, and its exact hard shadow from
+a point or directional light (ray/sphere tests in NumPy float64, per pixel centre).
 """
+
+import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from diffshade.camera import Camera, view_dir_infinite
+from diffshade.mesh import icosphere, mesh_from_arrays
 from diffshade.numerics import clamp01, dot, safe_normalize, safe_sqrt
 from diffshade.shading import shade
 
@@ -78,3 +85,83 @@ def render_analytic_sphere(scene, settings, center=(0.0, 0.0, 0.0), radius=1.0, 
 
 render_analytic_sphere = jax.jit(render_analytic_sphere,
                                  static_argnames=("radius", "supersample"))
+
+
+
+@dataclasses.dataclass(frozen=True)
+class SphereOverPlane:
+    """A sphere over a square floor, the reference scene for shadows: the sphere at
+    `center` with `radius`; the floor y = plane_y, |x|, |z| <= half_size."""
+
+    center: tuple = (0.0, 0.0, 0.0)
+    radius: float = 0.5
+    plane_y: float = -1.0
+    half_size: float = 2.0
+
+    def mesh(self, subdivisions=2, cells=4):
+        """One Mesh: an icosphere (vertices on the exact sphere) and a floor of
+        cells x cells squares facing +y."""
+        sphere = icosphere(subdivisions, self.radius)
+        grid = np.linspace(-self.half_size, self.half_size, cells + 1)
+        xs, zs = np.meshgrid(grid, grid)
+        floor = np.stack([xs.ravel(), np.full(xs.size, self.plane_y), zs.ravel()], 1)
+        a = (np.arange(cells)[:, None] * (cells + 1) + np.arange(cells)[None, :]).ravel()
+        quads = np.concatenate([np.stack([a, a + cells + 1, a + 1], 1),
+                                np.stack([a + 1, a + cells + 1, a + cells + 2], 1)])
+        vertices = np.asarray(sphere.vertices, np.float64) + np.asarray(self.center)
+        n_sphere = len(vertices)
+        normals = np.concatenate([np.asarray(sphere.normals, np.float64),
+                                  np.tile([0.0, 1.0, 0.0], (len(floor), 1))])
+        return mesh_from_arrays(np.concatenate([vertices, floor]),
+                                np.concatenate([np.asarray(sphere.faces), quads + n_sphere]),
+                                normals)
+
+    def shadow(self, camera: Camera, light):
+        """The exact hard shadow at each pixel centre, in NumPy float64 (a reference for
+        shadow maps); light: ("point", position) or ("directional", travel direction).
+        Returns (on_plane [H, W] bool: the pixel's camera ray meets the floor before the
+        sphere; shadow [H, W] bool: that floor point cannot see the light: its segment to
+        the light (a ray against the direction, for a directional light) meets the
+        sphere)."""
+        origins, dirs = pixel_rays(camera)
+        center = np.asarray(self.center, np.float64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_plane = (self.plane_y - origins[..., 1]) / dirs[..., 1]
+        points = origins + t_plane[..., None] * dirs
+        inside = np.all(np.abs(points[..., [0, 2]]) <= self.half_size, -1) & (t_plane > 0)
+        t_sphere = _segment_sphere(origins, dirs, center, self.radius, np.inf)
+        on_plane = inside & ~(t_sphere < t_plane)
+        kind, value = light
+        value = np.asarray(value, np.float64)
+        to_light = value - points if kind == "point" else -np.broadcast_to(value, points.shape)
+        limit = 1.0 if kind == "point" else np.inf
+        hit = np.isfinite(_segment_sphere(points, to_light, center, self.radius, limit))
+        return on_plane, on_plane & hit
+
+
+def _segment_sphere(origins, dirs, center, radius, limit):
+    """Nearest t in (0, limit) with |origin + t dir - center| = radius: [...] (inf if none)."""
+    rel = origins - center
+    a = np.sum(dirs * dirs, -1)
+    b = np.sum(rel * dirs, -1)
+    disc = b * b - a * (np.sum(rel * rel, -1) - radius * radius)
+    root = np.sqrt(np.maximum(disc, 0.0))
+    t = np.stack([(-b - root) / a, (-b + root) / a])
+    ok = (disc > 0) & (t > 1e-9) & (t < limit)
+    return np.where(ok, t, np.inf).min(0)
+
+
+def pixel_rays(camera: Camera):
+    """NumPy float64 origins and directions [H, W, 3] of a perspective camera's pixel
+    centres (OpenGL conventions, as camera_rays)."""
+    eye, target, up = (np.asarray(getattr(camera, k), np.float64) for k in ("eye", "target", "up"))
+    forward = (target - eye) / np.linalg.norm(target - eye)
+    side = np.cross(forward, up)
+    side /= np.linalg.norm(side)
+    true_up = np.cross(side, forward)
+    half_h = np.tan(np.deg2rad(float(camera.fov_y)) / 2.0)
+    x = (2.0 * (np.arange(camera.width) + 0.5) / camera.width - 1.0) * half_h
+    y = (1.0 - 2.0 * (np.arange(camera.height) + 0.5) / camera.height) * half_h
+    x *= camera.width / camera.height
+    dirs = forward + x[None, :, None] * side + y[:, None, None] * true_up
+    return np.broadcast_to(eye, dirs.shape), dirs

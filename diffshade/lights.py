@@ -7,6 +7,9 @@ their input; `color=` sets diffuse = specular = color and leaves ambient at 0.
 and leaves a type absent (`None`) when the scene has none, so that no code for it is
 traced or compiled. Area and extended lights (rectangle, disk, sphere) are declared here
 too; their factories and shading are diffshade.area_lights (docs/area-lights.md).
+Whether a light casts shadows (`shadows=True`; point, spot and directional lights) is
+static structure: a stacked group holds a tuple of one flag per light, and only the
+flagged lights get a shadow pass (diffshade.shadows).
 
 Conventions: positions are world-space points; a `direction` is the direction the light
 *travels* (from the light into the scene), as for `GL_SPOT_DIRECTION`; attenuation is
@@ -27,7 +30,9 @@ from diffshade.numerics import float_dtype, representable
 def _pytree(cls):
     cls = dataclasses.dataclass(frozen=True)(cls)
     fields = [f.name for f in dataclasses.fields(cls)]
-    return jax.tree_util.register_dataclass(cls, data_fields=fields, meta_fields=[])
+    meta = [name for name in fields if name == "shadows"]
+    return jax.tree_util.register_dataclass(
+        cls, data_fields=[name for name in fields if name not in meta], meta_fields=meta)
 
 
 @_pytree
@@ -39,29 +44,33 @@ class AmbientLight:
 
 @_pytree
 class DirectionalLight:
-    """direction: [..., 3] travel direction; ambient, diffuse, specular: [..., 3]."""
+    """direction: [..., 3] travel direction; ambient, diffuse, specular: [..., 3];
+    shadows: static, see `shadow_flags`."""
 
     direction: jax.Array
     ambient: jax.Array
     diffuse: jax.Array
     specular: jax.Array
+    shadows: bool | tuple = False
 
 
 @_pytree
 class PointLight:
-    """position: [..., 3]; colours [..., 3]; attenuation: [..., 3] (constant, linear, quadratic)."""
+    """position: [..., 3]; colours [..., 3]; attenuation: [..., 3] (constant, linear,
+    quadratic); shadows: static, see `shadow_flags`."""
 
     position: jax.Array
     ambient: jax.Array
     diffuse: jax.Array
     specular: jax.Array
     attenuation: jax.Array
+    shadows: bool | tuple = False
 
 
 @_pytree
 class SpotLight:
     """A point light restricted to a cone: direction [..., 3], cutoff [...] degrees,
-    exponent [...]."""
+    exponent [...]; shadows: static, see `shadow_flags`."""
 
     position: jax.Array
     direction: jax.Array
@@ -71,6 +80,7 @@ class SpotLight:
     attenuation: jax.Array
     cutoff: jax.Array
     exponent: jax.Array
+    shadows: bool | tuple = False
 
 
 def _sampled(cls):
@@ -189,33 +199,53 @@ def ambient_light(color=1.0) -> AmbientLight:
     return AmbientLight(_array("color", color, (3,), nonneg=True))
 
 
+def _shadows(value):
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"shadows: got {value!r}; expected True or False")
+    return bool(value)
+
+
 def directional_light(direction, color=None, *, ambient=0.0, diffuse=None,
-                      specular=None) -> DirectionalLight:
-    """A light at infinity shining along `direction` (white when no colour is given)."""
+                      specular=None, shadows=False) -> DirectionalLight:
+    """A light at infinity shining along `direction` (white when no colour is given);
+    shadows=True: points it cannot see keep only its ambient term (diffshade.shadows)."""
     return DirectionalLight(_direction("direction", direction),
-                            *_colours(color, ambient, diffuse, specular))
+                            *_colours(color, ambient, diffuse, specular), _shadows(shadows))
 
 
 def point_light(position, color=None, *, ambient=0.0, diffuse=None, specular=None,
-                attenuation=(1.0, 0.0, 0.0)) -> PointLight:
-    """A positional light with attenuation 1/(a + b d + c d^2)."""
+                attenuation=(1.0, 0.0, 0.0), shadows=False) -> PointLight:
+    """A positional light with attenuation 1/(a + b d + c d^2); shadows as
+    `directional_light`'s (a cube shadow map)."""
     return PointLight(_array("position", position, (3,)),
-                      *_colours(color, ambient, diffuse, specular), _attenuation(attenuation))
+                      *_colours(color, ambient, diffuse, specular), _attenuation(attenuation),
+                      _shadows(shadows))
+
+
+#: the widest spot cone (half-angle, degrees) a spot's perspective shadow map covers
+SHADOW_SPOT_CUTOFF = 80.0
 
 
 def spot_light(position, direction, color=None, *, cutoff=30.0, exponent=0.0, ambient=0.0,
-               diffuse=None, specular=None, attenuation=(1.0, 0.0, 0.0)) -> SpotLight:
-    """A positional light limited to the cone of half-angle `cutoff` degrees around `direction`."""
+               diffuse=None, specular=None, attenuation=(1.0, 0.0, 0.0),
+               shadows=False) -> SpotLight:
+    """A positional light limited to the cone of half-angle `cutoff` degrees around
+    `direction`; shadows as `directional_light`'s (one perspective map over the cone,
+    so at most SHADOW_SPOT_CUTOFF degrees)."""
     cone, power = "degrees in [0, 90], or 180 (no cone)", "a number in [0, 128]"
     angle = _scalar("cutoff", cutoff, cone)
     if not (0.0 <= angle <= 90.0 or angle == 180.0):
         raise ValueError(f"cutoff: got {cutoff!r}; expected {cone}")
+    if _shadows(shadows) and angle > SHADOW_SPOT_CUTOFF:
+        raise ValueError(f"cutoff: got {cutoff!r}; expected at most {SHADOW_SPOT_CUTOFF:g} "
+                         "degrees for a spot with shadows (its perspective shadow map covers "
+                         "the cone; use a point light with shadows for a wider one)")
     if not 0.0 <= _scalar("exponent", exponent, power) <= 128.0:
         raise ValueError(f"exponent: got {exponent!r}; expected {power}")
     dt = float_dtype()
     return SpotLight(_array("position", position, (3,)), _direction("direction", direction),
                      *_colours(color, ambient, diffuse, specular), _attenuation(attenuation),
-                     jnp.asarray(cutoff, dt), jnp.asarray(exponent, dt))
+                     jnp.asarray(cutoff, dt), jnp.asarray(exponent, dt), bool(shadows))
 
 
 _GROUP_OF = {AmbientLight: "ambient", DirectionalLight: "directional", PointLight: "point",
@@ -249,6 +279,27 @@ def group_lights(lights) -> LightGroups:
         indices[_GROUP_OF[type(light)]].append(i)
     for name, items in groups.items():
         _check_sample_counts(items, indices[name])
-    stacked = {name: jax.tree.map(lambda *xs: jnp.stack(xs), *items) if items else None
-               for name, items in groups.items()}
-    return LightGroups(**stacked)
+    return LightGroups(**{name: _stack(items) for name, items in groups.items()})
+
+
+def _stack(lights):
+    """One pytree of a type's lights (leading light axis), None for none; the static
+    shadow flags become one tuple, a flag per light."""
+    if not lights:
+        return None
+    if not hasattr(lights[0], "shadows"):
+        return jax.tree.map(lambda *xs: jnp.stack(xs), *lights)
+    flags = tuple(flag for light in lights for flag in shadow_flags(light, 1))
+    plain = [dataclasses.replace(light, shadows=False) for light in lights]
+    return dataclasses.replace(jax.tree.map(lambda *xs: jnp.stack(xs), *plain), shadows=flags)
+
+
+def shadow_flags(group, count) -> tuple:
+    """Whether each of the `count` lights of a group casts shadows: a single light's
+    `shadows` is a bool, a stacked group's a tuple of one bool per light."""
+    flags = getattr(group, "shadows", False)
+    flags = tuple(flags) if isinstance(flags, tuple) else (bool(flags),) * count
+    if len(flags) != count:
+        raise ValueError(f"shadows: got {flags!r} for {count} lights; expected one flag "
+                         "per light")
+    return flags

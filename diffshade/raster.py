@@ -100,12 +100,16 @@ def _screen_positions(clip, width, height):
     return jnp.stack([x, y], -1)
 
 
-def _pixel_grid(height, width, dtype):
-    """Per pixel [H, W, 1]: NDC x, NDC y and pixel-centre coordinates px, py."""
-    rows = jnp.arange(height, dtype=dtype)[:, None, None]
+def _pixel_grid(height, width, dtype, count=None):
+    """Per pixel [R, W, 1]: NDC x, NDC y and pixel-centre coordinates px, py, for R = count
+    rows (default: height) of B = R / height images of height rows stacked (a batch folded
+    into one call, hostop.py): row r is row r mod height of its image."""
+    count = height if count is None else count
+    rows = jnp.arange(count) if count == height else jnp.arange(count) % height
+    rows = rows.astype(dtype)[:, None, None]
     cols = jnp.arange(width, dtype=dtype)[None, :, None]
-    x = jnp.broadcast_to((2.0 * cols + 1.0) / width - 1.0, (height, width, 1))
-    y = jnp.broadcast_to(1.0 - (2.0 * rows + 1.0) / height, (height, width, 1))
+    x = jnp.broadcast_to((2.0 * cols + 1.0) / width - 1.0, (count, width, 1))
+    y = jnp.broadcast_to(1.0 - (2.0 * rows + 1.0) / height, (count, width, 1))
     return x, y, jnp.broadcast_to(cols + 0.5, x.shape), jnp.broadcast_to(rows + 0.5, x.shape)
 
 
@@ -134,7 +138,9 @@ def _geometry_native(ids, corner_w, corner_z, coeffs, scr, *, width, height, sof
     (fragment_kernels.geometry_forward)."""
     valid = ids >= 0
     f = jnp.maximum(ids, 0)
-    x, y, px, py = _pixel_grid(height, width, coeffs.dtype)
+    # ids may hold a folded batch (hostop.py): forward mode over vmap evaluates the jvp
+    # of the folded call natively
+    x, y, px, py = _pixel_grid(height, width, coeffs.dtype, ids.shape[0])
     c = jnp.take(coeffs, f, axis=0)
     edge = c[..., 0] * x[..., None] + c[..., 1] * y[..., None] + c[..., 2]
     dist = jnp.zeros(ids.shape, coeffs.dtype)

@@ -36,6 +36,7 @@ from diffshade.samples import Samples, read, shading_samples
 from diffshade.scene import Scene
 from diffshade.settings import RenderSettings
 from diffshade.shading import ShadingParts, shade
+from diffshade.shadows import shadow_maps
 from diffshade.transparency import (
     fragment_kt,
     hard_composite,
@@ -80,11 +81,12 @@ def _material_at(scene, front):
     return jax.tree.map(pick, front_mat, back)
 
 
-def shade_samples(scene, samples: Samples, settings):
+def shade_samples(scene, samples: Samples, settings, maps=None):
     """(ShadingParts, colour) of each sample, [..., 3] each; colour clamped as OpenGL
-    clamps (per sample) when settings.clamp."""
+    clamps (per sample) when settings.clamp. maps: the scene's shadow_maps (None: none)."""
     parts = shade(_material_at(scene, samples.front), scene.lights, scene.global_ambient,
-                  samples.points, samples.normals, view_dirs(scene, samples.points), settings)
+                  samples.points, samples.normals, view_dirs(scene, samples.points), settings,
+                  maps)
     return parts, clamp01(parts.total) if settings.clamp else parts.total
 
 
@@ -97,7 +99,8 @@ def shade_fragments(scene, proj: Projected, frags: Fragments, settings, active=N
     axis_name for a batch of views)."""
     host = settings.use_host_kernels()
     samples, reader = shading_samples(scene, proj, frags, settings.shading, host)
-    light = lambda *leaves: shade_samples(scene, Samples(*leaves), settings)
+    maps = shadow_maps(scene, settings)
+    light = lambda *leaves: shade_samples(scene, Samples(*leaves), settings, maps)
     if active is None or reader.table is not None:
         lit = light(samples.points, samples.normals, samples.front)
     else:

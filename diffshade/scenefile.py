@@ -44,6 +44,7 @@ from diffshade.lights import (
     ambient_light,
     directional_light,
     point_light,
+    shadow_flags,
     spot_light,
 )
 from diffshade.material import material
@@ -304,10 +305,11 @@ def _camera(value, path):
 
 
 _COLOURS = {"color": _RGB, "ambient": _RGB, "diffuse": _RGB, "specular": _RGB}
-_POINT = {"position": _Required(_VEC3), **_COLOURS, "attenuation": _VEC3}
+_POINT = {"position": _Required(_VEC3), **_COLOURS, "attenuation": _VEC3, "shadows": _BOOL}
 _LIGHTS = {
     "ambient": (ambient_light, {"color": _RGB}),
-    "directional": (directional_light, {"direction": _Required(_VEC3), **_COLOURS}),
+    "directional": (directional_light, {"direction": _Required(_VEC3), **_COLOURS,
+                                        "shadows": _BOOL}),
     "point": (point_light, _POINT),
     "spot": (spot_light, {**_POINT, "direction": _Required(_VEC3), "cutoff": _NUMBER,
                           "exponent": _NUMBER}),
@@ -516,6 +518,10 @@ def _light_to_dict(light, i):
     for field in dataclasses.fields(light):
         if field.name == "samples":  # static: one count for the whole group
             out["samples"] = light.samples
+            continue
+        if field.name == "shadows":  # static; written only where on
+            count = len(jax.tree.leaves(light)[0])
+            out |= {"shadows": True} if shadow_flags(light, count)[i] else {}
             continue
         value = np.asarray(getattr(light, field.name))[i]
         key = "color" if kind == "ambient" else field.name

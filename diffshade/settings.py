@@ -23,11 +23,17 @@ Structural (static):
   higher-order derivatives; 'auto' (default): 'host' when JAX's default backend is the
   CPU with one device, 'jax' elsewhere (nothing then leaves the device; and the host
   kernels' callbacks do not shard: under XLA's SPMD partitioner they deadlock).
+- shadow_map_size: texels a side of each shadow map (diffshade.shadows), for the lights
+  with shadows=True; a scene without such a light compiles no shadow pass.
 
 Continuous (data):
 - sigma (pixels^2), gamma, soft_threshold: soft rasterization (see blend.py); the
   footprint radius is sqrt(sigma * ln((1 - t) / t)) pixels.
 - spot_softness: degrees, the width of the smooth spot edge.
+- shadow_bias: the shadow maps' depth bias, in texels, slope-scaled: a point at depth d
+  is lit while d <= d_map + shadow_bias * texel(d) * (1 + tan(angle of incidence)).
+- shadow_softness: soft raster's shadow edge, in texels: visibility =
+  sigmoid((d_map + bias - d) / (shadow_softness * texel(d))) (hard raster: a step).
 """
 
 import dataclasses
@@ -43,7 +49,8 @@ KERNELS = ("auto", "host", "jax")
 # sigma, gamma and spot_softness divide float32 values: below ~1e-38 their reciprocal
 # overflows and the soft blend (or the smooth spot edge) turns into inf - inf = NaN
 MIN_SCALE = 1e-30
-DATA_FIELDS = ("spot_softness", "sigma", "gamma", "soft_threshold")
+DATA_FIELDS = ("spot_softness", "sigma", "gamma", "soft_threshold", "shadow_bias",
+               "shadow_softness")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,6 +67,9 @@ class RenderSettings:
     gamma: float = 1e-4
     soft_threshold: float = 1e-4
     kernels: str = "auto"
+    shadow_map_size: int = 256
+    shadow_bias: float = 1.5
+    shadow_softness: float = 0.1
 
     def __post_init__(self):
         for name, allowed in (("shading", SHADING_MODES), ("specular", SPECULAR_MODELS),
@@ -67,9 +77,10 @@ class RenderSettings:
                               ("kernels", KERNELS)):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name}: got {getattr(self, name)!r}; expected one of {allowed}")
-        k = self.faces_per_pixel
-        if isinstance(k, bool) or not isinstance(k, int) or k < 1:
-            raise ValueError(f"faces_per_pixel: got {k!r}; expected an integer >= 1")
+        for name in ("faces_per_pixel", "shadow_map_size"):
+            k = getattr(self, name)
+            if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+                raise ValueError(f"{name}: got {k!r}; expected an integer >= 1")
         for name in ("clamp", "cull_backfaces"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}: got {getattr(self, name)!r}; expected True or False")
@@ -81,11 +92,13 @@ class RenderSettings:
     def validate(self):
         """Check the continuous fields' values (render's entry points call this): each a
         real scalar in its range. Tracers pass: they are data by design."""
-        for name in ("spot_softness", "sigma", "gamma"):
+        for name in ("spot_softness", "sigma", "gamma", "shadow_softness"):
             _check_value(name, getattr(self, name), lambda v: MIN_SCALE <= v < float("inf"),
                          f"a finite number >= {MIN_SCALE:g} (float32 must hold its reciprocal)")
         _check_value("soft_threshold", self.soft_threshold, lambda v: 0 < v < 0.5,
                      "a number in (0, 0.5)")
+        _check_value("shadow_bias", self.shadow_bias, lambda v: 0 <= v < float("inf"),
+                     "a finite number >= 0 (texels)")
 
     def use_host_kernels(self) -> bool:
         """Whether the fragment ops run as compiled host kernels (see `kernels`)."""

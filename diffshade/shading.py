@@ -25,6 +25,7 @@ from diffshade import area_lights
 from diffshade.lights import LightGroups
 from diffshade.material import Material
 from diffshade.numerics import dot, safe_div, safe_norm, safe_normalize, safe_pow
+from diffshade.shadows import visibility
 
 
 @jax.tree_util.register_dataclass
@@ -111,16 +112,19 @@ def _light_terms(material, light, light_dir, scale, normals, view_dirs, settings
 
 
 def _lights(lights: LightGroups, kinds=("directional", "point", "spot")):
-    """(kind, single light) for every light of the scene of the given kinds."""
-    return [(kind, light) for kind in kinds
-            if getattr(lights, kind) is not None for light in _unstack(getattr(lights, kind))]
+    """(kind, index in its group, single light) for every light of the scene of the given
+    kinds."""
+    return [(kind, i, light) for kind in kinds if getattr(lights, kind) is not None
+            for i, light in enumerate(_unstack(getattr(lights, kind)))]
 
 
 def shade(material: Material, lights: LightGroups, global_ambient, points, normals,
-          view_dirs, settings) -> ShadingParts:
+          view_dirs, settings, shadow_maps=None) -> ShadingParts:
     """Light samples. points, normals, view_dirs: [..., 3] float world space (normals and
     view_dirs unit); global_ambient: [3]; settings: RenderSettings (specular model, spot
-    edge). Returns ShadingParts, each [..., 3], unclamped.
+    edge, shadow lookup); shadow_maps: diffshade.shadows.shadow_maps of the scene, whose
+    lights' diffuse and specular terms are scaled by their visibility (None: no shadows).
+    Returns ShadingParts, each [..., 3], unclamped.
 
     The loop over lights is unrolled at trace time (the light count is static): written
     out, the sums vectorize far better on CPU than a reduction over a small light axis.
@@ -135,13 +139,17 @@ def shade(material: Material, lights: LightGroups, global_ambient, points, norma
         ambient_light = ambient_light + sum(a.ambient for a in _unstack(lights.ambient))
     ambient = jnp.broadcast_to(material.ka * ambient_light, shape)
     diffuse = specular = jnp.zeros(shape, points.dtype)
-    for kind, light in _lights(lights):
+    for kind, index, light in _lights(lights):
         incidence = _incidence(kind, light, points, settings)
         light_dir, scale = jax.lax.optimization_barrier(incidence)
         a, d, s = _light_terms(material, light, light_dir, scale, normals, view_dirs, settings)
+        shadow_map = (shadow_maps or {}).get((kind, index))
+        if shadow_map is not None:
+            seen = visibility(shadow_map, points, normals, light_dir, settings)
+            d, s = seen * d, None if s is None else seen * s
         ambient, diffuse = ambient + a, diffuse + d
         specular = specular if s is None else specular + s
-    for kind, light in _lights(lights, area_lights.KINDS):
+    for kind, _, light in _lights(lights, area_lights.KINDS):
         a, d, s = area_lights.terms(kind, light, material, points, normals, view_dirs,
                                     settings, _light_terms)
         ambient, diffuse = ambient + a, diffuse + d

@@ -631,3 +631,88 @@ def test_2048_square_hard_render_fits_in_memory_and_covers_the_sphere():
     slack = 2 * math.pi * 2048 / 2048**2
     coverage = image[..., 3].mean()
     assert disk_fraction(inner, 3.0, 45.0) - slack < coverage < disk_fraction(1.0, 3.0, 45.0)
+
+
+# ---------------------------------------------------------------------- shadow maps
+# A second, smaller catalogue of one shared structure: a 20-face sphere over a 2-face
+# floor, lit by a point light, a spot and a directional light, all three with shadows
+# (diffshade/shadows.py), in both raster modes. Cases differ in values only and render in
+# one vmap per raster mode; values and gradients with respect to every float leaf of the
+# mesh, the lights and the material must be finite.
+
+SHADOW_SIZE = 10
+# soft raster differentiates through the depth comparisons; hard raster's step passes no
+# gradient to the maps, so float32 covers it alone
+SHADOW_SETTINGS = {"float32": (RenderSettings(shadow_map_size=8),
+                               RenderSettings(raster="soft", spot_edge="smooth",
+                                              shadow_map_size=8)),
+                   "float64": (RenderSettings(raster="soft", spot_edge="smooth",
+                                              shadow_map_size=8),)}
+SPHERE_RADIUS = 0.5
+
+
+def shadow_scene(center=(0.0, 0.0, 0.0), floor_y=-1.0, bulb=(-1.0, 1.8, -1.0),
+                 spot=((1.2, 1.8, -0.6), (-1.5, -2.8, 1.2)), sun=(0.2, -1.0, 1.1)):
+    """floor_y None: the floor touches the sphere's lowest vertex."""
+    sphere = icosphere(0, SPHERE_RADIUS)
+    floor_y = np.asarray(sphere.vertices)[:, 1].min() + center[1] if floor_y is None else floor_y
+    floor = np.array([[-2.0, floor_y, -2.0], [2.0, floor_y, -2.0], [2.0, floor_y, 2.0],
+                      [-2.0, floor_y, 2.0]])
+    verts = np.concatenate([np.asarray(sphere.vertices, np.float64) + center, floor])
+    faces = np.concatenate([np.asarray(sphere.faces), np.array([[12, 15, 14], [12, 14, 13]])])
+    normals = np.concatenate([np.asarray(sphere.normals, np.float64), [[0.0, 1.0, 0.0]] * 4])
+    mesh = Mesh(jnp.asarray(verts, float_dtype()), jnp.asarray(faces, jnp.int32),
+                jnp.asarray(normals, float_dtype()))
+    cam = look_at((0.0, 4.5, 3.2), (0.0, -1.0, 0.5), width=SHADOW_SIZE, height=SHADOW_SIZE,
+                  fov_y=40.0)
+    lights = [point_light(bulb, 0.8, ambient=0.05, shadows=True),
+              spot_light(*spot, 0.7, cutoff=40.0, ambient=0.05, shadows=True),
+              directional_light(sun, 0.6, ambient=0.05, shadows=True)]
+    return make_scene(mesh, cam, lights, material(ka=0.2, kd=0.6, ks=0.3, shininess=20.0),
+                      global_ambient=0.1)
+
+
+SHADOW_CASES = {
+    "shadow_generic": dict(),
+    "light_inside_object": dict(bulb=(0.0, 0.0, 0.0), spot=((0.05, 0.1, 0.0), (0.0, -1.0, 0.0))),
+    "caster_touching_receiver": dict(floor_y=None),
+    "grazing_light_on_shadow_edge": dict(bulb=(-3.0, -0.99, 0.1), sun=(1.0, -1e-3, 0.2),
+                                         spot=((-3.0, -0.98, 0.0), (1.0, 0.0, 0.05))),
+    "object_behind_light": dict(bulb=(0.0, 0.0, 3.0), sun=(0.0, 1.0, 0.0),
+                                spot=((0.0, 0.0, 2.0), (0.0, 0.3, 1.0))),
+}
+
+
+def shadow_params(scene):
+    return {"vertices": scene.mesh.vertices, "normals": scene.mesh.normals,
+            "lights": scene.lights, "material": scene.material}
+
+
+@functools.partial(jax.jit, static_argnames=("settings",), compiler_options=FAST_COMPILE)
+def shadow_losses_and_grads(params, like, weights, settings):
+    def loss(p):
+        scene = replace(like, mesh=Mesh(p["vertices"], like.mesh.faces, p["normals"]),
+                        lights=p["lights"], material=p["material"])
+        image = render(scene, settings)
+        return jnp.sum(weights * image), image
+    return jax.vmap(jax.value_and_grad(loss, has_aux=True))(params)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_shadow_cases_have_finite_values_and_gradients(dtype):
+    found = []
+    with jax.enable_x64(DTYPES[dtype]):
+        scenes = {name: shadow_scene(**kw) for name, kw in SHADOW_CASES.items()}
+        params = stack([jax.tree.map(np.asarray, shadow_params(s)) for s in scenes.values()])
+        weights = jnp.asarray(np.random.default_rng(6).uniform(0.5, 1.5, (SHADOW_SIZE,) * 2
+                                                                + (4,)), float_dtype())
+        for settings in SHADOW_SETTINGS[dtype]:
+            (_, images), grads = shadow_losses_and_grads(params, scenes["shadow_generic"],
+                                                         weights, settings)
+            for i, name in enumerate(SHADOW_CASES):
+                row = f"{name}, raster={settings.raster}"
+                if not np.all(np.isfinite(np.asarray(images[i]))):
+                    found.append(f"{row}: non-finite image")
+                bad = nonfinite_leaves(jax.tree.map(lambda g, i=i: np.asarray(g[i]), grads))
+                found += [f"{row}: non-finite gradient in {bad}"] if bad else []
+    assert not found, "\n".join(found)

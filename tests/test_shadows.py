@@ -1,0 +1,227 @@
+"""Shadow maps (diffshade/shadows.py) against the exact shadow of a sphere over a floor.
+
+- One scene, three shadowed lights of different types, each lighting one colour channel
+  only (a point light red, a spot green, a directional light blue): each channel of the
+  hard and soft renders is compared per pixel with the closed form of its light: inside
+  the exact shadow (diffshade.analytic.SphereOverPlane, NumPy ray/sphere tests) only the
+  ambient terms ka * (global + light ambient), elsewhere those plus kd * Id * N.L (and
+  the spot's cone), except within 2 pixels of an edge (shadow, cone, silhouette).
+- Structure: a light without shadows adds nothing to the program; each shadowed light
+  adds one rasterization.
+- Transforms, float64: check_grads (forward and reverse, order 1) with respect to the
+  lights' positions and directions, the vertices and kd in soft mode, and render_views
+  against a loop of renders.
+- The flag in the Python factories and in scene files, and its bad values.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+from test_structure import primitive_counts, scene_with
+
+import diffshade as ds
+from diffshade.analytic import SphereOverPlane, pixel_rays
+from diffshade.scenefile import scene_from_dict, scene_to_dict
+
+GEOMETRY = SphereOverPlane()
+SIZE = 48
+KA, KD, GLOBAL, LIGHT_AMBIENT = 0.3, 0.6, 0.2, 0.1
+POINT = (-1.0, 1.8, -1.0)
+SPOT = ((1.2, 1.8, -0.6), (-1.5, -2.8, 1.2), 40.0)  # position, direction, cutoff
+SUN = (0.2, -1.0, 1.1)
+CHANNELS = ("point", "spot", "directional")
+SETTINGS = {"hard": ds.RenderSettings(shadow_map_size=128),
+            "soft": ds.RenderSettings(raster="soft", sigma=0.05, gamma=1e-4,
+                                      faces_per_pixel=4, shadow_map_size=128)}
+
+# soft raster blends the floor's neighbouring faces in a pixel, each read at barycentrics
+# clamped to its triangle: a few 1e-4 off the closed form with or without shadows
+LIT_ATOL = {"hard": 2e-4, "soft": 1e-3}
+
+
+def rgb(channel, value):
+    return tuple(value if c == channel else 0.0 for c in range(3))
+
+
+def three_light_scene(mesh, camera, shadows=True):
+    """Point (red), spot (green) and directional (blue) lights, each with shadows."""
+    lights = [ds.point_light(POINT, rgb(0, 1.0), ambient=rgb(0, LIGHT_AMBIENT), shadows=shadows),
+              ds.spot_light(*SPOT[:2], rgb(1, 1.0), cutoff=SPOT[2], ambient=rgb(1, LIGHT_AMBIENT),
+                            shadows=shadows),
+              ds.directional_light(SUN, rgb(2, 1.0), ambient=rgb(2, LIGHT_AMBIENT),
+                                   shadows=shadows)]
+    return ds.make_scene(mesh, camera, lights, ds.material(ka=KA, kd=KD, ks=None),
+                         global_ambient=GLOBAL)
+
+
+def floor_points(camera):
+    """Where each pixel's ray meets the floor's plane: [H, W, 3] float64."""
+    origins, dirs = pixel_rays(camera)
+    t = (GEOMETRY.plane_y - origins[..., 1]) / dirs[..., 1]
+    return origins + t[..., None] * dirs
+
+
+def closed_form(camera):
+    """Per channel (light) on the floor, [H, W] each: the ambient-only colour (what a
+    shadowed point keeps: OpenGL's spot cone scales its light's ambient too) and the lit
+    colour."""
+    points = floor_points(camera)
+    to_point = np.asarray(POINT) - points
+    n_dot_l = to_point[..., 1] / np.linalg.norm(to_point, axis=-1)
+    to_spot = np.asarray(SPOT[0]) - points
+    spot_l = to_spot / np.linalg.norm(to_spot, axis=-1, keepdims=True)
+    axis = np.asarray(SPOT[1]) / np.linalg.norm(SPOT[1])
+    cone = (-spot_l @ axis >= np.cos(np.deg2rad(SPOT[2]))).astype(float)
+    sun_l = -np.asarray(SUN) / np.linalg.norm(SUN)
+    scale = [np.ones_like(cone), cone, np.ones_like(cone)]
+    cosines = [n_dot_l, spot_l[..., 1], np.full_like(cone, sun_l[1])]
+    ambient = [KA * GLOBAL + s * KA * LIGHT_AMBIENT for s in scale]
+    return ambient, [a + s * KD * np.maximum(c, 0.0)
+                     for a, s, c in zip(ambient, scale, cosines, strict=True)], scale
+
+
+def near_edge(*masks, width=2):
+    """Pixels within `width` pixels (Chebyshev) of a change in any of the masks."""
+    edge = np.zeros(masks[0].shape, bool)
+    for mask in masks:
+        m = np.pad(mask, 1, mode="edge")
+        edge |= (m[1:-1, 1:-1] != m[:-2, 1:-1]) | (m[1:-1, 1:-1] != m[2:, 1:-1])
+        edge |= (m[1:-1, 1:-1] != m[1:-1, :-2]) | (m[1:-1, 1:-1] != m[1:-1, 2:])
+    grown = np.pad(edge, width)
+    rows, cols = edge.shape
+    return np.any([grown[width + dr:width + dr + rows, width + dc:width + dc + cols]
+                   for dr in range(-width, width + 1) for dc in range(-width, width + 1)], 0)
+
+
+@pytest.fixture(scope="module")
+def camera():
+    return ds.look_at((0.0, 4.5, 3.2), (0.0, -1.0, 0.5), width=SIZE, height=SIZE, fov_y=40.0)
+
+
+@pytest.mark.parametrize("raster", SETTINGS)
+def test_shadows_match_the_exact_shadow_of_a_sphere_over_a_floor(raster, camera):
+    scene = three_light_scene(GEOMETRY.mesh(2, 4), camera)
+    image = np.asarray(ds.render(scene, SETTINGS[raster]), np.float64)
+    ambient, lit, cones = closed_form(camera)
+    lights = {"point": ("point", POINT), "spot": ("point", SPOT[0]),
+              "directional": ("directional", SUN)}
+    for c, name in enumerate(CHANNELS):
+        on_floor, shadow = GEOMETRY.shadow(camera, lights[name])
+        away = on_floor & ~near_edge(on_floor, shadow, cones[c] > 0)
+        inside, outside = away & shadow, away & ~shadow
+        assert inside.sum() >= 20 and outside.sum() >= 200, (name, inside.sum(), outside.sum())
+        np.testing.assert_allclose(image[inside, c], ambient[c][inside], atol=1e-5, err_msg=name)
+        np.testing.assert_allclose(image[outside, c], lit[c][outside], atol=LIT_ATOL[raster],
+                                   err_msg=name)
+        # rendered shadow pixels lie in the exact shadow grown by 2 pixels (and 2 from the
+        # sphere's silhouette, where the blend may show its shadowed underside)
+        dark = on_floor & (np.abs(image[..., c] - ambient[c]) < 1e-5) & (cones[c] > 0)
+        assert not np.any(dark & ~shadow & ~near_edge(shadow, on_floor)), name
+
+
+def test_a_light_without_shadows_adds_no_shadow_pass():
+    plain, bulb = ds.point_light((0.0, 1.0, 2.0)), ds.point_light((1.0, 0.5, 2.0), 0.5)
+    shadowed = ds.point_light((0.0, 1.0, 2.0), shadows=True)
+    counts = {name: primitive_counts(scene_with(lights)) for name, lights in {
+        "plain": [plain], "plain+bulb": [plain, bulb], "shadowed": [shadowed],
+        "shadowed+bulb": [shadowed, bulb], "flag_false": [ds.point_light((0.0, 1.0, 2.0),
+                                                                          shadows=False)]}.items()}
+    assert counts["flag_false"] == counts["plain"]
+    # the shadow pass: one more rasterization (the cube's six faces in one batched op)
+    assert counts["plain"]["fragment_geometry_op"] == 1
+    assert counts["shadowed"]["fragment_geometry_op"] == 2
+    assert counts["plain"]["argmax"] == 0 and counts["shadowed"]["argmax"] == 1
+    # an unshadowed light costs the same next to a shadowed one as next to a plain one
+    # (but for the indexing that takes a light out of a stack of one or of two)
+    def added(a, b):
+        return {k: v for k, v in (counts[a] - counts[b]).items() if k not in ("slice", "squeeze")}
+    assert added("shadowed+bulb", "shadowed") == added("plain+bulb", "plain")
+    assert counts["plain+bulb"]["fragment_geometry_op"] == 1
+
+
+def tiny_scene(kinds=CHANNELS):
+    """12 x 12 pixels, a 20-face sphere over a 2-face floor, shadowed lights of `kinds`."""
+    camera = ds.look_at((0.0, 4.5, 3.2), (0.0, -1.0, 0.5), width=12, height=12, fov_y=40.0)
+    scene = three_light_scene(GEOMETRY.mesh(0, 1), camera)
+    return ds.replace(scene, lights=ds.replace(scene.lights, **{
+        kind: None for kind in CHANNELS if kind not in kinds}))
+
+
+TINY_SOFT = ds.RenderSettings(raster="soft", faces_per_pixel=22, sigma=2.0, gamma=1e-2,
+                              soft_threshold=1e-10, shadow_map_size=16)
+
+
+@pytest.mark.usefixtures("x64")
+def test_soft_shadows_pass_check_grads_wrt_lights_and_geometry():
+    # a cube map and an orthographic map (the spot's perspective map is a cube face's kind)
+    scene = tiny_scene(("point", "directional"))
+    weights = jnp.asarray(np.random.default_rng(0).uniform(0.5, 1.5, (12, 12, 4)))
+    lights = scene.lights
+    params = {"point": lights.point.position, "sun": lights.directional.direction,
+              "vertices": scene.mesh.vertices, "kd": scene.material.kd}
+
+    def loss(p):
+        groups = ds.replace(lights, point=ds.replace(lights.point, position=p["point"]),
+                            directional=ds.replace(lights.directional, direction=p["sun"]))
+        s = ds.replace(scene, lights=groups, mesh=ds.replace(scene.mesh, vertices=p["vertices"]),
+                       material=ds.replace(scene.material, kd=p["kd"]))
+        return jnp.sum(weights * ds.render(s, TINY_SOFT))
+
+    check_grads(jax.jit(loss), (params,), order=1, modes=("fwd", "rev"), eps=1e-6, atol=1e-5,
+                rtol=1e-5)
+
+
+@pytest.mark.usefixtures("x64")
+def test_render_views_with_shadows_equals_a_loop_of_renders():
+    scene = tiny_scene(("point",))
+    settings = ds.RenderSettings(shadow_map_size=16)
+    cameras = [ds.look_at(eye, (0.0, -1.0, 0.5), width=12, height=12, fov_y=40.0)
+               for eye in ((0.0, 4.5, 3.2), (2.0, 2.0, 2.5))]
+    batch = np.asarray(ds.render_views(scene, cameras, settings))
+    for cam, image in zip(cameras, batch, strict=True):
+        np.testing.assert_allclose(image, ds.render(ds.replace(scene, camera=cam), settings),
+                                   atol=1e-12)
+    # the shadow is in the image: the floor has pixels at the ambient-only colour
+    floor_ambient = KA * (GLOBAL + LIGHT_AMBIENT)
+    assert np.any(np.abs(batch[..., 0] - floor_ambient) < 1e-9)
+
+
+def test_scene_files_carry_the_flag_per_light():
+    camera = ds.look_at((0.0, 2.6, 3.4), (0.0, -0.6, 0.0), width=8, height=8)
+    lights = [ds.point_light(POINT, shadows=True), ds.point_light((1.0, 1.0, 1.0)),
+              ds.directional_light(SUN, shadows=True), ds.spot_light(*SPOT[:2])]
+    scene = ds.make_scene(ds.icosphere(0), camera, lights)
+    assert scene.lights.point.shadows == (True, False)
+    assert scene.lights.directional.shadows == (True,)
+    assert scene.lights.spot.shadows == (False,)
+    data = scene_to_dict(scene, ds.RenderSettings(shadow_map_size=64, shadow_bias=2.0))
+    assert [light.get("shadows", False) for light in data["lights"]] == [True, True, False, False]
+    again, settings = scene_from_dict(data)
+    assert again.lights.point.shadows == (True, False)
+    assert settings.shadow_map_size == 64 and settings.shadow_bias == 2.0
+
+
+@pytest.mark.parametrize("make,message", [
+    (lambda: ds.point_light((0, 1, 0), shadows="yes"),
+     "shadows: got 'yes'; expected True or False"),
+    (lambda: ds.spot_light((0, 1, 0), (0, -1, 0), cutoff=85.0, shadows=True),
+     "cutoff: got 85.0; expected at most 80 degrees for a spot with shadows"),
+    (lambda: ds.RenderSettings(shadow_map_size=0), "shadow_map_size: got 0; expected an integer"),
+    (lambda: ds.RenderSettings(shadow_bias=-1.0), "shadow_bias: got -1.0; expected a finite"),
+    (lambda: ds.RenderSettings(shadow_softness=0.0), "shadow_softness: got 0.0; expected"),
+])
+def test_bad_shadow_input_is_refused_with_a_clear_message(make, message):
+    with pytest.raises(ValueError) as err:
+        make()
+    assert str(err.value).startswith(message)
+
+
+def test_scene_file_rejects_a_non_boolean_flag():
+    data = {"mesh": {"builtin": {"icosphere": {"subdivisions": 0}}},
+            "camera": {"eye": [0, 0, 3], "target": [0, 0, 0], "width": 8, "height": 8},
+            "lights": [{"type": "point", "position": [0, 1, 0], "shadows": 1}]}
+    expected = r"^lights\[0\].shadows: got 1; expected true or false"
+    with pytest.raises(ds.SceneFileError, match=expected):
+        scene_from_dict(data)
