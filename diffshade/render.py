@@ -67,10 +67,10 @@ def _material_at(scene, front, objects=None):
     material, back_material = scene.material, scene.back_material
     if objects is not None:
         material = take_material(material, objects)
-        back_material = None if back_material is None else take_material(back_material,
-                                                                         objects)
     if not scene.two_sided or back_material is None:
         return material
+    if objects is not None:
+        back_material = take_material(back_material, objects)
     front_mat = _fill_absent(material, back_material)
     back = _fill_absent(back_material, material)
 
