@@ -73,6 +73,13 @@ class FitResult:
         """A table: parameter, fitted value, standard error and relative error (vs truth)."""
         return format_summary(self)
 
+    def object_reports(self) -> list:
+        """One UncertaintyReport per object (several objects; [the report] for one)."""
+        if "objects" not in self.values or self.uncertainty is None:
+            return [self.uncertainty]
+        return [self.uncertainty.select(f"objects[{i}].")
+                for i in range(len(self.values["objects"]))]
+
     def as_dict(self) -> dict:
         """JSON-ready: method, loss, loss_history, converged, n_steps, wall_time, values
         (material quantities; lights omitted), errors, std_errors, rounding_bound (8-bit
@@ -94,10 +101,18 @@ class FitResult:
 
 def relative_errors(values: dict, truth, spec: FitSpec) -> dict:
     """|fitted - true| / |true| per fitted material quantity and channel (the absolute
-    error where the truth is 0): {'ka': [3], ..., 'shininess': []} as numpy."""
-    true = material_values(truth, FitSpec(**{n: "rgb" if getattr(spec, n) else None
-                                             for n in ("ka", "kd", "ks")},
-                                          shininess=spec.shininess))
+    error where the truth is 0): {'ka': [3], ..., 'shininess': []} as numpy; with several
+    objects (a stacked truth), {'objects': (one such dict per object)}."""
+    rgb_spec = FitSpec(**{n: "rgb" if getattr(spec, n) else None for n in ("ka", "kd", "ks")},
+                       shininess=spec.shininess)
+    true = material_values(truth, rgb_spec)
+    if "objects" in true:
+        return {"objects": tuple(_relative_errors(v, t) for v, t in
+                                 zip(values["objects"], true["objects"], strict=True))}
+    return _relative_errors(values, true)
+
+
+def _relative_errors(values, true):
     errors = {}
     for name, t in true.items():
         fitted = np.broadcast_to(np.asarray(values[name], np.float64), np.shape(t))
@@ -190,8 +205,9 @@ def fit(dataset: Dataset, spec: FitSpec | None = None, init=None, *, method="lin
 
 
 def _linear_start(params, data, spec, shininess_range):
-    """Replace the material part of params by the variable-projection solution."""
-    if not spec.fits_material:
+    """Replace the material part of params by the variable-projection solution (one
+    material; several objects start Levenberg-Marquardt from `init`)."""
+    if not spec.fits_material or "objects" in params:
         return params
     solved = from_values(solve_linear(data, spec, shininess_range=shininess_range), spec)
     return {**params, **solved}
@@ -217,6 +233,18 @@ def _result(dataset, spec, data, params, history, converged, method, wall_time, 
         uncertainty=report, warnings=report.warnings if report else ())
 
 
+def _material_entries(values, errors):
+    """(name, value, relative error or None) of every fitted material quantity; names
+    'objects[i].kd' with several objects."""
+    if "objects" in values:
+        per_object = errors["objects"] if errors else [None] * len(values["objects"])
+        return [(f"objects[{i}].{name}", value, error) for i, (one, errs) in
+                enumerate(zip(values["objects"], per_object, strict=True))
+                for name, value, error in _material_entries(one, errs)]
+    return [(name, value, errors.get(name) if errors else None)
+            for name, value in values.items() if name != "lights"]
+
+
 def format_summary(result: FitResult) -> str:
     """Parameter table of a FitResult (see FitResult.summary)."""
     report = result.uncertainty
@@ -224,12 +252,9 @@ def format_summary(result: FitResult) -> str:
     lines = [f"method {result.method}: loss {result.loss:.3e} after {result.n_steps} steps, "
              f"{result.wall_time:.2f} s, {'converged' if result.converged else 'not converged'}",
              f"{'parameter':<12} {'fitted':>10} {'± s.e.':>10} {'rel. error':>11}"]
-    for name, value in result.values.items():
-        if name == "lights":
-            continue
+    for name, value, error in _material_entries(result.values, result.errors):
         flat = np.atleast_1d(value)
-        errs = (np.atleast_1d(result.errors[name]) if result.errors and name in result.errors
-                else [None] * len(flat))
+        errs = np.atleast_1d(error) if error is not None else [None] * len(flat)
         for c, v in enumerate(flat):
             label = name if len(flat) == 1 else f"{name}[{'rgb'[c]}]"
             s = se.get(label, (None, None))[1]

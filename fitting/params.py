@@ -13,6 +13,11 @@ Three representations of the same quantities, each a dict pytree with the same k
 Keys: 'ka', 'kd', 'ks' ([3] or []), 'shininess' ([]), 'lights' (a tuple over views of
 {group: {'color': [L, 3], 'position': [L, 3]}} for the 'directional', 'point', 'spot'
 groups present). Optimizer groups for per-group learning rates: `param_labels`.
+
+Several objects (a base Material stacked along a leading object axis, see
+diffshade.objects): the material keys move into 'objects', a tuple with one such dict
+per object ({'objects': ({'ka': ..., 'shininess': ...}, ...), 'lights': ...}); every
+object's material is fitted at once, and the Material built back is stacked again.
 """
 
 import dataclasses
@@ -23,6 +28,7 @@ import numpy as np
 
 from diffshade.material import Material, material
 from diffshade.numerics import float_dtype
+from diffshade.objects import stack_materials, unstack_material
 
 COEFFICIENTS = ("ka", "kd", "ks")
 MODES = ("rgb", "grey")
@@ -101,12 +107,28 @@ def _light_values(lights, spec):
     return tuple(per_view)
 
 
-def material_values(material_: Material, spec: FitSpec, lights=None) -> dict:
-    """Physical values of the fitted quantities of `material_` (and `lights`, a sequence of
-    LightGroups, one per view; needed when the spec fits lights)."""
+def object_count(material_: Material):
+    """The number of objects of a stacked Material ([O, 3] leaves), or None for one."""
+    return None if jnp.ndim(material_.kd) < 2 else int(jnp.shape(material_.kd)[0])
+
+
+def _one_material_values(material_, spec):
     values = {name: _coefficient_value(name, material_, spec) for name in spec.coefficients}
     if spec.shininess:
         values["shininess"] = jnp.asarray(material_.shininess, float_dtype())
+    return values
+
+
+def material_values(material_: Material, spec: FitSpec, lights=None) -> dict:
+    """Physical values of the fitted quantities of `material_` (stacked: per object, under
+    'objects') and `lights`, a sequence of LightGroups, one per view; needed when the spec
+    fits lights)."""
+    count = object_count(material_)
+    if count is None:
+        values = _one_material_values(material_, spec)
+    else:
+        values = {"objects": tuple(_one_material_values(unstack_material(material_, i), spec)
+                                   for i in range(count))}
     if spec.fits_lights:
         if lights is None:
             raise ValueError("lights: got None; expected one LightGroups per view, because "
@@ -121,11 +143,30 @@ def _light_map(tree, color_fn, position_fn):
                   for group, fields in view.items()} for view in tree)
 
 
-def from_values(values: dict, spec: FitSpec) -> dict:
-    """Physical values -> unconstrained params (inverse of `to_values`)."""
+def _per_object(fn, tree, spec):
+    """fn applied to the material part of tree: the top level, or each of tree['objects']."""
+    if "objects" in tree:
+        return {"objects": tuple(fn(one, spec) for one in tree["objects"])}
+    return fn(tree, spec)
+
+
+def _material_params(values, spec):
     params = {name: _logit(values[name] / spec.upper) for name in spec.coefficients}
     if spec.shininess:
         params["shininess"] = jnp.log(jnp.maximum(values["shininess"], 1e-6))
+    return params
+
+
+def _material_values(params, spec):
+    values = {name: spec.upper * jax.nn.sigmoid(params[name]) for name in spec.coefficients}
+    if spec.shininess:
+        values["shininess"] = jnp.exp(params["shininess"])
+    return values
+
+
+def from_values(values: dict, spec: FitSpec) -> dict:
+    """Physical values -> unconstrained params (inverse of `to_values`)."""
+    params = _per_object(_material_params, values, spec)
     if "lights" in values:
         params["lights"] = _light_map(values["lights"], lambda c: jnp.log(jnp.maximum(c, 1e-6)),
                                       lambda p: p)
@@ -134,9 +175,7 @@ def from_values(values: dict, spec: FitSpec) -> dict:
 
 def to_values(params: dict, spec: FitSpec) -> dict:
     """Unconstrained params -> physical values: coefficients in (0, upper), shininess > 0."""
-    values = {name: spec.upper * jax.nn.sigmoid(params[name]) for name in spec.coefficients}
-    if spec.shininess:
-        values["shininess"] = jnp.exp(params["shininess"])
+    values = _per_object(_material_values, params, spec)
     if "lights" in params:
         values["lights"] = _light_map(params["lights"], jnp.exp, lambda p: p)
     return values
@@ -147,12 +186,20 @@ def to_unconstrained(material_: Material, spec: FitSpec, lights=None) -> dict:
     return from_values(material_values(material_, spec, lights), spec)
 
 
-def values_to_material(values: dict, spec: FitSpec, base: Material) -> Material:
-    """Physical values -> Material; quantities the spec does not fit come from `base`."""
+def _one_material(values, spec, base):
     changes = {name: jnp.broadcast_to(values[name], (3,)) for name in spec.coefficients}
     if spec.shininess:
         changes["shininess"] = values["shininess"]
     return dataclasses.replace(base, **changes)
+
+
+def values_to_material(values: dict, spec: FitSpec, base: Material) -> Material:
+    """Physical values -> Material; quantities the spec does not fit come from `base`
+    (stacked, with values per object under 'objects')."""
+    if "objects" not in values:
+        return _one_material(values, spec, base)
+    return stack_materials([_one_material(one, spec, unstack_material(base, i))
+                            for i, one in enumerate(values["objects"])])
 
 
 def to_material(params: dict, spec: FitSpec, base_material: Material) -> Material:
@@ -199,6 +246,8 @@ def param_labels(params: dict):
 
 def _leaf_names(path, leaf):
     keys = [getattr(k, "key", getattr(k, "idx", None)) for k in path]
+    if keys[0] == "objects":
+        return [f"objects[{keys[1]}].{name}" for name in _leaf_names(path[2:], leaf)]
     if keys[0] != "lights":
         return [keys[0]] if np.ndim(leaf) == 0 else [f"{keys[0]}[{c}]" for c in "rgb"]
     _, view, group, field = keys
@@ -210,6 +259,7 @@ def _leaf_names(path, leaf):
 def value_names(values: dict) -> list:
     """Readable name of every scalar of `values`, in the order of
     `jax.flatten_util.ravel_pytree(values)`: 'ka[r]', 'kd' (grey), 'shininess',
-    'lights[0].point[1].color[g]', 'lights[2].point[0].position[x]', ..."""
+    'objects[1].kd[g]', 'lights[0].point[1].color[g]', 'lights[2].point[0].position[x]',
+    ..."""
     leaves = jax.tree_util.tree_flatten_with_path(values)[0]
     return [name for path, leaf in leaves for name in _leaf_names(path, leaf)]

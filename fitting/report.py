@@ -24,9 +24,11 @@ import numpy as np
 
 from diffshade.color import srgb_to_linear
 from diffshade.io import write_json, write_png, write_text
+from diffshade.objects import unstack_material
 from diffshade.render import render
 from fitting.checkpoint import material_dict
 from fitting.data import view_scene
+from fitting.params import object_count
 
 ERROR_GAIN = 10.0
 PANEL_GAP = 2
@@ -71,23 +73,38 @@ def _rgb_line(key, value):
     return f"{key} " + " ".join(f"{float(x):.6f}" for x in np.broadcast_to(value, (3,)))
 
 
+def _newmtl(material, name):
+    """The lines of one `newmtl` entry."""
+    specular = material.ks is not None
+    lines = [f"newmtl {name}", _rgb_line("Ka", material.ka), _rgb_line("Kd", material.kd),
+             _rgb_line("Ks", material.ks if specular else 0.0),
+             f"Ns {float(material.shininess):.6f}"]
+    if material.emission is not None:
+        lines.append(_rgb_line("Ke", material.emission))
+    return lines + [f"illum {2 if specular else 1}"]
+
+
 def mtl_text(material, name="diffshade_fit", comment=""):
     """Wavefront MTL text of a Material: Ka, Kd, Ks (0 without specular), Ns (the Blinn-
-    Phong exponent, written as fitted), Ke when it emits, illum 2 (1 without specular)."""
-    shininess = float(material.shininess)
+    Phong exponent, written as fitted), Ke when it emits, illum 2 (1 without specular).
+    A stacked Material (several objects, [O, 3] leaves) gives one `newmtl` per object,
+    named `{name}_0`, `{name}_1`, ... in object order."""
+    count = object_count(material)
+    materials = ([material] if count is None
+                 else [unstack_material(material, i) for i in range(count)])
+    names = [name] if count is None else [f"{name}_{i}" for i in range(count)]
     lines = ["# diffshade: Blinn-Phong material, linear RGB, OpenGL 1.x lighting",
              f"# Ns is the specular exponent as fitted; many OBJ viewers clamp Ns to "
              f"[0, {MTL_NS_LIMIT:g}] (OpenGL's fixed pipeline to 128)"]
-    if shininess > MTL_NS_LIMIT:
-        lines.append(f"# note: Ns = {shininess:.6g} > {MTL_NS_LIMIT:g}: a viewer that clamps "
-                     "it shows a broader highlight than the fit")
+    for one, label in zip(materials, names, strict=True):
+        shininess = float(one.shininess)
+        if shininess > MTL_NS_LIMIT:
+            which = "" if count is None else f"{label}: "
+            lines.append(f"# note: {which}Ns = {shininess:.6g} > {MTL_NS_LIMIT:g}: a "
+                         "viewer that clamps it shows a broader highlight than the fit")
     lines += [f"# {comment}"] if comment else []
-    specular = material.ks is not None
-    lines += [f"newmtl {name}", _rgb_line("Ka", material.ka), _rgb_line("Kd", material.kd),
-              _rgb_line("Ks", material.ks if specular else 0.0), f"Ns {shininess:.6f}"]
-    if material.emission is not None:
-        lines.append(_rgb_line("Ke", material.emission))
-    lines.append(f"illum {2 if specular else 1}")
+    for one, label in zip(materials, names, strict=True):
+        lines += _newmtl(one, label)
     return "\n".join(lines) + "\n"
 
 
