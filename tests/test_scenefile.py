@@ -390,6 +390,16 @@ def test_objects_build_the_api_scene_and_round_trip():
         scene_to_dict(scene, ds.RenderSettings(), mesh_ref="a.obj")
 
 
+def test_example_table_is_the_objects_figure_scene():
+    import importlib.util
+    path = Path(__file__).resolve().parents[1] / "docs" / "make_objects_figure.py"
+    spec = importlib.util.spec_from_file_location("make_objects_figure", path)
+    figure = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(figure)
+    scene, _ = load_scene(EXAMPLES / "table.json")
+    assert_same_tree(scene, figure.table_scene(), rtol=1e-6)
+
+
 def edited_objects(keys, value):
     data = copy.deepcopy(OBJECTS)
     parent = data
