@@ -78,6 +78,9 @@ def _write_view(out_dir, dataset, i, mesh_ref):
 
 def save_dataset(dataset: Dataset, out_dir) -> str:
     """Write `dataset` to the folder out_dir (created if missing); returns its path."""
+    if dataset.objects is not None:
+        raise ValueError("dataset: a dataset of several objects; save_dataset writes "
+                         "datasets of one object (one mesh and one material) only")
     out_dir = os.fspath(out_dir)
     os.makedirs(out_dir, exist_ok=True)
     mesh_ref = _write_mesh(out_dir, dataset)

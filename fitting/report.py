@@ -188,6 +188,10 @@ def _render_rgb(dataset, index, material):
 
 def write_result(out_dir, dataset, result, init, extra=None, title="") -> list:
     """Write the result files (module docstring) into out_dir; returns their paths."""
+    if dataset.objects is not None:
+        raise ValueError("dataset: a dataset of several objects; write_result writes the "
+                         "files of a one-object fit only (write mtl_text(result.material) "
+                         "for the materials)")
     out_dir = os.fspath(out_dir)
     names = [f"view_{i:03d}.png" for i in range(len(dataset.views))]
     files = {"material": "material.mtl", "loss_curve": "loss.png", "views": names}

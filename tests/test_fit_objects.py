@@ -82,3 +82,13 @@ def test_fit_recovers_both_materials_with_a_report_and_a_newmtl_each(dataset):
     for entry, i in zip(entries, range(2), strict=True):
         kd = [line for line in entry.split("\n") if line.startswith("Kd ")][0]
         np.testing.assert_allclose([float(x) for x in kd.split()[1:]], TRUTH[i].kd, atol=2e-3)
+
+
+def test_files_of_one_object_refuse_several(dataset, tmp_path):
+    from data_synth import save_dataset
+    from fitting.report import write_result
+    with pytest.raises(ValueError, match="^dataset: a dataset of several objects; save_"):
+        save_dataset(dataset, tmp_path / "data")
+    with pytest.raises(ValueError, match="^dataset: a dataset of several objects; write_"):
+        write_result(tmp_path / "fit", dataset, None, None)
+    assert not any(tmp_path.iterdir())  # nothing half-written
