@@ -339,10 +339,18 @@ def test_missing_scene_file_names_the_path(tmp_path):
 
 def test_the_documented_example_is_valid():
     text = (EXAMPLES.parent / "docs" / "scene-format.md").read_text()
-    example = text.split("```json\n", 1)[1].split("```", 1)[0]
+    example = text.split("## Example", 1)[1].split("```json\n", 1)[1].split("```", 1)[0]
     scene, settings = scene_from_dict(json.loads(example))
     assert scene.lights.spot.cutoff.tolist() == [15.0]
     assert settings.spot_edge == "smooth"
+
+
+def test_the_documented_objects_examples_are_valid():
+    for page in ("scene-format.md", "objects.md"):
+        text = (EXAMPLES.parent / "docs" / page).read_text()
+        blocks = [b.split("```", 1)[0] for b in text.split("```json\n")[1:]]
+        scenes = [scene_from_dict(json.loads(b))[0] for b in blocks if '"objects"' in b]
+        assert len(scenes) == 1 and scenes[0].material.kd.shape == (2, 3), page
 
 
 # ------------------------------------------------------------------- several objects
