@@ -38,7 +38,7 @@ from diffshade.render import (
     render_views,
     stack_cameras,
 )
-from diffshade.scene import Scene, make_scene, replace
+from diffshade.scene import Scene, SceneObject, make_scene, replace, scene_object
 from diffshade.scenefile import (
     SceneFileError,
     load_scene,
@@ -55,11 +55,12 @@ from diffshade.shading import shade
 __all__ = [
     # the types a user holds
     "Camera", "Fragments", "Material", "Mesh", "RenderSettings", "Scene", "SceneFileError",
+    "SceneObject",
     # building a scene
     "ambient_light", "area_light", "box", "directional_light", "icosphere", "load_mesh",
     "look_at",
     "make_scene", "material", "mesh_from_arrays", "mesh_from_trimesh", "model_matrix",
-    "point_light", "replace", "sphere_light", "spot_light", "torus",
+    "point_light", "replace", "scene_object", "sphere_light", "spot_light", "torus",
     "BUILTIN_SCENES", "builtin_scene", "load_scene", "load_scenes", "save_scene",
     "scene_from_dict", "scenes_from_dict",
     # rendering

@@ -11,6 +11,7 @@ fitting cache):
   vertex (the provoking vertex), computed with that vertex's normal.
 Two-sided lighting (scene.two_sided) flips the normal on faces that are clockwise on
 screen and lights them with the back material, when the scene has one, as OpenGL does.
+In a scene of several objects each sample takes its object's (front or back) material.
 
 In soft mode the blend weights are computed once, before shading: Phong shading then
 lights only the fragments whose weight is not 0 (diffshade.compact).
@@ -30,6 +31,7 @@ from diffshade.blend import hard_blend, soft_blend, soft_weights
 from diffshade.camera import Camera, view_dir_infinite
 from diffshade.compact import on_active
 from diffshade.numerics import clamp01, safe_normalize
+from diffshade.objects import take_material
 from diffshade.project import Projected, project
 from diffshade.raster import Fragments, rasterize
 from diffshade.samples import Samples, read, shading_samples
@@ -68,23 +70,33 @@ def _fill_absent(material, other):
     return dataclasses.replace(material, shininess=shininess, **changes)
 
 
-def _material_at(scene, front):
+def _material_at(scene, front, objects=None):
     """The material of each sample: the front one, or the back material where `front` is
-    False when the scene has one; front: [...] bool."""
-    if not scene.two_sided or scene.back_material is None:
-        return scene.material
-    front_mat = _fill_absent(scene.material, scene.back_material)
-    back = _fill_absent(scene.back_material, scene.material)
+    False when the scene has one; front: [...] bool; objects: [...] int32 object ids in a
+    scene of several objects (its materials are stacked), else None."""
+    material, back_material = scene.material, scene.back_material
+    if objects is not None:
+        material = take_material(material, objects)
+    if not scene.two_sided or back_material is None:
+        return material
+    if objects is not None:
+        back_material = take_material(back_material, objects)
+    front_mat = _fill_absent(material, back_material)
+    back = _fill_absent(back_material, material)
+
+    # a leaf's own axes ([3], or none for shininess) follow the samples' axes
+    per_sample = 0 if objects is None else front.ndim
 
     def pick(f, b):
-        return jnp.where(front.reshape(front.shape + (1,) * jnp.ndim(f)), f, b)
+        return jnp.where(front.reshape(front.shape + (1,) * (jnp.ndim(f) - per_sample)), f, b)
     return jax.tree.map(pick, front_mat, back)
 
 
 def shade_samples(scene, samples: Samples, settings, maps=None):
     """(ShadingParts, colour) of each sample, [..., 3] each; colour clamped as OpenGL
     clamps (per sample) when settings.clamp. maps: the scene's shadow_maps (None: none)."""
-    parts = shade(_material_at(scene, samples.front), scene.lights, scene.global_ambient,
+    material = _material_at(scene, samples.front, samples.objects)
+    parts = shade(material, scene.lights, scene.global_ambient,
                   samples.points, samples.normals, view_dirs(scene, samples.points), settings,
                   maps)
     return parts, clamp01(parts.total) if settings.clamp else parts.total
@@ -102,12 +114,11 @@ def shade_fragments(scene, proj: Projected, frags: Fragments, settings, active=N
     maps = shadow_maps(scene, settings)
     light = lambda *leaves: shade_samples(scene, Samples(*leaves), settings, maps)
     if active is None or reader.table is not None:
-        lit = light(samples.points, samples.normals, samples.front)
+        lit = light(*samples.leaves())
     else:
         height, width, k = frags.face_ids.shape
         capacity = height * width * min(k, ACTIVE_SLOTS_PER_PIXEL)
-        lit = on_active(light, active, capacity, samples.points, samples.normals, samples.front,
-                        axis_name=axis_name)
+        lit = on_active(light, active, capacity, *samples.leaves(), axis_name=axis_name)
     parts, colour = read(lit, reader, host)
     # interpolated clamped colours can exceed 1 by a rounding error; keep [0, 1] exact
     return parts, clamp01(colour) if settings.clamp else colour

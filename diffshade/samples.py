@@ -9,7 +9,8 @@ is added in one place. Per mode (RenderSettings.shading, OpenGL 1.x):
 - 'flat_last': one per vertex (and side); a fragment reads its face's last vertex.
 Two-sided lighting (scene.two_sided) lights back faces with the reversed normal: the
 per-vertex modes then have a front and a back sample of every vertex, and a fragment
-reads the side its face shows.
+reads the side its face shows. In a scene of several objects every sample also carries
+its object's id (of its face or vertex), which picks its material.
 
 `Reader` says how fragments read sample values: row `ids[...]` of `table` lists the
 samples (G of them) a fragment combines with `weights[..., G]`; no table means the
@@ -30,11 +31,18 @@ from diffshade.raster import face_edge_coefficients
 @dataclasses.dataclass(frozen=True)
 class Samples:
     """points: [..., 3] world space; normals: [..., 3] unit, reversed on back sides under
-    two-sided lighting; front: [...] bool, lit with the front material."""
+    two-sided lighting; front: [...] bool, lit with the front material; objects: [...]
+    int32 object ids in a scene of several objects, else None."""
 
     points: jax.Array
     normals: jax.Array
     front: jax.Array
+    objects: jax.Array | None = None
+
+    def leaves(self):
+        """The arrays, in field order, without an absent `objects`."""
+        return (self.points, self.normals, self.front) + (
+            () if self.objects is None else (self.objects,))
 
 
 @jax.tree_util.register_dataclass
@@ -61,11 +69,21 @@ def _oriented(normals, front, two_sided):
     return jnp.where(front[..., None], normals, -normals) if two_sided else normals
 
 
+def object_ids(scene, per_face, index):
+    """The object ids [...] of faces (per_face) or vertices at `index` [...], or None in
+    the single-object form; empty slots (-1) read object 0."""
+    if scene.objects is None:
+        return None
+    ids = scene.objects.faces if per_face else scene.objects.vertices
+    return jnp.take(ids, jnp.maximum(index, 0), axis=0)
+
+
 def _phong(scene, proj, frags, host):
     points, normals = interpolate_tree((proj.world, proj.normals), scene.mesh.faces, frags,
                                        host)
     normals = _oriented(safe_normalize(normals), frags.front, scene.two_sided)
-    return Samples(points, normals, frags.front), Reader(frags.face_ids)
+    objects = object_ids(scene, True, frags.face_ids)
+    return Samples(points, normals, frags.front, objects), Reader(frags.face_ids)
 
 
 def _per_vertex(scene, proj, frags, corners):
@@ -73,22 +91,26 @@ def _per_vertex(scene, proj, frags, corners):
     faces = scene.mesh.faces[:, corners]
     n_faces, n_vertices = faces.shape[0], proj.world.shape[0]
     weights = frags.bary if len(corners) == 3 else None
+    objects = None if scene.objects is None else scene.objects.vertices
     if not scene.two_sided:
         front = jnp.ones(n_vertices, bool)
-        return Samples(proj.world, proj.normals, front), Reader(frags.face_ids, weights, faces)
+        return (Samples(proj.world, proj.normals, front, objects),
+                Reader(frags.face_ids, weights, faces))
     points = jnp.concatenate([proj.world, proj.world])
     normals = jnp.concatenate([proj.normals, -proj.normals])
     front = jnp.arange(2 * n_vertices) < n_vertices
+    objects = None if objects is None else jnp.concatenate([objects, objects])
     ids = jnp.where(frags.front | ~frags.valid, frags.face_ids, frags.face_ids + n_faces)
     table = jnp.concatenate([faces, faces + n_vertices])
-    return Samples(points, normals, front), Reader(ids, weights, table)
+    return Samples(points, normals, front, objects), Reader(ids, weights, table)
 
 
 def _flat(scene, proj, frags):
     points, normals, front = flat_samples(scene, proj)
     normals = _oriented(normals, front, scene.two_sided)
     table = jnp.arange(points.shape[0], dtype=jnp.int32)[:, None]
-    return Samples(points, normals, front), Reader(frags.face_ids, None, table)
+    objects = None if scene.objects is None else scene.objects.faces
+    return Samples(points, normals, front, objects), Reader(frags.face_ids, None, table)
 
 
 def shading_samples(scene, proj, frags, shading, host=None):

@@ -57,7 +57,8 @@ from diffshade.mesh import (
     model_matrix,
     torus,
 )
-from diffshade.scene import Scene, make_scene
+from diffshade.objects import split_mesh, unstack_material
+from diffshade.scene import Scene, make_scene, object_count, scene_object
 from diffshade.settings import DATA_FIELDS, RenderSettings
 
 __all__ = ["FORMAT_VERSION", "SceneFileError", "load_scene", "load_scenes", "read_json",
@@ -358,10 +359,11 @@ def _settings(value, path):
         return RenderSettings(**kwargs)
 
 
+_OBJECT_KEYS = {"mesh": _Required(_OBJECT), "transform": _OBJECT, "material": _OBJECT,
+                "back_material": _nullable(_OBJECT)}
 _SCENE = {
-    "version": _VERSION, "mesh": _Required(_OBJECT), "transform": _OBJECT,
-    "camera": _OBJECT, "cameras": _ARRAY, "lights": _ARRAY, "material": _OBJECT,
-    "back_material": _nullable(_OBJECT), "global_ambient": _RGB, "background": _RGB,
+    "version": _VERSION, **_OBJECT_KEYS, "objects": _ARRAY, "camera": _OBJECT,
+    "cameras": _ARRAY, "lights": _ARRAY, "global_ambient": _RGB, "background": _RGB,
     "local_viewer": _BOOL, "two_sided": _BOOL, "settings": _OBJECT,
 }
 
@@ -381,25 +383,68 @@ def _cameras(top):
     return [_camera(v, f"cameras[{i}]") for i, v in enumerate(top["cameras"])]
 
 
+def _object(value, path, base_dir):
+    """(mesh, material, back_material, model matrix or None) of an object's keys (the
+    top level's, or an entry of "objects")."""
+    fields = _read_object(value, path, _OBJECT_KEYS)
+    mesh = _mesh(fields["mesh"], _join(path, "mesh"), base_dir)
+    model = (_model(fields["transform"], _join(path, "transform")) if "transform" in fields
+             else None)
+    front = _material(fields.get("material", {}), _join(path, "material"))
+    back = fields.get("back_material")
+    back = None if back is None else _material(back, _join(path, "back_material"))
+    return mesh, front, back, model
+
+
+def _objects(value, base_dir):
+    """The SceneObjects of the "objects" array."""
+    if not value:
+        raise SceneFileError("objects: got []; expected a non-empty array of objects "
+                             "{mesh, transform, material, back_material}")
+    objects = []
+    for i, entry in enumerate(value):
+        path = f"objects[{i}]"
+        mesh, front, back, model = _object(entry, path, base_dir)
+        with _at(path):
+            objects.append(scene_object(mesh, front, transform=model, back_material=back))
+    return objects
+
+
+def _geometry(data, base_dir):
+    """make_scene's geometry keywords: {objects, model} or {mesh, material, back_material,
+    model}; a top-level transform moves every object."""
+    if "objects" in data:
+        single = [key for key in _OBJECT_KEYS if key in data and key != "transform"]
+        if single:
+            raise SceneFileError(f"{single[0]}: not allowed with objects; expected each "
+                                 "object's mesh and materials inside objects")
+        model = _model(data["transform"], "transform") if "transform" in data else None
+        return {"objects": _objects(data["objects"], base_dir), "model": model}
+    if "mesh" not in data:
+        raise SceneFileError("mesh: missing; expected an object (or objects: an array of "
+                             "objects)")
+    single = {key: data[key] for key in _OBJECT_KEYS if key in data}
+    mesh, front, back, model = _object(single, "", base_dir)
+    return {"mesh": mesh, "material": front, "back_material": back, "model": model}
+
+
 def scenes_from_dict(data, base_dir=".") -> tuple[tuple[Scene, ...], RenderSettings]:
     """(one Scene per camera, RenderSettings) from a parsed scene file; the scenes share
-    the mesh, lights, materials and switches. Mesh paths are relative to base_dir.
+    the mesh (or objects), lights, materials and switches. Mesh paths are relative to
+    base_dir.
 
     Raises SceneFileError (a ValueError) naming the key path of the first bad value.
     """
-    top = _read_object(data, "", _SCENE)
-    mesh = _mesh(top["mesh"], "mesh", os.fspath(base_dir))
-    model = _model(top["transform"], "transform") if "transform" in top else None
+    # "mesh" is required only without "objects" (_geometry checks)
+    scene_keys = {k: v.kind if isinstance(v, _Required) else v for k, v in _SCENE.items()}
+    top = _read_object(data, "", scene_keys)
+    geometry = _geometry(top, os.fspath(base_dir))
     cameras = _cameras(top)
     lights = [_light(v, f"lights[{i}]") for i, v in enumerate(top.get("lights", []))]
-    front = _material(top.get("material", {}), "material")
-    back = top.get("back_material")
-    back = None if back is None else _material(back, "back_material")
     kwargs = {k: top[k] for k in ("global_ambient", "background", "local_viewer", "two_sided")
               if k in top}
     with _at("", {"model": "transform"}):
-        scene = make_scene(mesh, cameras[0], lights, front, model=model, back_material=back,
-                           **kwargs)
+        scene = make_scene(camera=cameras[0], lights=lights, **geometry, **kwargs)
     scenes = (scene, *(dataclasses.replace(scene, camera=c) for c in cameras[1:]))
     return scenes, _settings(top.get("settings", {}), "settings")
 
@@ -556,25 +601,51 @@ def _camera_to_dict(camera):
             "projection": camera.projection}
 
 
+def _objects_to_list(scene):
+    """The "objects" of a scene of several objects: inline meshes (in model space, so
+    without a transform) and each object's materials."""
+    objects = []
+    for i in range(object_count(scene)):
+        entry = {"mesh": _mesh_to_dict(split_mesh(scene.mesh, scene.objects, i), None),
+                 "material": _material_to_dict(unstack_material(scene.material, i))}
+        if scene.back_material is not None:
+            entry["back_material"] = _material_to_dict(unstack_material(scene.back_material, i))
+        objects.append(entry)
+    return objects
+
+
+def _geometry_to_dict(scene, mesh_ref):
+    """The keys of the scene's mesh(es), transform and materials."""
+    if scene.objects is not None:
+        if mesh_ref is not None:
+            raise ValueError(f"mesh_ref: got {mesh_ref!r}; expected None for a scene of "
+                             "several objects (their meshes are written inline)")
+        out = {"objects": _objects_to_list(scene)}
+    else:
+        out = {"mesh": _mesh_to_dict(scene.mesh, mesh_ref),
+               "material": _material_to_dict(scene.material)}
+        if scene.back_material is not None:
+            out["back_material"] = _material_to_dict(scene.back_material)
+    if not np.array_equal(np.asarray(scene.model), np.eye(4)):
+        out["transform"] = {"matrix": _plain(scene.model)}
+    return out
+
+
 def scene_to_dict(scene: Scene, settings: RenderSettings, mesh_ref=None) -> dict:
     """The scene file (a JSON-ready dict) describing scene and settings.
 
     mesh_ref: None writes the mesh inline (vertices, faces and its normals); a path
     (str or PathLike, relative to the scene file's folder) or a mesh object such as
-    {"builtin": {"icosphere": {"subdivisions": 3}}} is written as given instead.
+    {"builtin": {"icosphere": {"subdivisions": 3}}} is written as given instead. A scene
+    of several objects is written as "objects" with inline meshes (mesh_ref None).
     Lights are written grouped by type (ambient, directional, point, spot, area
     rectangles, area disks, sphere).
     """
-    out = {"version": FORMAT_VERSION, "mesh": _mesh_to_dict(scene.mesh, mesh_ref)}
-    if not np.array_equal(np.asarray(scene.model), np.eye(4)):
-        out["transform"] = {"matrix": _plain(scene.model)}
-    out |= {"camera": _camera_to_dict(scene.camera), "lights": _lights_to_list(scene.lights),
-            "material": _material_to_dict(scene.material)}
-    if scene.back_material is not None:
-        out["back_material"] = _material_to_dict(scene.back_material)
-    return out | {"global_ambient": _rgb(scene.global_ambient),
-                  "background": _rgb(scene.background), "local_viewer": scene.local_viewer,
-                  "two_sided": scene.two_sided, "settings": _settings_to_dict(settings)}
+    return {"version": FORMAT_VERSION, **_geometry_to_dict(scene, mesh_ref),
+            "camera": _camera_to_dict(scene.camera), "lights": _lights_to_list(scene.lights),
+            "global_ambient": _rgb(scene.global_ambient), "background": _rgb(scene.background),
+            "local_viewer": scene.local_viewer, "two_sided": scene.two_sided,
+            "settings": _settings_to_dict(settings)}
 
 
 def _settings_to_dict(settings):

@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 
 from diffshade.blend import BACKGROUND_EPS, normalized_inverse_depth
+from diffshade.samples import object_ids
 
 
 def _materials(scene):
@@ -45,14 +46,20 @@ def layers_needed(scene, settings) -> int:
 
 def fragment_kt(scene, frags):
     """[H, W, K, 3] transmittance of each fragment (the back material's on back faces under
-    two-sided lighting; 0 for a material without kt), or None for an opaque scene."""
+    two-sided lighting; 0 for a material without kt), or None for an opaque scene. In a
+    scene of several objects (materials stacked [O, ...]) each fragment takes its
+    object's kt."""
     if not is_transparent(scene):
         return None
     shape = frags.face_ids.shape + (3,)
     dtype = frags.bary.dtype
+    ids = object_ids(scene, True, frags.face_ids)
 
     def of(mat):
-        return jnp.zeros(shape, dtype) if mat.kt is None else jnp.broadcast_to(mat.kt, shape)
+        if mat.kt is None:
+            return jnp.zeros(shape, dtype)
+        kt = mat.kt if ids is None else jnp.take(mat.kt, ids, axis=0, mode="clip")
+        return jnp.broadcast_to(kt, shape).astype(dtype)
     mats = _materials(scene)
     if len(mats) == 1:
         return of(mats[0])

@@ -8,7 +8,8 @@ those pixels read (world point, normal, direction to the viewer) and how they re
 Both come from `diffshade.samples`, the code `render` uses, per shading mode (per pixel
 for Phong, per vertex and side for Gouraud and flat_last, per face for flat). Two-sided
 lighting is in the normals (reversed on back faces); the fitted material serves both
-sides.
+sides. With several objects each sample keeps its object id, which picks its row of the
+(stacked) material.
 
 `predict` then runs `diffshade.shade` on the samples and gives the colours of the kept
 pixels, equal to `diffshade.render` at those pixels (tested). Silhouette pixels are left
@@ -27,6 +28,7 @@ from diffshade.lights import LightGroups
 from diffshade.material import Material
 from diffshade.material import material as make_material
 from diffshade.numerics import clamp01, float_dtype
+from diffshade.objects import take_material
 from diffshade.project import project
 from diffshade.render import rasterize_scene, view_dirs
 from diffshade.samples import Reader, read, shading_samples
@@ -46,7 +48,8 @@ class ViewSamples:
     under two-sided lighting, and unit view_dirs); target: [N, 3] target colours of the
     kept pixels; pixels: [N] int32 flat index (row * width + column) of each kept pixel;
     reader: diffshade.samples.Reader of the kept pixels ([N, 1, 1] ids, one row each) into
-    the samples, with no table when sample i is pixel i (Phong)."""
+    the samples, with no table when sample i is pixel i (Phong); objects: [S] int32
+    object ids of the samples (several objects), or None."""
 
     points: jax.Array
     normals: jax.Array
@@ -54,6 +57,7 @@ class ViewSamples:
     target: jax.Array
     pixels: jax.Array
     reader: Reader
+    objects: jax.Array | None = None
 
 
 @partial(jax.tree_util.register_dataclass,
@@ -104,14 +108,17 @@ def kept_pixels(valid, mask, edge_margin):
 
 
 def _kept_samples(geo, pixels):
-    """(points, normals, view_dirs) [S, 3] of the samples the kept pixels read, and the
-    Reader of the pixels into them (only the samples read are kept)."""
-    arrays = [np.asarray(a) for a in (geo["samples"].points, geo["samples"].normals,
-                                      geo["view_dirs"])]
+    """(points, normals, view_dirs) [S, 3] of the samples the kept pixels read (and their
+    object ids [S, 1] with several objects), and the Reader of the pixels into them (only
+    the samples read are kept)."""
+    samples = geo["samples"]
+    arrays = [np.asarray(a) for a in (samples.points, samples.normals, geo["view_dirs"])]
+    if samples.objects is not None:
+        arrays.append(np.asarray(samples.objects)[..., None])
     reader = geo["reader"]
     ids = np.arange(len(pixels), dtype=np.int32).reshape(-1, 1, 1)
     if reader.table is None:
-        return [a.reshape(-1, 3)[pixels] for a in arrays], Reader(ids)
+        return [a.reshape(-1, a.shape[-1])[pixels] for a in arrays], Reader(ids)
     rows = np.asarray(reader.ids).reshape(-1)[pixels]
     used = np.asarray(reader.table)[rows]
     unique, inverse = np.unique(used, return_inverse=True)
@@ -129,10 +136,12 @@ def view_samples(dataset: Dataset, index: int, edge_margin=1) -> ViewSamples:
     geo = view_geometry(scene, dataset.settings)
     view = dataset.views[index]
     pixels = kept_pixels(geo["valid"], view.mask, edge_margin)
-    (points, normals, view_dirs), reader = _kept_samples(geo, pixels)
+    (points, normals, view_dirs, *objects), reader = _kept_samples(geo, pixels)
     floats = partial(jnp.asarray, dtype=float_dtype())
+    objects = jnp.asarray(objects[0][:, 0], jnp.int32) if objects else None
     return ViewSamples(floats(points), floats(normals), floats(view_dirs),
-                       floats(view.target.reshape(-1, 3)[pixels]), jnp.asarray(pixels), reader)
+                       floats(view.target.reshape(-1, 3)[pixels]), jnp.asarray(pixels), reader,
+                       objects)
 
 
 def build_cache(dataset: Dataset, material: Material, *, edge_margin: int = 1) -> FitData:
@@ -164,6 +173,8 @@ def _to_pixels(values, samples: ViewSamples):
 
 
 def _shade_samples(material, lights: LightGroups, global_ambient, samples, settings):
+    if samples.objects is not None:
+        material = take_material(material, samples.objects)
     return shade(material, lights, global_ambient, samples.points, samples.normals,
                  samples.view_dirs, settings)
 

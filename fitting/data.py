@@ -8,6 +8,10 @@ does not match its camera raises a ValueError naming the view.
 
 `view_scene` builds the diffshade `Scene` of one view for a given material: the same
 forward model renders the targets (data_synth) and the fit's full-image path.
+
+Several objects: `objects` (diffshade.objects.ObjectIds) says which object each face and
+vertex of the (joined) mesh belongs to; materials (truth, the fit's) then have a leading
+object axis. `dataset_of_scene` takes mesh, model and ids from a Scene.
 """
 
 import dataclasses
@@ -18,7 +22,8 @@ from diffshade.camera import Camera
 from diffshade.lights import LightGroups, group_lights
 from diffshade.material import Material
 from diffshade.mesh import Mesh, check_mesh
-from diffshade.scene import Scene, make_scene
+from diffshade.objects import ObjectIds
+from diffshade.scene import Scene, make_scene, replace
 from diffshade.settings import RenderSettings
 
 
@@ -45,7 +50,8 @@ class Dataset:
     identity); global_ambient: [3] or scalar; settings: RenderSettings the targets were
     rendered with (the fit renders with the same ones, clamping included); truth: the
     Material that made the targets, or None; local_viewer, two_sided: as in make_scene;
-    info: free-form description (how the data were made)."""
+    info: free-form description (how the data were made); objects: ObjectIds of a mesh
+    joined from several objects (materials then stacked, [O, 3]), or None."""
 
     mesh: Mesh
     views: tuple
@@ -56,6 +62,7 @@ class Dataset:
     local_viewer: bool = False
     two_sided: bool = False
     info: dict = dataclasses.field(default_factory=dict, compare=False)
+    objects: ObjectIds | None = None
 
     def __post_init__(self):
         if not isinstance(self.mesh, Mesh):
@@ -116,7 +123,16 @@ def view_scene(dataset: Dataset, index: int, material: Material, lights=None) ->
     """The diffshade Scene of view `index` with `material` (and `lights`, default the
     view's own)."""
     view = dataset.views[index]
-    return make_scene(dataset.mesh, view.camera, view.lights if lights is None else lights,
-                      material, model=dataset.model, global_ambient=dataset.global_ambient,
-                      local_viewer=dataset.local_viewer, two_sided=dataset.two_sided)
+    scene = make_scene(dataset.mesh, view.camera, view.lights if lights is None else lights,
+                       material, model=dataset.model, global_ambient=dataset.global_ambient,
+                       local_viewer=dataset.local_viewer, two_sided=dataset.two_sided)
+    return scene if dataset.objects is None else replace(scene, objects=dataset.objects)
+
+
+def dataset_of_scene(scene: Scene, views, **kwargs) -> Dataset:
+    """A Dataset of `scene`'s mesh, model, objects, global ambient and lighting switches,
+    seen in `views` (kwargs: the other Dataset fields, e.g. truth, settings)."""
+    return Dataset(scene.mesh, views, model=scene.model, global_ambient=scene.global_ambient,
+                   local_viewer=scene.local_viewer, two_sided=scene.two_sided,
+                   objects=scene.objects, **kwargs)
 

@@ -114,6 +114,9 @@ def _write_view(out_dir, dataset, i):
 def save_dataset(dataset: Dataset, out_dir) -> str:
     """Write `dataset` to the folder out_dir (created if missing), every file atomically;
     returns its path. The float targets (.npy) are what load_dataset reads back."""
+    if dataset.objects is not None:
+        raise ValueError("dataset: a dataset of several objects; save_dataset writes "
+                         "datasets of one object (one mesh and one material) only")
     out_dir = os.fspath(out_dir)
     os.makedirs(out_dir, exist_ok=True)
     entries = [_write_view(out_dir, dataset, i) for i in range(len(dataset.views))]

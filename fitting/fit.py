@@ -85,6 +85,13 @@ class FitResult:
         value, standard error and relative error; warnings and notes below."""
         return comparison_table(self, self.truth if truth is None else truth)
 
+    def object_reports(self) -> list:
+        """One UncertaintyReport per object (several objects; [the report] for one)."""
+        if "objects" not in self.values or self.uncertainty is None:
+            return [self.uncertainty]
+        return [self.uncertainty.select(f"objects[{i}].")
+                for i in range(len(self.values["objects"]))]
+
     def as_dict(self) -> dict:
         """JSON-ready: method, status, loss, loss_history, converged, n_steps, wall_time,
         values (lights included when fitted), errors, std_errors and rounding_bound (None
@@ -111,10 +118,18 @@ class FitResult:
 
 def relative_errors(values: dict, truth, spec: FitSpec) -> dict:
     """|fitted - true| / |true| per fitted material quantity and channel (the absolute
-    error where the truth is 0): {'ka': [3], ..., 'shininess': []} as numpy."""
-    true = material_values(truth, FitSpec(**{n: "rgb" if getattr(spec, n) else None
-                                             for n in COEFFICIENTS},
-                                          shininess=spec.shininess))
+    error where the truth is 0): {'ka': [3], ..., 'shininess': []} as numpy; with several
+    objects (a stacked truth), {'objects': (one such dict per object)}."""
+    rgb_spec = FitSpec(**{n: "rgb" if getattr(spec, n) else None for n in COEFFICIENTS},
+                       shininess=spec.shininess)
+    true = material_values(truth, rgb_spec)
+    if "objects" in true:
+        return {"objects": tuple(_relative_errors(v, t) for v, t in
+                                 zip(values["objects"], true["objects"], strict=True))}
+    return _relative_errors(values, true)
+
+
+def _relative_errors(values, true):
     errors = {}
     for name, t in true.items():
         fitted = np.broadcast_to(np.asarray(values[name], np.float64), np.shape(t))

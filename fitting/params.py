@@ -21,6 +21,12 @@ physical values (`TRANSFORMS`), its optimizer group for per-group learning rates
 (`param_labels`) and its bounds (`at_bound`). A new kind of fitted quantity is one entry
 there, plus where its value comes from and goes to (`material_values`,
 `values_to_material`, `values_to_lights`). `FIT_NAMES` are the names `--fit` accepts.
+
+Several objects (a base Material stacked along a leading object axis, see
+diffshade.objects): the material keys move into 'objects', a tuple with one such dict
+per object ({'objects': ({'ka': ..., 'shininess': ...}, ...), 'lights': ...}); every
+object's material is fitted at once, and the Material built back is stacked again. The
+gains and lights stay at the top level (they are the views', not the objects').
 """
 
 import dataclasses
@@ -31,6 +37,7 @@ import numpy as np
 
 from diffshade.material import Material, material
 from diffshade.numerics import float_dtype
+from diffshade.objects import stack_materials, unstack_material
 from fitting.gains import GAIN_NAMES, fitted_gains, gain_values
 
 COEFFICIENTS = ("ka", "kd", "ks")
@@ -173,18 +180,34 @@ def _light_values(lights, spec):
     return tuple(per_view)
 
 
-def material_values(material_: Material, spec: FitSpec, lights=None, n_views=None) -> dict:
-    """Physical values of the fitted quantities of `material_` (and `lights`, a sequence of
-    LightGroups, one per view; needed when the spec fits lights). Fitted gains start at 1;
-    they need the number of views: n_views, or len(lights)."""
+def object_count(material_: Material):
+    """The number of objects of a stacked Material ([O, 3] leaves), or None for one."""
+    return None if jnp.ndim(material_.kd) < 2 else int(jnp.shape(material_.kd)[0])
+
+
+def _one_material_values(material_, spec):
     values = {name: _coefficient_value(name, material_, spec) for name in spec.coefficients}
+    if spec.shininess:
+        values["shininess"] = jnp.asarray(material_.shininess, float_dtype())
+    return values
+
+
+def material_values(material_: Material, spec: FitSpec, lights=None, n_views=None) -> dict:
+    """Physical values of the fitted quantities of `material_` (stacked: per object, under
+    'objects') and `lights`, a sequence of LightGroups, one per view; needed when the spec
+    fits lights. Fitted gains start at 1; they need the number of views: n_views, or
+    len(lights)."""
+    count = object_count(material_)
+    if count is None:
+        values = _one_material_values(material_, spec)
+    else:
+        values = {"objects": tuple(_one_material_values(unstack_material(material_, i), spec)
+                                   for i in range(count))}
     if fitted_gains(spec):
         if n_views is None and lights is None:
             raise ValueError("n_views: got None; expected the number of views, because the "
                              "spec fits per-view gains")
         values |= gain_values(spec, len(lights) if n_views is None else n_views)
-    if spec.shininess:
-        values["shininess"] = jnp.asarray(material_.shininess, float_dtype())
     if spec.fits_lights:
         if lights is None:
             raise ValueError("lights: got None; expected one LightGroups per view, because "
@@ -235,12 +258,20 @@ def to_unconstrained(material_: Material, spec: FitSpec, lights=None) -> dict:
     return from_values(material_values(material_, spec, lights), spec)
 
 
-def values_to_material(values: dict, spec: FitSpec, base: Material) -> Material:
-    """Physical values -> Material; quantities the spec does not fit come from `base`."""
+def _one_material(values, spec, base):
     changes = {name: jnp.broadcast_to(values[name], (3,)) for name in spec.coefficients}
     if spec.shininess:
         changes["shininess"] = values["shininess"]
     return dataclasses.replace(base, **changes)
+
+
+def values_to_material(values: dict, spec: FitSpec, base: Material) -> Material:
+    """Physical values -> Material; quantities the spec does not fit come from `base`
+    (stacked, with values per object under 'objects')."""
+    if "objects" not in values:
+        return _one_material(values, spec, base)
+    return stack_materials([_one_material(one, spec, unstack_material(base, i))
+                            for i, one in enumerate(values["objects"])])
 
 
 def to_material(params: dict, spec: FitSpec, base_material: Material) -> Material:
@@ -287,6 +318,8 @@ def _leaf_names(path, leaf):
         return [f"exposure[{v + 1}]" for v in range(np.shape(leaf)[0])]
     if keys[0] == "white_balance":
         return [f"white_balance[{v + 1}][{c}]" for v in range(np.shape(leaf)[0]) for c in "rb"]
+    if keys[0] == "objects":
+        return [f"objects[{keys[1]}].{name}" for name in _leaf_names(path[2:], leaf)]
     if keys[0] != "lights":
         return [keys[0]] if np.ndim(leaf) == 0 else [f"{keys[0]}[{c}]" for c in "rgb"]
     _, view, group, field = keys
@@ -298,7 +331,7 @@ def _leaf_names(path, leaf):
 def value_names(values: dict) -> list:
     """Readable name of every scalar of `values`, in the order of
     `jax.flatten_util.ravel_pytree(values)`: 'ka[r]', 'kd' (grey), 'shininess',
-    'exposure[1]' (view 1's), 'white_balance[2][b]',
+    'objects[1].kd[g]', 'exposure[1]' (view 1's), 'white_balance[2][b]',
     'lights[0].point[1].color[g]', 'lights[2].point[0].position[x]', ..."""
     leaves = jax.tree_util.tree_flatten_with_path(values)[0]
     return [name for path, leaf in leaves for name in _leaf_names(path, leaf)]

@@ -29,11 +29,12 @@ import numpy as np
 
 from diffshade.color import srgb_to_linear
 from diffshade.io import write_json, write_npy, write_png, write_text
+from diffshade.objects import unstack_material
 from diffshade.render import render
 from fitting.data import view_scene
 from fitting.dataset import material_dict
 from fitting.gains import GAIN_NAMES, view_materials
-from fitting.params import value_names
+from fitting.params import object_count, value_names
 
 ERROR_GAIN = 10.0
 STATUS_LABELS = {"converged": "converged", "budget": "step budget reached",
@@ -80,27 +81,42 @@ def _rgb_line(key, value):
     return f"{key} " + " ".join(f"{float(x):.6f}" for x in np.broadcast_to(value, (3,)))
 
 
-def mtl_text(material, name="diffshade_fit", comment=""):
-    """Wavefront MTL text of a Material: Ka, Kd, Ks (0 without specular), Ns (the Blinn-
-    Phong exponent, written as fitted), Ke when it emits, Tr (the mean of kt) and Tf (kt
-    per channel) when it is transparent, illum 2 (1 without specular)."""
-    shininess = float(material.shininess)
-    lines = ["# diffshade: Blinn-Phong material, linear RGB, OpenGL 1.x lighting",
-             f"# Ns is the specular exponent as fitted; many OBJ viewers clamp Ns to "
-             f"[0, {MTL_NS_LIMIT:g}] (OpenGL's fixed pipeline to 128)"]
-    if shininess > MTL_NS_LIMIT:
-        lines.append(f"# note: Ns = {shininess:.6g} > {MTL_NS_LIMIT:g}: a viewer that clamps "
-                     "it shows a broader highlight than the fit")
-    lines += [f"# {comment}"] if comment else []
+def _newmtl(material, name):
+    """The lines of one `newmtl` entry."""
     specular = material.ks is not None
-    lines += [f"newmtl {name}", _rgb_line("Ka", material.ka), _rgb_line("Kd", material.kd),
-              _rgb_line("Ks", material.ks if specular else 0.0), f"Ns {shininess:.6f}"]
+    lines = [f"newmtl {name}", _rgb_line("Ka", material.ka), _rgb_line("Kd", material.kd),
+             _rgb_line("Ks", material.ks if specular else 0.0),
+             f"Ns {float(material.shininess):.6f}"]
     if material.emission is not None:
         lines.append(_rgb_line("Ke", material.emission))
     if getattr(material, "kt", None) is not None:
         kt = np.broadcast_to(np.asarray(material.kt, np.float64), (3,))
         lines += [f"Tr {kt.mean():.6f}", _rgb_line("Tf", kt)]
-    lines.append(f"illum {2 if specular else 1}")
+    return lines + [f"illum {2 if specular else 1}"]
+
+
+def mtl_text(material, name="diffshade_fit", comment=""):
+    """Wavefront MTL text of a Material: Ka, Kd, Ks (0 without specular), Ns (the Blinn-
+    Phong exponent, written as fitted), Ke when it emits, Tr (the mean of kt) and Tf (kt
+    per channel) when it is transparent, illum 2 (1 without specular). A stacked Material
+    (several objects, [O, 3] leaves) gives one `newmtl` per object, named `{name}_0`,
+    `{name}_1`, ... in object order."""
+    count = object_count(material)
+    materials = ([material] if count is None
+                 else [unstack_material(material, i) for i in range(count)])
+    names = [name] if count is None else [f"{name}_{i}" for i in range(count)]
+    lines = ["# diffshade: Blinn-Phong material, linear RGB, OpenGL 1.x lighting",
+             f"# Ns is the specular exponent as fitted; many OBJ viewers clamp Ns to "
+             f"[0, {MTL_NS_LIMIT:g}] (OpenGL's fixed pipeline to 128)"]
+    for one, label in zip(materials, names, strict=True):
+        shininess = float(one.shininess)
+        if shininess > MTL_NS_LIMIT:
+            which = "" if count is None else f"{label}: "
+            lines.append(f"# note: {which}Ns = {shininess:.6g} > {MTL_NS_LIMIT:g}: a "
+                         "viewer that clamps it shows a broader highlight than the fit")
+    lines += [f"# {comment}"] if comment else []
+    for one, label in zip(materials, names, strict=True):
+        lines += _newmtl(one, label)
     return "\n".join(lines) + "\n"
 
 
@@ -143,25 +159,36 @@ def _std_errors(result):
 
 
 def _material_rows(result, truth, se):
-    for name, value in result.values.items():
-        if name == "lights":
+    """The rows of the material values (one object's, or each object's in turn, labelled
+    'objects[i].kd[r]') and the per-view gains."""
+    errors = result.errors or {}
+    if "objects" in result.values:
+        for i, one in enumerate(result.values["objects"]):
+            true = None if truth is None else unstack_material(truth, i)
+            errs = errors["objects"][i] if "objects" in errors else {}
+            yield from _value_rows(one, true, errs, se, result.at_bound, f"objects[{i}].")
+    yield from _value_rows(result.values, truth, errors, se, result.at_bound)
+
+
+def _value_rows(values, truth, errors, se, at_bound, prefix=""):
+    for name, value in values.items():
+        if name in ("lights", "objects"):
             continue
         fitted = np.atleast_1d(np.asarray(value, np.float64))
         if name in GAIN_NAMES:  # per-view gains: no true value, one row per scalar
             for label, v in zip(value_names({name: value}), fitted.ravel(), strict=True):
-                yield label, None, v, se.get(label), label in result.at_bound, None
+                yield label, None, v, se.get(label), label in at_bound, None
             continue
         true = None if truth is None else np.atleast_1d(np.asarray(getattr(truth, name),
                                                                    np.float64))
-        errors = (np.atleast_1d(result.errors[name]) if result.errors and name in result.errors
-                  else None)
+        error = np.atleast_1d(errors[name]) if name in errors else None
         count = max(fitted.size, 1 if true is None else true.size)
         for c in range(count):
-            label = name if count == 1 else f"{name}[{'rgb'[c]}]"
-            key = label if label in se or label in result.at_bound else name
+            label = prefix + (name if count == 1 else f"{name}[{'rgb'[c]}]")
+            key = label if label in se or label in at_bound else prefix + name
             yield (label, None if true is None else true[min(c, true.size - 1)],
-                   fitted[min(c, fitted.size - 1)], se.get(key), key in result.at_bound,
-                   None if errors is None else errors[min(c, errors.size - 1)])
+                   fitted[min(c, fitted.size - 1)], se.get(key), key in at_bound,
+                   None if error is None else error[min(c, error.size - 1)])
 
 
 def _rows(result, truth):
@@ -221,6 +248,10 @@ def write_result(out_dir, dataset, result, init, extra=None, title="", kept=None
     """Write the result files (module docstring) into out_dir; returns their paths.
     kept: per view, the flat indices of the pixels the fit counted (fitting.cache; default
     every pixel), for residual_scale."""
+    if dataset.objects is not None:
+        raise ValueError("dataset: a dataset of several objects; write_result writes the "
+                         "files of a one-object fit only (write mtl_text(result.material) "
+                         "for the materials)")
     out_dir = os.fspath(out_dir)
     count = len(dataset.views)
     materials = view_materials(result.material, result.values, count)  # per-view gains

@@ -119,12 +119,15 @@ def start_params(spec, init, lights, n_views=None):
 
 def start_run(data, spec: FitSpec, init: Material, options: FitOptions | None = None,
               meta=None) -> RunState:
-    """A fresh RunState at `init` (for 'linear': at the closed-form solution) on the cached
-    `data` (fitting.build_cache(dataset, init)); options default FitOptions()."""
+    """A fresh RunState at `init` (for 'linear' with one object: at the closed-form
+    solution) on the cached `data` (fitting.build_cache(dataset, init)); options default
+    FitOptions()."""
     options = FitOptions() if options is None else options
     check_run(spec, init, options)
     params = start_params(spec, init, data.lights)
-    if options.method == "linear" and spec.fits_material:
+    # several objects: Levenberg-Marquardt starts from `init` (the closed-form start
+    # solves one material)
+    if options.method == "linear" and spec.fits_material and "objects" not in params:
         solved = solve_linear(data, spec, shininess_range=options.shininess_range)
         params = {**params, **from_values(solved, spec)}
     return RunState(spec, init, options, params, initial_opt_state(spec, options, params),

@@ -76,6 +76,19 @@ class UncertaintyReport:
         return {n: (float(v), None if n in self.at_bound else float(s))
                 for n, v, s in zip(self.names, self.values, self.std_errors, strict=True)}
 
+    def select(self, prefix: str) -> "UncertaintyReport":
+        """The report of the parameters whose names start with `prefix` (e.g. one
+        object's, 'objects[1].'): their values, standard errors and covariance block;
+        warnings naming none of them are left out."""
+        keep = [i for i, n in enumerate(self.names) if n.startswith(prefix)]
+        pick = lambda a: None if a is None else np.asarray(a)[keep]
+        return dataclasses.replace(
+            self, names=tuple(self.names[i] for i in keep), values=pick(self.values),
+            std_errors=pick(self.std_errors),
+            covariance=self.covariance[np.ix_(keep, keep)],
+            warnings=tuple(w for w in self.warnings if prefix in w or "objects[" not in w),
+            rounding_bound=pick(self.rounding_bound))
+
     def table(self) -> str:
         """One line per parameter: name, value, standard error (and rounding bound)."""
         bound = self.rounding_bound

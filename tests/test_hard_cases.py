@@ -33,15 +33,18 @@ from diffshade import (
     RenderSettings,
     ambient_light,
     area_light,
+    box,
     directional_light,
     icosphere,
     look_at,
     make_scene,
     material,
+    mesh_from_arrays,
     model_matrix,
     point_light,
     render,
     replace,
+    scene_object,
     sphere_light,
     spot_light,
 )
@@ -603,6 +606,74 @@ def test_clamped_soft_blend_stays_within_one(dtype):
     with jax.enable_x64(DTYPES[dtype]):
         image = np.asarray(render(CASES["generic"].build(), RenderSettings(raster="soft")))
     assert image[..., :3].max() <= 1.0 and image[..., 3].max() <= 1.0
+
+
+# ------------------------------------------------------------- two objects touching
+# A scene of several objects has its own structure (stacked materials, object ids), so it
+# is its own small batch: a cube resting on a floor, its bottom face coplanar with the
+# floor (every depth ties there, between two objects with different materials) and its
+# bottom edges on it.
+
+TOUCHING_PLAN = (
+    ("local_two_sided", RenderSettings(clamp=False)),
+    ("plain", RenderSettings(shading="gouraud", raster="soft", clamp=False, sigma=1e-8,
+                             gamma=1e-8)),
+    ("plain", RenderSettings(shading="flat_last", raster="soft", sigma=1e2, gamma=1e2)),
+)
+
+
+def touching_scene():
+    like = case_scene()
+    floor = mesh_from_arrays(np.asarray(QUAD[0]) * 1.5, QUAD[1])
+    objects = [
+        scene_object(floor, material(ka=0.3, kd=(0.5, 0.5, 0.4))),
+        scene_object(box((0.8, 0.8, 0.8)), material(ka=0.2, kd=(0.7, 0.2, 0.1), ks=0.5,
+                                                    shininess=20.0, emission=0.05),
+                     transform=model_matrix((0.1, 0.05, 0.4), (0.0, 0.0, 20.0)),
+                     back_material=material(kd=(0.1, 0.6, 0.2), ks=0.2, shininess=5.0))]
+    return make_scene(objects=objects, camera=like.camera, lights=like.lights,
+                      global_ambient=like.global_ambient, background=like.background)
+
+
+@functools.partial(jax.jit, static_argnames=("plan",), compiler_options=FAST_COMPILE)
+def touching_losses_and_grads(params, like, weights, plan):
+    """Per plan entry: ((loss, image), grads) of the touching scene."""
+
+    def run(variant, settings):
+        def loss(p):
+            scene = replace(like, mesh=Mesh(p["vertices"], like.mesh.faces, p["normals"]),
+                            material=p["material"], back_material=p["back_material"])
+            if variant == "local_two_sided":
+                scene = replace(scene, local_viewer=True, two_sided=True)
+            image = render(scene, settings)
+            return jnp.sum(weights * image), image
+
+        return jax.value_and_grad(loss, has_aux=True)(params)
+
+    return [run(*entry) for entry in plan]
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_two_objects_touching(dtype):
+    """Finite values and gradients (vertices, normals, every object's front and back
+    material), colours in range, under shading and raster modes and two-sided lighting."""
+    with jax.enable_x64(DTYPES[dtype]):
+        scene = touching_scene()
+        params = {"vertices": scene.mesh.vertices, "normals": scene.mesh.normals,
+                  "material": scene.material, "back_material": scene.back_material}
+        weights = np.random.default_rng(5).uniform(0.5, 1.5, (SIZE, SIZE, 4))
+        out = touching_losses_and_grads(params, scene, jnp.asarray(weights, float_dtype()),
+                                        TOUCHING_PLAN)
+        out = jax.tree.map(np.asarray, out)
+    rows = [Row(*entry, loss, image, grads)
+            for entry, ((loss, image), grads) in zip(TOUCHING_PLAN, out, strict=True)]
+    found = [f"{label(r.variant, r.settings)}: {m}" for r in rows for m in problems(r)]
+    covered = [(r.image[..., 3] > 0).mean() for r in rows]
+    assert not found, f"{len(found)} failures ({dtype}):\n" + "\n".join(found)
+    assert min(covered) > 0.3  # the case is the one meant: both objects in view
+    # both materials move the image: the second (the cube) in every render
+    assert all(np.any(r.grads["material"].kd[1]) and np.any(r.grads["material"].kd[0])
+               for r in rows)
 
 
 # ----------------------------------------------------------------- a 2048 x 2048 render

@@ -346,7 +346,7 @@ def test_missing_scene_file_names_the_path(tmp_path):
 
 def test_the_documented_example_is_valid():
     text = (EXAMPLES.parent / "docs" / "scene-format.md").read_text()
-    example = text.split("```json\n", 1)[1].split("```", 1)[0]
+    example = text.split("## Example", 1)[1].split("```json\n", 1)[1].split("```", 1)[0]
     scene, settings = scene_from_dict(json.loads(example))
     assert scene.lights.spot.cutoff.tolist() == [15.0]
     assert settings.spot_edge == "smooth"
@@ -387,3 +387,105 @@ def test_json_nested_too_deeply_is_a_scene_file_error(tmp_path):
     path.write_text("[" * 100_000 + "]" * 100_000)
     with pytest.raises(SceneFileError, match="deep.json: nested too deeply to parse"):
         load_scene(path)
+
+
+def test_the_documented_objects_examples_are_valid():
+    for page in ("scene-format.md", "objects.md"):
+        text = (EXAMPLES.parent / "docs" / page).read_text()
+        blocks = [b.split("```", 1)[0] for b in text.split("```json\n")[1:]]
+        scenes = [scene_from_dict(json.loads(b))[0] for b in blocks if '"objects"' in b]
+        assert len(scenes) == 1 and scenes[0].material.kd.shape == (2, 3), page
+
+
+# ------------------------------------------------------------------- several objects
+
+OBJECTS = {
+    "objects": [
+        {"mesh": {"builtin": {"icosphere": {"subdivisions": 0}}},
+         "transform": {"translate": [-1, 0, 0], "scale": 0.5},
+         "material": {"kd": [0.8, 0.1, 0.1]}},
+        {"mesh": {"builtin": {"box": {"size": [1, 0.5, 1]}}},
+         "transform": {"matrix": [[1, 0, 0, 1], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]},
+         "material": {"kd": 0.3, "ks": 0.5, "shininess": 12},
+         "back_material": {"kd": [0.1, 0.6, 0.1]}},
+    ],
+    "transform": {"rotate_deg": [0, 30, 0]},
+    "camera": {"eye": [0, 1, 4], "target": [0, 0, 0], "width": 16, "height": 12},
+    "lights": [{"type": "point", "position": [1, 2, 3]}],
+    "two_sided": True,
+}
+
+
+def objects_scene_by_api():
+    objects = [
+        ds.scene_object(ds.icosphere(0), ds.material(kd=(0.8, 0.1, 0.1)),
+                        transform=ds.model_matrix((-1, 0, 0), scale=(0.5, 0.5, 0.5))),
+        ds.scene_object(ds.box((1, 0.5, 1)), ds.material(kd=0.3, ks=0.5, shininess=12),
+                        transform=ds.model_matrix((1, 0, 0)),
+                        back_material=ds.material(kd=(0.1, 0.6, 0.1)))]
+    camera = ds.look_at((0, 1, 4), (0, 0, 0), width=16, height=12)
+    return ds.make_scene(objects=objects, camera=camera, lights=[ds.point_light((1, 2, 3))],
+                         model=ds.model_matrix(rotate_deg=(0, 30, 0)), two_sided=True)
+
+
+def test_objects_build_the_api_scene_and_round_trip():
+    scene, _ = scene_from_dict(copy.deepcopy(OBJECTS))
+    want = objects_scene_by_api()
+    assert_same_tree(scene, want)
+    assert scene.material.kd.shape == (2, 3) and scene.objects.faces.shape == (20 + 12,)
+    data = json.loads(json.dumps(scene_to_dict(scene, ds.RenderSettings())))
+    assert [sorted(o) for o in data["objects"]] == [["back_material", "material", "mesh"]] * 2
+    back, _ = scene_from_dict(data)
+    # inline normals are renormalized on reading: equal to float32 rounding
+    assert_same_tree(back, scene, rtol=1e-6)
+    with pytest.raises(ValueError, match="mesh_ref: got 'a.obj'; expected None for a scene of"):
+        scene_to_dict(scene, ds.RenderSettings(), mesh_ref="a.obj")
+
+
+def test_example_table_is_the_objects_figure_scene():
+    import importlib.util
+    path = Path(__file__).resolve().parents[1] / "docs" / "make_objects_figure.py"
+    spec = importlib.util.spec_from_file_location("make_objects_figure", path)
+    figure = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(figure)
+    scene, _ = load_scene(EXAMPLES / "table.json")
+    assert_same_tree(scene, figure.table_scene(), rtol=1e-6)
+
+
+def edited_objects(keys, value):
+    data = copy.deepcopy(OBJECTS)
+    parent = data
+    for key in keys[:-1]:
+        parent = parent[key]
+    if value is DELETE:
+        del parent[keys[-1]]
+    else:
+        parent[keys[-1]] = value
+    return data
+
+
+@pytest.mark.parametrize("keys, value, message", [
+    (("objects", 1, "mesh"), DELETE, "objects[1].mesh: missing; expected an object"),
+    (("objects", 1, "transform"), {"scale": [1, 0, 1]},
+     "objects[1].transform: the upper 3x3 block is singular"),
+    (("objects", 1, "transform"), {"matrix": [[1, 0], [0, 1]]},
+     "objects[1].transform.matrix: got [[1, 0], [0, 1]]; expected a 4x4 matrix"),
+    (("objects", 1, "transform"), {"rotate": [0, 1, 0]},
+     'objects[1].transform.rotate: unknown key; did you mean "rotate_deg"?'),
+    (("objects", 0, "material"), {"kd": -1}, "objects[0].material.kd: got -1; expected a"),
+    (("objects", 1, "back_material"), {"ks": "x"}, 'objects[1].back_material.ks: got "x"'),
+    (("objects", 0, "mesh"), {"path": "missing.obj"},
+     "objects[0].mesh.path: mesh file 'missing.obj' not found"),
+    (("objects", 0, "colour"), 1, 'objects[0].colour: unknown key; expected one of: '
+                                  "back_material, material, mesh, transform"),
+    (("objects", 1), "box", 'objects[1]: got "box"; expected an object'),
+    (("objects",), [], "objects: got []; expected a non-empty array of objects"),
+    (("objects",), {"mesh": {}}, 'objects: got {"mesh": {}}; expected an array'),
+    (("mesh",), {"builtin": {"box": {}}}, "mesh: not allowed with objects"),
+    (("material",), {}, "material: not allowed with objects"),
+    (("objects",), DELETE, "mesh: missing; expected an object (or objects"),
+])
+def test_objects_errors_name_the_key_path(keys, value, message):
+    with pytest.raises(SceneFileError) as err:
+        scene_from_dict(edited_objects(keys, value))
+    assert str(err.value).startswith(message), str(err.value)

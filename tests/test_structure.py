@@ -11,6 +11,9 @@ Markers, counted over the render's jaxpr and all its sub-jaxprs, in hard and sof
 - two-sided lighting without a back material selects only the normal's side, never
   between materials; a back material adds one select per material field;
 - emission adds no per-fragment work when the material has none.
+- a scene of one object (make_scene(objects=[one])) compiles exactly the program of the
+  same scene built from a mesh; a scene of several gathers each stacked material field
+  per sample (a gather whose table has a leading object axis), and only such a scene.
 The plain scene's lowered program is compared, op for op, with the one the revision
 before the effects of issue 14 (BASELINE) lowers, run from `git archive` in a subprocess.
 Recompilation is observed with the jitted `render`'s own cache size.
@@ -36,9 +39,11 @@ from diffshade import (
     look_at,
     make_scene,
     material,
+    model_matrix,
     point_light,
     render,
     replace,
+    scene_object,
     spot_light,
 )
 
@@ -71,6 +76,12 @@ def equations(scene, settings=SETTINGS):
 def primitive_counts(scene, settings=SETTINGS):
     """Counter of primitive names in the jaxpr of render(scene), sub-jaxprs included."""
     return collections.Counter(eqn.primitive.name for eqn in equations(scene, settings))
+
+
+def gather_tables(scene, settings=SETTINGS):
+    """Counter of the shapes of the tables (first operands) that gathers read from."""
+    return collections.Counter(eqn.invars[0].aval.shape for eqn in equations(scene, settings)
+                               if eqn.primitive.name == "gather")
 
 
 def scene_with(lights, mat=None, size=8):
@@ -235,3 +246,43 @@ def test_a_jitted_render_traces_once_for_new_material_values():
     second = brightness(replace(scene, material=material(ka=0.3, kd=0.2, ks=0.6,
                                                          shininess=9.0)))
     assert len(traces) == 1 and first != second
+
+
+# ------------------------------------------------------------------- several objects
+
+RED, BLUE = material(kd=(0.8, 0.1, 0.1)), material(kd=(0.1, 0.1, 0.8), ks=0.5, shininess=9.0)
+
+
+def objects_scene(count, two_sided=False, size=8):
+    """`count` icospheres in a row, the second with a back material, via `objects`."""
+    cam = look_at((0.0, 0.0, 4.0), (0.0, 0.0, 0.0), width=size, height=size)
+    objects = [scene_object(icosphere(0), (RED, BLUE)[i % 2],
+                            transform=model_matrix((1.2 * i - 0.6 * (count - 1), 0.0, 0.0)),
+                            back_material=material(kd=0.3) if i % 2 else None)
+               for i in range(count)]
+    return make_scene(objects=objects, camera=cam, lights=[SUN, BULB], two_sided=two_sided)
+
+
+def test_one_object_compiles_the_program_of_a_scene_built_from_a_mesh():
+    for two_sided in (False, True):
+        one = objects_scene(1, two_sided)
+        plain = make_scene(icosphere(0), one.camera, [SUN, BULB], RED, model=one.model,
+                           two_sided=two_sided)
+        for settings in (SETTINGS, SOFT):
+            program = str(jax.make_jaxpr(lambda s, st=settings: render(s, st))(one))
+            assert program == str(jax.make_jaxpr(lambda s, st=settings: render(s, st))(plain))
+            # no per-object gather leaked in: no table with a leading axis of one object
+            assert not [t for t in gather_tables(one, settings) if t[:1] == (1,)]
+
+
+def test_several_objects_gather_each_material_field_per_sample():
+    for two_sided in (False, True):
+        scene = objects_scene(2, two_sided)
+        stacked = [scene.material] + ([scene.back_material] if two_sided else [])
+        want = collections.Counter(leaf.shape for m in stacked for leaf in jax.tree.leaves(m))
+        # soft Phong shading is traced twice: in both branches of on_active's lax.cond
+        for settings, traced in ((SETTINGS, 1), (SOFT, 2)):
+            tables = gather_tables(scene, settings)
+            got = collections.Counter({t: n for t, n in tables.items() if t[:1] == (2,)})
+            assert got == collections.Counter({t: traced * n for t, n in want.items()}), (
+                two_sided, settings.raster, got, want)
