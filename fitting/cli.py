@@ -43,7 +43,7 @@ from diffshade.color import COLOR_SPACES
 from fitting.cache import build_cache
 from fitting.checkpoint import save_checkpoint
 from fitting.fit import fit_result
-from fitting.inputs import non_negative_float, positive_int
+from fitting.inputs import non_negative_float, non_negative_int, positive_float, positive_int
 from fitting.loss import LOSSES
 from fitting.options import FIT_METHODS, OPTIONS, FitOptions
 from fitting.params import to_values
@@ -57,28 +57,6 @@ SIGNALS = {signal.SIGINT: "SIGINT", signal.SIGTERM: "SIGTERM"}
 
 
 # ---- the parser ----
-
-
-def positive_float(text):
-    """argparse type: a finite number > 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = 0.0
-    if not (np.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"got {text!r}; expected a finite number > 0")
-    return value
-
-
-def non_negative_int(text):
-    """argparse type: an integer >= 0."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"got {text!r}; expected an integer >= 0")
-    return value
 
 
 def number_pair(text):

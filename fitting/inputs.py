@@ -24,26 +24,26 @@ DEFAULT_FIT = tuple(name for name, value in FitSpec().fitted.items() if value)
 # ---- arguments ----
 
 
-def positive_int(text):
-    """argparse type: an integer >= 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"got {text!r}; expected a positive integer")
-    return value
+def _number_type(name, convert, low, strict, expected):
+    """An argparse type: text -> convert(text), finite and above `low` (at or above it
+    unless strict), else ArgumentTypeError naming the text and `expected`."""
+    def parse(text):
+        try:
+            value = convert(text)
+        except ValueError:
+            value = None
+        if value is None or not np.isfinite(value) or value < low or (strict and value == low):
+            raise argparse.ArgumentTypeError(f"got {text!r}; expected {expected}")
+        return value
+    parse.__name__ = parse.__qualname__ = name
+    return parse
 
 
-def non_negative_float(text):
-    """argparse type: a finite number >= 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = -1.0
-    if not (np.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"got {text!r}; expected a finite number >= 0")
-    return value
+positive_int = _number_type("positive_int", int, 1, False, "a positive integer")
+non_negative_int = _number_type("non_negative_int", int, 0, False, "an integer >= 0")
+positive_float = _number_type("positive_float", float, 0.0, True, "a finite number > 0")
+non_negative_float = _number_type("non_negative_float", float, 0.0, False,
+                                  "a finite number >= 0")
 
 
 def _material_file(path, option):

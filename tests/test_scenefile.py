@@ -212,9 +212,10 @@ BASE = {
 DELETE = object()
 
 
-def edited(keys, value):
-    """A deep copy of BASE with BASE[keys[0]][keys[1]]... set to value (or deleted)."""
-    data = copy.deepcopy(BASE)
+def edited(keys, value, base=None):
+    """A deep copy of `base` (default BASE) with base[keys[0]][keys[1]]... set to value
+    (or deleted)."""
+    data = copy.deepcopy(BASE if base is None else base)
     parent = data
     for key in keys[:-1]:
         parent = parent[key]
@@ -453,15 +454,7 @@ def test_example_table_is_the_objects_figure_scene():
 
 
 def edited_objects(keys, value):
-    data = copy.deepcopy(OBJECTS)
-    parent = data
-    for key in keys[:-1]:
-        parent = parent[key]
-    if value is DELETE:
-        del parent[keys[-1]]
-    else:
-        parent[keys[-1]] = value
-    return data
+    return edited(keys, value, OBJECTS)
 
 
 @pytest.mark.parametrize("keys, value, message", [

@@ -15,9 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
-from jax.extend import core as jex_core
 from jax.test_util import check_grads
-from test_structure import primitive_counts
+from test_structure import equations, primitive_counts
 
 from diffshade import (
     RenderSettings,
@@ -189,21 +188,8 @@ def test_kt_is_recovered_by_gradient_descent(mesh):
 def layer_sorts(scene, settings):
     """The sort equations over a per-pixel layer axis ([H, W, K] operands) in the jaxpr
     of render(scene), sub-jaxprs included."""
-    found = []
-
-    def walk(jaxpr):
-        for eqn in jaxpr.eqns:
-            if eqn.primitive.name == "sort" and eqn.invars[0].aval.ndim == 3:
-                found.append(eqn)
-            for param in eqn.params.values():
-                for sub in param if isinstance(param, (list, tuple)) else [param]:
-                    if isinstance(sub, jex_core.ClosedJaxpr):
-                        walk(sub.jaxpr)
-                    elif isinstance(sub, jex_core.Jaxpr):
-                        walk(sub)
-
-    walk(jax.make_jaxpr(lambda s: render(s, settings))(scene).jaxpr)
-    return found
+    return [eqn for eqn in equations(scene, settings)
+            if eqn.primitive.name == "sort" and eqn.invars[0].aval.ndim == 3]
 
 
 def test_opaque_scenes_compile_no_layer_sorting_and_transparent_ones_do(mesh):
