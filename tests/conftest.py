@@ -68,3 +68,53 @@ def make_mesh(vertices, faces, normals=None):
 def mesh():
     """The `make_mesh` builder (see the module docstring)."""
     return make_mesh
+
+
+# ------------------------------------------------------------------ test order (CI time)
+# pytest-xdist's worksteal scheduler hands each worker one contiguous share of the
+# collection (the first worker len // n tests, the next an even share of the rest, ...)
+# and later lets an idle worker take the tail of a busy worker's queue. A few tests
+# compile one large program each (catalogues of hard cases, vmapped gradient checks) and
+# cost minutes where most cost a second; if two of them land at the end of one share,
+# that worker runs alone for minutes while the other has finished. So tests marked
+# `cost(seconds)` (CPU seconds measured on the 2-core CI machine) are dealt out first:
+# each goes, heaviest first, to the share with the least marked cost so far, at the front
+# of its share; the unmarked tests fill the shares in collection order (modules stay
+# together, so their module-scoped fixtures compile once).
+
+
+def xdist_shares(count, workers):
+    """Sizes of the contiguous shares worksteal's first scheduling step sends."""
+    sizes, left = [], count
+    for i in range(workers):
+        sizes.append(left // (workers - i))
+        left -= sizes[-1]
+    return sizes
+
+
+def cost(item):
+    marker = item.get_closest_marker("cost")
+    return float(marker.args[0]) if marker else None
+
+
+def deal(items, workers):
+    """`items` reordered so that each worker's share starts with its marked tests."""
+    marked = sorted((i for i in items if cost(i) is not None), key=cost, reverse=True)
+    unmarked = [i for i in items if cost(i) is None]
+    sizes = xdist_shares(len(items), workers)
+    heads, load = [[] for _ in sizes], [0.0] * len(sizes)
+    for item in marked:
+        k = min((k for k in range(len(sizes)) if len(heads[k]) < sizes[k]),
+                key=lambda k: load[k])
+        heads[k].append(item)
+        load[k] += cost(item)
+    ordered, rest = [], iter(unmarked)
+    for head, size in zip(heads, sizes, strict=True):
+        ordered += head + [next(rest) for _ in range(size - len(head))]
+    return ordered
+
+
+def pytest_collection_modifyitems(config, items):
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if workers > 1:
+        items[:] = deal(items, workers)

@@ -10,11 +10,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import accuracy_vs_time  # noqa: E402
 
 
+@pytest.mark.cost(90)
 def test_quick_study_is_sane(tmp_path):
     out = tmp_path / "accuracy.json"
     results = accuracy_vs_time.main(["--quick", "--out", str(out), "--plots",

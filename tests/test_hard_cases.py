@@ -577,6 +577,7 @@ CHECKS = (check_finite, check_central_differences, check_render_agrees,
           check_scale_invariance, check_uncovered, check_saturation)
 
 
+@pytest.mark.cost(170)
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_catalogue(dtype):
     """Every case under every plan entry: finite values and gradients, colours in range,
@@ -587,6 +588,7 @@ def test_catalogue(dtype):
     assert not found, f"{len(found)} failures ({dtype}):\n" + "\n".join(found)
 
 
+@pytest.mark.cost(75)
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_effects_catalogue(dtype):
     """Transparency (kt 0, 1, mixed) and zero-size area and sphere lights, in hard and
@@ -769,6 +771,7 @@ def shadow_losses_and_grads(params, like, weights, settings):
     return jax.vmap(jax.value_and_grad(loss, has_aux=True))(params)
 
 
+@pytest.mark.cost(100)
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_shadow_cases_have_finite_values_and_gradients(dtype):
     found = []

@@ -153,6 +153,7 @@ TINY_SOFT = ds.RenderSettings(raster="soft", faces_per_pixel=22, sigma=2.0, gamm
                               soft_threshold=1e-10, shadow_map_size=16)
 
 
+@pytest.mark.cost(78)
 @pytest.mark.usefixtures("x64")
 def test_soft_shadows_pass_check_grads_wrt_lights_and_geometry():
     # a cube map and an orthographic map (the spot's perspective map is a cube face's kind)

@@ -115,6 +115,7 @@ SECOND_ORDER_LIGHTS = ("directional", "spot")
 SECOND_ORDER_NAMES = tuple(n for n in NAMES if not n.startswith(("point", "ambient")))
 
 
+@pytest.mark.cost(40)
 @pytest.mark.parametrize("raster,shading", MODES)
 def test_jax_path_second_order_derivatives_match_finite_differences(raster, shading):
     """check_grads at order 2 (below, for one mode) compiles a dozen programs; this is the
