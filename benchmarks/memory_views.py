@@ -50,7 +50,7 @@ def point(views, size, chunk, steps):
     import diffshade as ds
     from data_synth import make_dataset
     from fitting import FitOptions, FitSpec, build_cache
-    from fitting.distribute import for_options
+    from fitting.distribute import fit_data, for_options
     from fitting.params import DEFAULT_INIT
     from fitting.run import advance, finish, start_run
 
@@ -62,6 +62,7 @@ def point(views, size, chunk, steps):
     start = time.perf_counter()
     data = build_cache(dataset, DEFAULT_INIT, edge_margin=options.edge_margin)
     work = for_options(data, options)
+    data = fit_data(work)
     jax.block_until_ready(jax.tree.leaves(data.views))
     cache_s = time.perf_counter() - start
     peak_cache = _status("VmHWM")

@@ -42,7 +42,7 @@ from tqdm import tqdm
 from diffshade.color import COLOR_SPACES
 from fitting.cache import build_cache
 from fitting.checkpoint import save_checkpoint
-from fitting.distribute import for_options
+from fitting.distribute import fit_data, for_options
 from fitting.fit import fit_result
 from fitting.inputs import non_negative_float, non_negative_int, positive_float, positive_int
 from fitting.loss import LOSSES
@@ -245,6 +245,7 @@ def run_fit(args) -> int:
         start = time.perf_counter()
         data = build_cache(dataset, plan.init, edge_margin=plan.options.edge_margin)
         views = for_options(data, plan.options)  # sharded and chunked, or data itself
+        data = fit_data(views)  # (sharded: shares the chunks' memory)
         state = plan.state or start_run(views, plan.spec, plan.init, plan.options)
         state.meta |= {"dataset_sha256": plan.fingerprint, "color_space": args.color_space,
                        "checkpoint_every": plan.every}

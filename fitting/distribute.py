@@ -6,8 +6,9 @@ The cached fit (fitting.cache) keeps, per view, the shading samples of its kept 
 - stacked: every view's arrays padded to the largest view's pixel and sample counts
   (padded pixels weigh 0 in the loss; padded samples repeat a real one, so that nothing
   in the padding is NaN) and stacked along a leading views axis, in host memory (NumPy);
-- chunked: the views axis cut into chunks of `chunk` views (rounded up to a multiple of
-  the device count; the last chunk padded with views of weight 0);
+- chunked: the views axis cut into ceil(views / chunk) chunks of equal size, at most
+  `chunk` views rounded up to a multiple of the device count (the last chunk padded with
+  views of weight 0);
 - sharded: each chunk is placed on a 1-D device mesh with axis name "views"
   (`jax.sharding.NamedSharding(mesh, PartitionSpec("views"))`), so every device holds
   chunk / devices of its views. The params and the accumulators are replicated.
@@ -210,7 +211,8 @@ def _flags(group):
 @dataclasses.dataclass
 class ShardedViews:
     """A FitData's views stacked, chunked and placed on a device mesh (module docstring).
-    fit_data: the plain FitData (for the closed-form start and the report); mesh: the 1-D
+    fit_data: the plain FitData (for the closed-form start and the report), its views'
+    arrays NumPy views into the chunks (no second copy); mesh: the 1-D
     "views" Mesh; chunks: list of Chunk in host memory; count: kept pixel-channels over
     all views (the loss's denominator); n_views: the real views; chunk_size: views per
     chunk (a multiple of the device count)."""
@@ -341,8 +343,9 @@ def _dtype(params):
 
 def shard_views(data: FitData, devices="all", chunk=None) -> ShardedViews:
     """`data`'s views laid out for a sharded, chunked fit (module docstring). devices:
-    'all' or a count; chunk: views per chunk (None: all views in one chunk), rounded up to
-    a multiple of the device count."""
+    'all' or a count; chunk: the most views per chunk (None: all views in one chunk),
+    rounded up to a multiple of the device count. Use the returned ShardedViews' fit_data
+    in place of `data` from then on: it shares its memory with the chunks."""
     if not isinstance(data, FitData):
         raise TypeError(f"data: got {type(data).__name__}; expected fitting.FitData")
     found = device_list(devices)
@@ -352,8 +355,8 @@ def shard_views(data: FitData, devices="all", chunk=None) -> ShardedViews:
     _check_stackable(data)
     views, n_dev = data.views, len(found)
     n_views = len(views)
-    size = n_views if chunk is None else min(chunk, n_views)
-    size = math.ceil(size / n_dev) * n_dev
+    n_chunks = 1 if chunk is None else math.ceil(n_views / chunk)
+    size = math.ceil(math.ceil(n_views / n_chunks) / n_dev) * n_dev  # balanced chunks
     n_chunks = math.ceil(n_views / size)
     n = max(max(v.pixels.shape[0] for v in views), 1)
     s = max(max(v.points.shape[0] for v in views), 1)
@@ -373,7 +376,26 @@ def shard_views(data: FitData, devices="all", chunk=None) -> ShardedViews:
                             np.asarray(index[part], np.int32), _stack(lights[part])))
     count = 3 * sum(v.pixels.shape[0] for v in views)
     mesh = Mesh(np.array(found), (AXIS,))
-    return ShardedViews(data, mesh, chunks, count, n_views, size)
+    lean = dataclasses.replace(data, views=tuple(
+        _unpadded(chunks[i // size], i % size, v) for i, v in enumerate(views)))
+    return ShardedViews(lean, mesh, chunks, count, n_views, size)
+
+
+def _unpadded(chunk, row, view):
+    """`view` (a ViewSamples) as NumPy views into the stacked `chunk`'s row: the plain
+    FitData of a ShardedViews shares its memory with the chunks (the closed-form start
+    and the report read it, transferred per call)."""
+    n, s = view.pixels.shape[0], view.points.shape[0]
+    cut = lambda a, k: None if a is None else a[row, :k]
+    samples = chunk.samples
+    reader = samples.reader
+    return ViewSamples(cut(samples.points, s), cut(samples.normals, s),
+                       cut(samples.view_dirs, s), cut(samples.target, n),
+                       cut(samples.pixels, n),
+                       dataclasses.replace(reader, ids=cut(reader.ids, n),
+                                           weights=cut(reader.weights, n),
+                                           table=cut(reader.table, n)),
+                       cut(samples.objects, s))
 
 
 def for_options(data: FitData, options):

@@ -31,7 +31,7 @@ import numpy as np
 from diffshade.material import Material
 from fitting.cache import build_cache
 from fitting.data import Dataset
-from fitting.distribute import device_list, for_options
+from fitting.distribute import device_list, fit_data, for_options
 from fitting.misfit import Misfit, misfit
 from fitting.options import FitOptions
 from fitting.params import (
@@ -231,6 +231,7 @@ def fit(dataset: Dataset, spec: FitSpec | None = None, init=None, *, options=Non
     start = time.perf_counter()
     data = build_cache(dataset, init, edge_margin=options.edge_margin)
     views = for_options(data, options)  # sharded and chunked, or data itself
+    data = fit_data(views)  # (sharded: shares the chunks' memory)
     state = start_run(views, spec, init, options)
     state.wall_time = time.perf_counter() - start
     on_step, should_stop = _notifier(callback, spec, data)

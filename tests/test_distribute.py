@@ -51,6 +51,8 @@ def test_chunked_sums_equal_the_all_at_once_values():
         params = to_unconstrained(GUESS, spec, data.lights)
         views = shard_views(data, devices=1, chunk=2)
         assert len(views.chunks) == 2 and views.chunks[1].weight[1].sum() == 0
+        for lean, plain in zip(views.fit_data.views, data.views, strict=True):  # unpadded
+            jax.tree.map(np.testing.assert_array_equal, lean, plain)
         loss, grads = views.value_and_grad(params, spec)
         want_loss, want_grads = jax.jit(jax.value_and_grad(make_loss(spec)))(params, data)
         assert float(loss) == pytest.approx(float(want_loss), rel=1e-11)
