@@ -101,40 +101,52 @@ def wants_sharding(devices, chunk) -> bool:
     return chunk is not None or len(device_list(devices)) > 1
 
 
-def _pad_rows(a, rows, fill):
-    """a [R, ...] -> [rows, ...]: padded with its last row (with `fill` when R == 0)."""
-    a = np.asarray(a)
-    if a.shape[0] == rows:
-        return a
-    tail = a[-1:] if a.shape[0] else np.broadcast_to(np.asarray(fill, a.dtype),
-                                                     (1, *a.shape[1:]))
-    return np.concatenate([a, np.repeat(tail, rows - a.shape[0], axis=0)])
+def _rows(arrays, rows, fill=None):
+    """[C, rows, ...] from C arrays [R_c, ...]: each array's rows, then its last row
+    repeated (`fill` instead: a constant; or when R_c == 0), written in place (one copy)."""
+    first = np.asarray(arrays[0])
+    out = np.empty((len(arrays), rows, *first.shape[1:]), first.dtype)
+    for c, a in enumerate(arrays):
+        a = np.asarray(a)
+        k = a.shape[0]
+        out[c, :k] = a
+        if k < rows:
+            out[c, k:] = a[-1] if fill is None and k else (0 if fill is None else fill)
+    return out
 
 
-def _padded_view(view: ViewSamples, n, s):
-    """One view's ViewSamples as NumPy, padded to n pixels and s samples, and its pixel
-    weights [n]."""
-    kept = view.pixels.shape[0]
+def _chunk(views, lights, index, n, s):
+    """The Chunk of `views` (ViewSamples; None: a padding view of weight 0, a copy of
+    index 0's), padded to n pixels and s samples (padded samples repeat a real one, so
+    that nothing is NaN; a view without pixels gets points 0, normals and view
+    directions +z)."""
+    real = [v for v in views if v is not None]
+    views = [real[0] if v is None else v for v in views]
     up = np.array([0.0, 0.0, 1.0], np.float32)
-    reader = view.reader
-    ids = np.arange(n, dtype=np.int32).reshape(n, 1, 1)
-    table = None if reader.table is None else _pad_rows(reader.table, n, 0)
-    weights = None if reader.weights is None else np.concatenate(
-        [np.asarray(reader.weights), np.zeros((n - kept, *reader.weights.shape[1:]),
-                                              reader.weights.dtype)])
-    padded = ViewSamples(
-        points=_pad_rows(view.points, s, 0.0), normals=_pad_rows(view.normals, s, up),
-        view_dirs=_pad_rows(view.view_dirs, s, up), target=_pad_rows(view.target, n, 0.0),
-        pixels=_pad_rows(view.pixels, n, 0),
-        reader=dataclasses.replace(reader, ids=ids, weights=weights, table=table),
-        objects=None if view.objects is None else _pad_rows(view.objects, s, 0))
-    weight = np.zeros(n, np.asarray(view.target).dtype)
-    weight[:kept] = 1.0
-    return padded, weight
-
-
-def _stack(trees):
-    return jax.tree.map(lambda *leaves: np.stack([np.asarray(x) for x in leaves]), *trees)
+    field = lambda get: [get(v) for v in views]
+    reader = views[0].reader
+    c = len(views)
+    weight = np.zeros((c, n), np.asarray(views[0].target).dtype)
+    for i, (v, pad) in enumerate(zip(views, index, strict=True)):
+        weight[i, :v.pixels.shape[0]] = 0.0 if pad is None else 1.0
+    samples = ViewSamples(
+        points=_rows(field(lambda v: v.points), s),
+        normals=_rows(field(lambda v: v.normals), s, None if all(
+            v.points.shape[0] for v in views) else up),
+        view_dirs=_rows(field(lambda v: v.view_dirs), s, None if all(
+            v.points.shape[0] for v in views) else up),
+        target=_rows(field(lambda v: v.target), n),
+        pixels=_rows(field(lambda v: v.pixels), n),
+        reader=dataclasses.replace(
+            reader, ids=np.broadcast_to(np.arange(n, dtype=np.int32).reshape(n, 1, 1),
+                                        (c, n, 1, 1)).copy(),
+            weights=None if reader.weights is None else _rows(
+                field(lambda v: v.reader.weights), n, 0.0),
+            table=None if reader.table is None else _rows(field(lambda v: v.reader.table), n)),
+        objects=None if views[0].objects is None else _rows(field(lambda v: v.objects), s))
+    lights = jax.tree.map(lambda *x: np.stack(x), *lights)
+    return Chunk(samples, weight, np.asarray([0 if i is None else i for i in index],
+                                             np.int32), lights)
 
 
 def _check_stackable(data: FitData):
@@ -245,16 +257,22 @@ class ShardedViews:
     def replicated(self, tree):
         return _put(tree, NamedSharding(self.mesh, P()))
 
-    def device_chunks(self):
-        """The chunks on the devices, one at a time: transferred once and kept when there
-        is one chunk, else transferred as they are used (streamed)."""
+    def resident_chunk(self):
+        """The one chunk on the devices, transferred once and kept."""
+        if self._resident is None:
+            self._resident = [self.sharded(self.chunks[0])]
+        return self._resident[0]
+
+    def accumulate(self, fn, total):
+        """total = fn(total, chunk) over the chunks on the devices. With one chunk it is
+        transferred once and kept; with several, each is transferred as it is used, and
+        the next only once the previous one's sums are done (JAX dispatches
+        asynchronously: without the wait, every chunk would be in memory at once)."""
         if len(self.chunks) == 1:
-            if self._resident is None:
-                self._resident = [self.sharded(self.chunks[0])]
-            yield from self._resident
-            return
-        for chunk in self.chunks:
-            yield self.sharded(chunk)
+            return fn(total, self.resident_chunk())
+        for host in self.chunks:
+            total = jax.block_until_ready(fn(total, self.sharded(host)))
+        return total
 
     def shared(self, spec):
         data = self.fit_data
@@ -275,8 +293,8 @@ class ShardedViews:
         check_kind(kind)
         params, shared = self.replicated(params), self.shared(spec)
         total = self.replicated(jnp.zeros((), _dtype(params)))
-        for chunk in self.device_chunks():
-            total = _chunk_loss(params, total, shared, chunk, spec, kind, self.n_views)
+        total = self.accumulate(lambda t, chunk: _chunk_loss(
+            params, t, shared, chunk, spec, kind, self.n_views), total)
         return total / self.count
 
     def value_and_grad(self, params, spec, kind="mse"):
@@ -285,8 +303,8 @@ class ShardedViews:
         params, shared = self.replicated(params), self.shared(spec)
         total = self.replicated((jnp.zeros((), _dtype(params)),
                                  jax.tree.map(jnp.zeros_like, params)))
-        for chunk in self.device_chunks():
-            total = _chunk_value_grad(params, total, shared, chunk, spec, kind, self.n_views)
+        total = self.accumulate(lambda t, chunk: _chunk_value_grad(
+            params, t, shared, chunk, spec, kind, self.n_views), total)
         value, grads = total
         return value / self.count, jax.tree.map(lambda g: g / self.count, grads)
 
@@ -299,8 +317,8 @@ class ShardedViews:
         dtype = _dtype(params)
         total = self.replicated((jnp.zeros((), dtype), jnp.zeros((p, p), dtype),
                                  jnp.zeros(p, dtype)))
-        for chunk in self.device_chunks():
-            total = _chunk_normal(params, total, shared, chunk, spec, kind, self.n_views)
+        total = self.accumulate(lambda t, chunk: _chunk_normal(
+            params, t, shared, chunk, spec, kind, self.n_views), total)
         loss, hess, grad = total
         return loss / self.count, hess, grad
 
@@ -314,7 +332,7 @@ class ShardedViews:
             shared = self.shared(spec)
 
             def lbfgs(params, opt_state, data):
-                chunk = next(data.device_chunks())
+                chunk = data.resident_chunk()
                 return step(self.replicated(params), self.replicated(opt_state),
                             (shared, chunk))
             return lbfgs
@@ -327,10 +345,12 @@ class ShardedViews:
 
 
 def _put(tree, sharding):
+    """tree's leaves placed with `sharding`; across several processes each process
+    supplies, from its own host copy, the slices its devices hold."""
     def one(x):
         if isinstance(x, jax.Array) and x.sharding == sharding:
             return x
-        if isinstance(x, jax.Array) and x.is_fully_addressable:
+        if sharding.is_fully_addressable and isinstance(x, jax.Array):
             return jax.device_put(x, sharding)
         host = np.asarray(x)
         return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
@@ -360,20 +380,15 @@ def shard_views(data: FitData, devices="all", chunk=None) -> ShardedViews:
     n_chunks = math.ceil(n_views / size)
     n = max(max(v.pixels.shape[0] for v in views), 1)
     s = max(max(v.points.shape[0] for v in views), 1)
-    padded = [_padded_view(v, n, s) for v in views]
     lights = common_lights(data.lights)
-    index = list(range(n_views))
-    extra = n_chunks * size - n_views
-    if extra:  # views of weight 0 (copies of view 0)
-        padded += [(padded[0][0], np.zeros_like(padded[0][1]))] * extra
-        lights += [lights[0]] * extra
-        index += [0] * extra
+    extra = n_chunks * size - n_views  # views of weight 0 (copies of view 0)
+    slots = [(v, light, i) for i, (v, light) in enumerate(zip(views, lights, strict=True))]
+    slots += [(None, lights[0], None)] * extra
     chunks = []
     for start in range(0, n_chunks * size, size):
-        part = slice(start, start + size)
-        chunks.append(Chunk(_stack([p for p, _ in padded[part]]),
-                            np.stack([w for _, w in padded[part]]),
-                            np.asarray(index[part], np.int32), _stack(lights[part])))
+        part = slots[start:start + size]
+        chunks.append(_chunk([v for v, _, _ in part], [light for _, light, _ in part],
+                             [i for _, _, i in part], n, s))
     count = 3 * sum(v.pixels.shape[0] for v in views)
     mesh = Mesh(np.array(found), (AXIS,))
     lean = dataclasses.replace(data, views=tuple(

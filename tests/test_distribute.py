@@ -22,7 +22,16 @@ import pytest
 import diffshade as ds
 from data_synth import make_dataset
 from diffshade.lights import group_lights
-from fitting import DEFAULT_INIT, FitSpec, build_cache, make_loss, to_unconstrained
+from fitting import (
+    DEFAULT_INIT,
+    FitOptions,
+    FitSpec,
+    advance,
+    build_cache,
+    make_loss,
+    start_run,
+    to_unconstrained,
+)
 from fitting.distribute import common_lights, shard_views
 from fitting.gauss_newton import _linearize
 
@@ -61,6 +70,21 @@ def test_chunked_sums_equal_the_all_at_once_values():
         for got, want in zip(views.linearize(params, spec), _linearize(params, data, spec),
                              strict=True):
             np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-13)
+
+
+def test_lbfgs_on_sharded_views_takes_the_plain_steps():
+    """L-BFGS (its line search inside one compiled step) on the stacked views, one chunk:
+    the same 3 steps as on the plain cache, in float64."""
+    data = cache64(1)
+    spec = FitSpec(kd="grey", ks="grey")
+    with jax.enable_x64(True):
+        options = FitOptions(method="lbfgs", steps=3, tol=0.0)
+        runs = [start_run(d, spec, GUESS, options) for d in (data, shard_views(data))]
+        for run, d in zip(runs, (data, shard_views(data)), strict=True):
+            assert advance(run, d) == ("budget", "")
+        np.testing.assert_allclose(runs[1].history, runs[0].history, rtol=1e-10)
+        jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12),
+                     runs[1].params, runs[0].params)
 
 
 def test_dark_lights_pad_views_to_one_light_layout():
