@@ -4,9 +4,12 @@ Each point is one fresh process: a synthetic dataset of N views (data_synth.make
 an icosphere(3), one directional light per view, targets of SIZE^2 held in host memory),
 then the fit as `fitting.fit` runs it (build_cache, fitting.distribute.for_options,
 start_run, advance, finish), Adam for --steps steps, float32, on the CPU's one device:
-- chunk 'none': today's path (all views' cached pixels in one compiled loss);
-- chunk C: the views stacked and streamed through one compiled chunk step C at a time
-  (fitting.distribute), the gradient summed over chunks, then one update.
+- chunk 'none': today's path (one compiled loss over every view's cached pixels, a
+  program that grows with the number of views);
+- chunk 'all': the views stacked (fitting.distribute) and taken in one chunk: all at
+  once through one batched program;
+- chunk C: the views stacked and streamed through that program C at a time, the
+  gradient summed over chunks, then one update.
 Measured, from /proc/self/status: VmRSS after the dataset is made (the targets and the
 interpreter: the same for every mode), then the peak (VmHWM, reset with
 /proc/self/clear_refs before each phase) while the cache is built, and while the steps
@@ -16,7 +19,7 @@ it above --max-gib (reported as such), so that a loaded, shared machine is not p
 into swap or the OOM killer.
 
     python benchmarks/memory_views.py [--views 10,50,100,200] [--size 512]
-        [--chunks none,8] [--steps 4] [--json benchmarks/results/memory_views.json]
+        [--chunks none,all,8] [--steps 4] [--json benchmarks/results/memory_views.json]
 """
 
 import argparse
@@ -121,7 +124,8 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--views", default="10,50,100,200")
     parser.add_argument("--size", type=int, default=512)
-    parser.add_argument("--chunks", default="none,8", help="comma-separated: none or C")
+    parser.add_argument("--chunks", default="none,all,8",
+                        help="comma-separated: none, all or C (module docstring)")
     parser.add_argument("--steps", type=int, default=4)
     parser.add_argument("--max-gib", type=float, default=9.0)
     parser.add_argument("--timeout", type=float, default=900.0, help="seconds per point")
@@ -130,15 +134,16 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if args.point:
         views, size, chunk, steps = args.point
-        print(json.dumps(point(int(views), int(size), None if chunk == "None" else int(chunk),
-                               int(steps))))
+        chunk = None if chunk == "None" else int(views) if chunk == "all" else int(chunk)
+        print(json.dumps(point(int(views), int(size), chunk, int(steps))))
         return
     rows = []
     for views in map(int, args.views.split(",")):
         for chunk in args.chunks.split(","):
-            chunk = None if chunk == "none" else int(chunk)
+            chunk = None if chunk == "none" else chunk if chunk == "all" else int(chunk)
             row = run_point(views, args.size, chunk, args.steps, args.max_gib * 2**30,
                             args.timeout)
+            row["mode"] = "none" if chunk is None else chunk
             rows.append(row)
             print(json.dumps(row), flush=True)
     print(f"\n{args.size}^2, Adam {args.steps} steps, float32, 1 CPU device; GiB")
@@ -146,7 +151,7 @@ def main(argv=None):
           "peak in steps | steps - dataset | cache s | compile + 1st step s | step ms |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        chunk = "all" if r["chunk"] is None else r["chunk"]
+        chunk = r.get("mode", r["chunk"])
         if "stopped" in r:
             print(f"| {r['views']} | {chunk} | stopped ({r['stopped']}, RSS seen "
                   f"{_gib(r.get('seen_rss'))} GiB) | | | | | | | |")

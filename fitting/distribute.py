@@ -236,6 +236,7 @@ class ShardedViews:
     n_views: int
     chunk_size: int
     _resident: list | None = None
+    _shared: dict = dataclasses.field(default_factory=dict)
 
     @property
     def lights(self):
@@ -275,6 +276,12 @@ class ShardedViews:
         return total
 
     def shared(self, spec):
+        """Shared, replicated on the devices (placed once per kind of spec)."""
+        if spec.fits_lights not in self._shared:
+            self._shared[spec.fits_lights] = self._place_shared(spec)
+        return self._shared[spec.fits_lights]
+
+    def _place_shared(self, spec):
         data = self.fit_data
         if spec.fits_lights:
             for i, g in enumerate(data.lights):
@@ -347,11 +354,18 @@ class ShardedViews:
 def _put(tree, sharding):
     """tree's leaves placed with `sharding`; across several processes each process
     supplies, from its own host copy, the slices its devices hold."""
+    if sharding.is_fully_addressable:  # one process: one call for what is not placed
+        leaves, treedef = jax.tree.flatten(tree)
+        moving = [i for i, x in enumerate(leaves)
+                  if not (isinstance(x, jax.Array) and x.sharding == sharding)]
+        for i, x in zip(moving, jax.device_put([leaves[i] for i in moving], sharding),
+                        strict=True):
+            leaves[i] = x
+        return jax.tree.unflatten(treedef, leaves)
+
     def one(x):
         if isinstance(x, jax.Array) and x.sharding == sharding:
             return x
-        if sharding.is_fully_addressable and isinstance(x, jax.Array):
-            return jax.device_put(x, sharding)
         host = np.asarray(x)
         return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
     return jax.tree.map(one, tree)
