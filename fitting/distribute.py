@@ -375,11 +375,14 @@ def _dtype(params):
     return jax.tree.leaves(params)[0].dtype
 
 
-def shard_views(data: FitData, devices="all", chunk=None) -> ShardedViews:
+def shard_views(data: FitData, devices="all", chunk=None, *,
+                consume=False) -> ShardedViews:
     """`data`'s views laid out for a sharded, chunked fit (module docstring). devices:
     'all' or a count; chunk: the most views per chunk (None: all views in one chunk),
     rounded up to a multiple of the device count. Use the returned ShardedViews' fit_data
-    in place of `data` from then on: it shares its memory with the chunks."""
+    in place of `data` from then on: it shares its memory with the chunks. consume: free
+    each view's arrays in `data` (jax.Array.delete) once its chunk holds them, so that
+    the cache is not held twice while it is stacked; `data`'s views are unusable after."""
     if not isinstance(data, FitData):
         raise TypeError(f"data: got {type(data).__name__}; expected fitting.FitData")
     found = device_list(devices)
@@ -398,23 +401,28 @@ def shard_views(data: FitData, devices="all", chunk=None) -> ShardedViews:
     extra = n_chunks * size - n_views  # views of weight 0 (copies of view 0)
     slots = [(v, light, i) for i, (v, light) in enumerate(zip(views, lights, strict=True))]
     slots += [(None, lights[0], None)] * extra
+    sizes = [(v.pixels.shape[0], v.points.shape[0]) for v in views]
     chunks = []
     for start in range(0, n_chunks * size, size):
         part = slots[start:start + size]
         chunks.append(_chunk([v for v, _, _ in part], [light for _, light, _ in part],
                              [i for _, _, i in part], n, s))
-    count = 3 * sum(v.pixels.shape[0] for v in views)
+        if consume:
+            for v, _, _ in part:
+                for leaf in jax.tree.leaves(v):
+                    if isinstance(leaf, jax.Array) and not leaf.is_deleted():
+                        leaf.delete()
+    count = 3 * sum(k for k, _ in sizes)
     mesh = Mesh(np.array(found), (AXIS,))
     lean = dataclasses.replace(data, views=tuple(
-        _unpadded(chunks[i // size], i % size, v) for i, v in enumerate(views)))
+        _unpadded(chunks[i // size], i % size, *sizes[i]) for i in range(n_views)))
     return ShardedViews(lean, mesh, chunks, count, n_views, size)
 
 
-def _unpadded(chunk, row, view):
-    """`view` (a ViewSamples) as NumPy views into the stacked `chunk`'s row: the plain
-    FitData of a ShardedViews shares its memory with the chunks (the closed-form start
-    and the report read it, transferred per call)."""
-    n, s = view.pixels.shape[0], view.points.shape[0]
+def _unpadded(chunk, row, n, s):
+    """The ViewSamples of n pixels and s samples in the stacked `chunk`'s row, as NumPy
+    views: the plain FitData of a ShardedViews shares its memory with the chunks (the
+    closed-form start and the report read it, transferred per call)."""
     cut = lambda a, k: None if a is None else a[row, :k]
     samples = chunk.samples
     reader = samples.reader
@@ -429,9 +437,10 @@ def _unpadded(chunk, row, view):
 
 def for_options(data: FitData, options):
     """The data a fit with `options` runs on: ShardedViews when it asks for several
-    devices or a chunk size (fitting.options: devices, chunk), else `data` itself."""
+    devices or a chunk size (fitting.options: devices, chunk), else `data` itself. A
+    sharded `data` is consumed (shard_views): use fit_data(result) from then on."""
     if wants_sharding(options.devices, options.chunk):
-        return shard_views(data, options.devices, options.chunk)
+        return shard_views(data, options.devices, options.chunk, consume=True)
     return data
 
 
