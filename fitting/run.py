@@ -90,7 +90,7 @@ def optax_step(spec, kind, method, lr, lr_shininess, lr_position):
 
 def _optax_step_of(spec, options, data=None):
     if isinstance(data, ShardedViews):  # fitting.distribute: sharded, chunked views
-        step, optimizer = _optax_step_of(spec, options)
+        optimizer = _optax_step_of(spec, options)[1]
         return data.step_fn(spec, options, optimizer), optimizer
     return optax_step(spec, options.loss, options.method, options.lr, options.lr_shininess,
                       options.lr_position)
