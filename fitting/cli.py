@@ -42,6 +42,7 @@ from tqdm import tqdm
 from diffshade.color import COLOR_SPACES
 from fitting.cache import build_cache
 from fitting.checkpoint import save_checkpoint
+from fitting.distribute import fit_data, for_options
 from fitting.fit import fit_result
 from fitting.inputs import non_negative_float, non_negative_int, positive_float, positive_int
 from fitting.loss import LOSSES
@@ -70,13 +71,24 @@ def number_pair(text):
     return low, high
 
 
+def device_count(text):
+    """argparse type: 'all' or an integer >= 1."""
+    if text == "all":
+        return text
+    try:
+        return positive_int(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"got {text!r}; expected 'all' or an integer "
+                                         ">= 1") from None
+
+
 # The argparse type of every FitOptions field (choices for 'method' and 'loss').
 _OPTION_TYPES = {"method": FIT_METHODS, "steps": positive_int, "loss": LOSSES,
                  "tol": non_negative_float, "atol": non_negative_float,
                  "patience": positive_int, "gtol": non_negative_float, "lr": positive_float,
                  "lr_shininess": positive_float, "lr_position": positive_float,
                  "edge_margin": non_negative_int, "shininess_range": number_pair,
-                 "max_bad": positive_int}
+                 "max_bad": positive_int, "devices": device_count, "chunk": positive_int}
 
 
 def _add_option(parser, name):
@@ -87,7 +99,8 @@ def _add_option(parser, name):
     if isinstance(kind, tuple):
         parser.add_argument(flag(name), choices=kind, help=help_text)
     else:
-        metavar = {number_pair: "LOW,HIGH", positive_int: "N", non_negative_int: "N"}
+        metavar = {number_pair: "LOW,HIGH", positive_int: "N", non_negative_int: "N",
+                   device_count: "all|N"}
         parser.add_argument(flag(name), type=kind, metavar=metavar.get(kind, "X"),
                             help=help_text)
 
@@ -231,7 +244,9 @@ def run_fit(args) -> int:
         dataset, plan = prepare(args)
         start = time.perf_counter()
         data = build_cache(dataset, plan.init, edge_margin=plan.options.edge_margin)
-        state = plan.state or start_run(data, plan.spec, plan.init, plan.options)
+        views = for_options(data, plan.options)  # sharded and chunked, or data itself
+        data = fit_data(views)  # (sharded: shares the chunks' memory)
+        state = plan.state or start_run(views, plan.spec, plan.init, plan.options)
         state.meta |= {"dataset_sha256": plan.fingerprint, "color_space": args.color_space,
                        "checkpoint_every": plan.every}
         if signals.received is not None:
@@ -242,10 +257,10 @@ def run_fit(args) -> int:
         bar, on_step = _progress(state, state.options.budget, True if args.quiet else None)
         with bar:
             status, message = advance(
-                state, data, should_stop=lambda: signals.received is not None,
+                state, views, should_stop=lambda: signals.received is not None,
                 on_step=on_step, every=plan.every,
                 save=lambda s: save_checkpoint(os.path.join(args.output, CHECKPOINT), s))
-        finish(state, data)
+        finish(state, views)
         if state.best_params is None:
             print(f"diffshade: error: fit stopped: {message}; no step had a finite loss, "
                   "nothing written", file=sys.stderr)

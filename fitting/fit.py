@@ -31,6 +31,7 @@ import numpy as np
 from diffshade.material import Material
 from fitting.cache import build_cache
 from fitting.data import Dataset
+from fitting.distribute import device_list, fit_data, for_options
 from fitting.misfit import Misfit, misfit
 from fitting.options import FitOptions
 from fitting.params import (
@@ -216,7 +217,8 @@ def fit(dataset: Dataset, spec: FitSpec | None = None, init=None, *, options=Non
 
     options: a FitOptions; settings: any of its fields as keywords (method='linear' |
     'adam' | 'lbfgs', steps, loss, tol, atol, patience, gtol, lr, lr_shininess,
-    lr_position, edge_margin, shininess_range, max_bad: docs/fitting.md), which replace
+    lr_position, edge_margin, shininess_range, max_bad, devices, chunk: docs/fitting.md;
+    devices and chunk: docs/performance.md, "Many views on many devices"), which replace
     those of `options`. truth: the true Material for the errors and the summary (default
     dataset.truth). with_uncertainty: standard errors, identifiability warnings (also
     raised as IdentifiabilityWarning) and the misfit check. callback(step, loss, material)
@@ -224,14 +226,17 @@ def fit(dataset: Dataset, spec: FitSpec | None = None, init=None, *, options=Non
     spec = FitSpec() if spec is None else spec
     _check_fit_args(dataset, spec, init, truth, options, settings)
     options = dataclasses.replace(options or FitOptions(), **settings)
+    device_list(options.devices)  # more devices than there are: an error before any work
     init = DEFAULT_INIT if init is None else init
     start = time.perf_counter()
     data = build_cache(dataset, init, edge_margin=options.edge_margin)
-    state = start_run(data, spec, init, options)
+    views = for_options(data, options)  # sharded and chunked, or data itself
+    data = fit_data(views)  # (sharded: shares the chunks' memory)
+    state = start_run(views, spec, init, options)
     state.wall_time = time.perf_counter() - start
     on_step, should_stop = _notifier(callback, spec, data)
-    status, message = advance(state, data, should_stop=should_stop, on_step=on_step)
-    finish(state, data)
+    status, message = advance(state, views, should_stop=should_stop, on_step=on_step)
+    finish(state, views)
     if state.best_params is None:
         raise ValueError(f"dataset: no step had a finite loss ({message})")
     return fit_result(state, dataset, data, with_uncertainty=with_uncertainty, warn=True,

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
+from fitting.distribute import ShardedViews
 from fitting.loss import irls_weight, make_loss, mean_rho, residuals
 
 _MAX_DAMPING = 1e10
@@ -37,18 +38,31 @@ def jacobian_matrix(fn, tree):
     return value, jnp.concatenate(cols, axis=1)
 
 
-@partial(jax.jit, static_argnames=("spec", "kind"))
 def linearize(params, data, spec, kind="mse"):
-    """(loss, J^T W J [p, p], J^T W r [p]) at params, W the IRLS weights of `kind`."""
+    """(loss, J^T W J [p, p], J^T W r [p]) at params, W the IRLS weights of `kind`; on
+    sharded views (fitting.distribute) summed over their chunks."""
+    if isinstance(data, ShardedViews):
+        return data.linearize(params, spec, kind)
+    return _linearize(params, data, spec, kind)
+
+
+@partial(jax.jit, static_argnames=("spec", "kind"))
+def _linearize(params, data, spec, kind="mse"):
     r, jac = jacobian_matrix(lambda p: flat_residuals(p, spec, data), params)
     w = irls_weight(kind, r)
     loss = mean_rho(kind, [r[:, None]])
     return loss, jac.T @ (w[:, None] * jac), jac.T @ (w * r)
 
 
-@partial(jax.jit, static_argnames=("spec", "kind"))
 def loss_at(params, data, spec, kind="mse"):
-    """The loss of `kind` at params on the cached data (jitted)."""
+    """The loss of `kind` at params on the cached data (jitted), or on sharded views."""
+    if isinstance(data, ShardedViews):
+        return data.loss(params, spec, kind)
+    return _loss_at(params, data, spec, kind)
+
+
+@partial(jax.jit, static_argnames=("spec", "kind"))
+def _loss_at(params, data, spec, kind="mse"):
     return make_loss(spec, kind)(params, data)
 
 

@@ -86,7 +86,16 @@ OPTIONS = {
         and 0 < x[0] < x[1], "two numbers 0 < low < high"),
     "max_bad": Option("non-finite steps in a row that stop the fit", _count(1),
                       "an integer >= 1"),
+    "devices": Option("devices the views are sharded over: 'all' (every device JAX sees; "
+                      "one CPU device runs today's unsharded fit) or a count",
+                      lambda x: x == "all" or _count(1)(x), "'all' or an integer >= 1"),
+    "chunk": Option("views per chunk: the loss and gradient are summed over chunks of this "
+                    "many views, so a step's memory is one chunk's (default: all views at "
+                    "once)", lambda x: x is None or _count(1)(x), "None or an integer >= 1"),
 }
+
+# Where a fit runs, not what it computes (equal to rounding): a resumed fit may change them.
+PLACEMENT = ("devices", "chunk")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,6 +116,8 @@ class FitOptions:
     edge_margin: int = 1
     shininess_range: tuple = (1.0, 2000.0)
     max_bad: int = 5
+    devices: object = "all"
+    chunk: int | None = None
 
     def __post_init__(self):
         if isinstance(self.shininess_range, list):
@@ -115,6 +126,10 @@ class FitOptions:
             value, option = getattr(self, field.name), OPTIONS[field.name]
             if not option.check(value):
                 raise ValueError(f"{field.name}: got {value!r}; expected {option.expected}")
+        if self.method == "lbfgs" and self.chunk is not None:
+            raise ValueError(f"chunk: got {self.chunk!r}; 'lbfgs' evaluates its line search "
+                             "in one compiled step over all views; expected None (or method "
+                             "'adam' or 'linear')")
 
     @property
     def budget(self) -> int:

@@ -11,6 +11,7 @@ import os
 from typing import NamedTuple
 
 from fitting.checkpoint import checkpoint_run, load_checkpoint, material_dict, read_checkpoint
+from fitting.distribute import device_list
 from fitting.inputs import (
     check_output,
     dataset_fingerprint,
@@ -18,7 +19,7 @@ from fitting.inputs import (
     load_checked_dataset,
     parse_material,
 )
-from fitting.options import FitOptions
+from fitting.options import PLACEMENT, FitOptions
 from fitting.params import DEFAULT_INIT, FitSpec
 
 CHECKPOINT = "checkpoint.json"
@@ -44,13 +45,15 @@ def _new_options(args):
 
 
 def _resumed_options(args, saved, checkpoint):
-    """The checkpoint's options; those given must agree (--steps may change)."""
+    """The checkpoint's options; those given must agree (--steps, and where the fit runs:
+    --devices, --chunk, may change)."""
     given = _given_options(args)
+    free = ("steps", *PLACEMENT)
     for name, value in given.items():
-        if name != "steps" and value != getattr(saved, name):
+        if name not in free and value != getattr(saved, name):
             raise ValueError(f"{flag(name)}: got {value!r}; the checkpoint {checkpoint!r} "
                              f"was made with {getattr(saved, name)!r}")
-    return dataclasses.replace(saved, **{k: v for k, v in given.items() if k == "steps"})
+    return dataclasses.replace(saved, **{k: v for k, v in given.items() if k in free})
 
 
 def _check_agrees(args, spec, init, meta, checkpoint):
@@ -101,6 +104,10 @@ def prepare(args):
     else:
         spec, options = fit_spec(args.fit, args.grey), _new_options(args)
         init = DEFAULT_INIT if args.init is None else parse_material(args.init, "--init")
+    try:
+        device_list(options.devices)
+    except ValueError as err:
+        raise ValueError(f"--{err}") from None
     dataset = load_checked_dataset(args.dataset, args.color_space)
     fingerprint = dataset_fingerprint(dataset)
     state = None

@@ -33,6 +33,7 @@ import numpy as np
 import optax
 
 from diffshade.material import Material
+from fitting.distribute import ShardedViews, fit_data
 from fitting.gauss_newton import lm_step, loss_at
 from fitting.linear import solve_linear
 from fitting.loss import make_loss
@@ -87,7 +88,10 @@ def optax_step(spec, kind, method, lr, lr_shininess, lr_position):
     return make_step(make_loss(spec, kind), optimizer), optimizer
 
 
-def _optax_step_of(spec, options):
+def _optax_step_of(spec, options, data=None):
+    if isinstance(data, ShardedViews):  # fitting.distribute: sharded, chunked views
+        optimizer = _optax_step_of(spec, options)[1]
+        return data.step_fn(spec, options, optimizer), optimizer
     return optax_step(spec, options.loss, options.method, options.lr, options.lr_shininess,
                       options.lr_position)
 
@@ -120,10 +124,11 @@ def start_params(spec, init, lights, n_views=None):
 def start_run(data, spec: FitSpec, init: Material, options: FitOptions | None = None,
               meta=None) -> RunState:
     """A fresh RunState at `init` (for 'linear' with one object: at the closed-form
-    solution) on the cached `data` (fitting.build_cache(dataset, init)); options default
-    FitOptions()."""
+    solution) on the cached `data` (fitting.build_cache(dataset, init), or its
+    fitting.distribute.ShardedViews); options default FitOptions()."""
     options = FitOptions() if options is None else options
     check_run(spec, init, options)
+    data = fit_data(data)
     params = start_params(spec, init, data.lights)
     # several objects: Levenberg-Marquardt starts from `init` (the closed-form start
     # solves one material)
@@ -142,10 +147,16 @@ def gradients(params, data, spec, kind):
     return jax.grad(make_loss(spec, kind))(params, data)
 
 
+def _gradients_at(state, data):
+    if isinstance(data, ShardedViews):  # fitting.distribute
+        return data.value_and_grad(state.params, state.spec, state.kind)[1]
+    return gradients(state.params, data, state.spec, state.kind)
+
+
 def nonfinite_gradients(state: RunState, data) -> list:
     """Names ('ka[r]', 'shininess', ...) of the parameters whose gradient is not finite at
     the state's params."""
-    grads = gradients(state.params, data, state.spec, state.kind)
+    grads = _gradients_at(state, data)
     flat = np.concatenate([np.ravel(g) for g in jax.tree.leaves(grads)])
     return [n for n, g in zip(value_names(grads), flat, strict=True) if not np.isfinite(g)]
 
@@ -182,7 +193,7 @@ def _small_gradient(state, data):
     options = state.options
     if options.gtol is None or state.step % options.stop_patience:
         return False
-    grads = gradients(state.params, data, state.spec, state.kind)
+    grads = _gradients_at(state, data)
     return float(optax.tree.norm(grads)) < options.gtol
 
 
@@ -194,7 +205,7 @@ def _loss_known(state):
 
 
 def _optax_take(state, data):
-    step_fn = _optax_step_of(state.spec, state.options)[0]
+    step_fn = _optax_step_of(state.spec, state.options, data)[0]
     params, opt_state, loss = step_fn(state.params, state.opt_state, data)
     loss = float(loss)
     state.opt_state = opt_state  # rejected: only apply_if_finite's counters changed

@@ -355,6 +355,9 @@ def test_fit_rejects_a_broken_dataset(data_root, tmp_path, capsys, how, message)
     (["--gtol", "-1"], "argument --gtol: got '-1'; expected a finite number >= 0"),
     (["--shininess-range", "5,2"], "argument --shininess-range: got '5,2'; expected LOW,HIGH"),
     (["--fit", "kd,lights"], "--fit: got 'kd,lights'; expected distinct comma-separated"),
+    (["--devices", "0"], "argument --devices: got '0'; expected 'all' or an integer >= 1"),
+    (["--devices", "4096"], "--devices: got 4096; expected at most"),
+    (["--method", "lbfgs", "--chunk", "2"], "--chunk: got 2; 'lbfgs' evaluates its line"),
 ])
 def test_fit_rejects_bad_options(data_root, tmp_path, capsys, args, message):
     code, out, err = run_cli(["fit", data_root / "clean", "-o", tmp_path / "result", *args],
@@ -545,6 +548,12 @@ def test_resume_rejects_other_options_or_data(data_root, tmp_path, capsys):
         code, _, err = run_cli(["fit", argv[0], "-o", out, "--resume", *argv[1:]], capsys)
         assert code == 2 and message in one_error_line(err)
     assert (out / "result.json").read_bytes() == before
+    # where the fit runs may change: views streamed in chunks of one (fitting.distribute)
+    code, _, err = run_cli(["fit", data_root / "clean", "-o", out, "--resume", "--steps",
+                            "5", "--chunk", "1"], capsys)
+    assert code == 0 and "error" not in err  # (a warning: 5 Adam steps do not converge)
+    saved = strict_json(out / "checkpoint.json")
+    assert saved["step"] == 5 and saved["options"]["chunk"] == 1
 
 
 def start_fit(data, out):

@@ -339,6 +339,10 @@ def test_fit_rejects_bad_arguments(small):
     ({"gtol": float("nan")}, ValueError, "gtol: got nan; expected a finite number >= 0"),
     ({"patience": 0}, ValueError, "patience: got 0; expected an integer >= 1"),
     ({"shininess_range": (5.0, 2.0)}, ValueError, "shininess_range: got (5.0, 2.0)"),
+    ({"devices": 0}, ValueError, "devices: got 0; expected 'all' or an integer >= 1"),
+    ({"devices": 4096}, ValueError, "devices: got 4096; expected at most"),
+    ({"chunk": 0}, ValueError, "chunk: got 0; expected None or an integer >= 1"),
+    ({"method": "lbfgs", "chunk": 2}, ValueError, "chunk: got 2; 'lbfgs' evaluates its line"),
     ({"speed": 3}, TypeError, "fit: got unknown option(s) ['speed']"),
     ({"options": "fast"}, TypeError, "options: got str; expected FitOptions"),
 ])

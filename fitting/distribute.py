@@ -1,0 +1,533 @@
+"""Many views on many devices: a fit's views sharded across devices and streamed in chunks.
+
+The cached fit (fitting.cache) keeps, per view, the shading samples of its kept pixels.
+`shard_views(data, devices=..., chunk=...)` lays them out for a sharded, chunked fit:
+
+- stacked: every view's arrays padded to the largest view's pixel and sample counts
+  (padded pixels weigh 0 in the loss; padded samples repeat a real one, so that nothing
+  in the padding is NaN) and stacked along a leading views axis, in host memory (NumPy);
+- chunked: the views axis cut into ceil(views / chunk) chunks of equal size, at most
+  `chunk` views rounded up to a multiple of the device count (the last chunk padded with
+  views of weight 0);
+- sharded: each chunk is placed on a 1-D device mesh with axis name "views"
+  (`jax.sharding.NamedSharding(mesh, PartitionSpec("views"))`), so every device holds
+  chunk / devices of its views. The params and the accumulators are replicated.
+
+A loss, gradient or Gauss-Newton system is then a sum over chunks of one jitted chunk
+function (the same compiled program for every chunk): the chunk's arrays are transferred,
+its sum of rho(residual) and the gradient of that sum are added to the running totals, and
+the total is divided by the number of kept pixel-channels at the end — the same mean as
+`fitting.loss.make_loss`, summed in another order (equal to float32 rounding; tested).
+Inside a chunk XLA's SPMD partitioner splits the views over the devices and reduces the
+sums across them (an all-reduce), so the gradient every device sees is the whole chunk's.
+A fit's working memory is therefore one chunk's arrays and their intermediates, whatever
+the number of views; the stacked samples stay in host memory. With a single chunk the
+arrays are transferred once and stay on the devices.
+
+Several hosts: after `jax.distributed.initialize()`, `devices="all"` is every process's
+devices, and each process places only the rows of a chunk that its own devices hold
+(`jax.make_array_from_callback`). Every process builds the same cache (all views), so
+they agree on the padding and the chunks (docs/performance.md; not tested on real hosts).
+
+`fitting.run` uses a `ShardedViews` where it would use the `FitData`: its optax steps
+(Adam: the gradient accumulated over chunks, then one optimizer update; L-BFGS: one chunk,
+whose loss its line search evaluates inside one compiled step), the loss, the gradient and
+Levenberg-Marquardt's J^T W J (fitting.gauss_newton). The closed-form start of the
+'linear' method, the uncertainty report and the misfit check run on the plain FitData.
+"""
+
+import dataclasses
+import math
+from functools import partial
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jax.flatten_util import ravel_pytree
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
+
+from fitting.cache import FitData, ViewSamples, predict
+from fitting.gains import scaled_material, view_gains
+from fitting.loss import check_kind, irls_weight, rho
+from fitting.params import to_values, values_to_lights, values_to_material
+from fitting.step import make_step
+
+AXIS = "views"
+
+
+class Chunk(NamedTuple):
+    """One chunk of C views, each padded to N pixels and S samples: samples: ViewSamples
+    with a leading [C] axis; weight: [C, N] (1 at a kept pixel, 0 in the padding); view:
+    [C] int32 index of the view (0 for a padding view); lights: LightGroups with a
+    leading [C] axis (the views' own lights)."""
+
+    samples: ViewSamples
+    weight: np.ndarray
+    view: np.ndarray
+    lights: object
+
+
+class Shared(NamedTuple):
+    """What every view reads (replicated on every device): the base material, the global
+    ambient, the settings, and the views' lights as given (a tuple, one LightGroups per
+    view; only when the spec fits lights, else ())."""
+
+    material: object
+    global_ambient: object
+    settings: object
+    lights: tuple
+
+
+def device_list(devices):
+    """The devices a fit runs on: 'all' -> jax.devices() (every process's after
+    jax.distributed.initialize), n -> the first n."""
+    found = jax.devices()
+    if devices == "all":
+        return found
+    if isinstance(devices, bool) or not isinstance(devices, int) or devices < 1:
+        raise ValueError(f"devices: got {devices!r}; expected 'all' or an integer >= 1")
+    if devices > len(found):
+        raise ValueError(f"devices: got {devices}; expected at most {len(found)}, the "
+                         f"devices JAX sees ({found[0].platform})")
+    return found[:devices]
+
+
+def wants_sharding(devices, chunk) -> bool:
+    """Whether a fit with these options runs on the sharded views (several devices, or a
+    chunk size); else on the plain FitData, as on one device."""
+    return chunk is not None or len(device_list(devices)) > 1
+
+
+def _rows(arrays, rows, fill=None):
+    """[C, rows, ...] from C arrays [R_c, ...]: each array's rows, then its last row
+    repeated (`fill` instead: a constant; or when R_c == 0), written in place (one copy)."""
+    first = np.asarray(arrays[0])
+    out = np.empty((len(arrays), rows, *first.shape[1:]), first.dtype)
+    for c, a in enumerate(arrays):
+        a = np.asarray(a)
+        k = a.shape[0]
+        out[c, :k] = a
+        if k < rows:
+            out[c, k:] = a[-1] if fill is None and k else (0 if fill is None else fill)
+    return out
+
+
+def _chunk(views, lights, index, n, s):
+    """The Chunk of `views` (ViewSamples; None: a padding view of weight 0, a copy of
+    index 0's), padded to n pixels and s samples (padded samples repeat a real one, so
+    that nothing is NaN; a view without pixels gets points 0, normals and view
+    directions +z)."""
+    real = [v for v in views if v is not None]
+    views = [real[0] if v is None else v for v in views]
+    up = np.array([0.0, 0.0, 1.0], np.float32)
+    field = lambda get: [get(v) for v in views]
+    reader = views[0].reader
+    c = len(views)
+    weight = np.zeros((c, n), np.asarray(views[0].target).dtype)
+    for i, (v, pad) in enumerate(zip(views, index, strict=True)):
+        weight[i, :v.pixels.shape[0]] = 0.0 if pad is None else 1.0
+    samples = ViewSamples(
+        points=_rows(field(lambda v: v.points), s),
+        normals=_rows(field(lambda v: v.normals), s, None if all(
+            v.points.shape[0] for v in views) else up),
+        view_dirs=_rows(field(lambda v: v.view_dirs), s, None if all(
+            v.points.shape[0] for v in views) else up),
+        target=_rows(field(lambda v: v.target), n),
+        pixels=_rows(field(lambda v: v.pixels), n),
+        reader=dataclasses.replace(
+            reader, ids=np.broadcast_to(np.arange(n, dtype=np.int32).reshape(n, 1, 1),
+                                        (c, n, 1, 1)).copy(),
+            weights=None if reader.weights is None else _rows(
+                field(lambda v: v.reader.weights), n, 0.0),
+            table=None if reader.table is None else _rows(field(lambda v: v.reader.table), n)),
+        objects=None if views[0].objects is None else _rows(field(lambda v: v.objects), s))
+    lights = jax.tree.map(lambda *x: np.stack(x), *lights)
+    return Chunk(samples, weight, np.asarray([0 if i is None else i for i in index],
+                                             np.int32), lights)
+
+
+def _check_stackable(data: FitData):
+    """Every view must have view 0's sample layout (one shading mode: always true)."""
+    def layout(tree):
+        return jax.tree.structure(tree), tuple(np.ndim(x) for x in jax.tree.leaves(tree))
+
+    for i, view in enumerate(data.views):
+        if layout(view) != layout(data.views[0]):
+            raise ValueError(f"views[{i}]: its sample layout differs from views[0]'s; "
+                             "sharded or chunked fits stack the views and need one layout "
+                             "(fit with devices=1 and chunk=None)")
+
+
+def _light_layout(lights):
+    return jax.tree.structure(lights), tuple(np.shape(x) for x in jax.tree.leaves(lights))
+
+
+def _dark(light):
+    """A copy of a light group's lights that emit nothing (colours 0), one light."""
+    first = jax.tree.map(lambda x: np.asarray(x)[:1], light)
+    colours = {f: np.zeros_like(getattr(first, f)) for f in ("ambient", "diffuse", "specular")
+               if hasattr(first, f)}
+    if hasattr(first, "shadows"):
+        colours["shadows"] = (False,)
+    return dataclasses.replace(first, **colours)
+
+
+def common_lights(lights):
+    """The views' LightGroups given one structure, for stacking: every kind that some view
+    has, with the largest count, padded with lights of colour 0 (copies of a real light
+    of that kind, so that their geometry is finite). A light of colour 0 adds exactly 0
+    to a colour and to its gradient. Raises ValueError when the padded groups still
+    differ (static settings such as shadow flags or area-light sample counts)."""
+    lights = [jax.tree.map(np.asarray, g) for g in lights]
+    kinds = [f.name for f in dataclasses.fields(lights[0])]
+    padded = [{} for _ in lights]
+    for kind in kinds:
+        groups = [getattr(g, kind) for g in lights]
+        present = [g for g in groups if g is not None]
+        if not present:
+            continue
+        most = max(np.shape(jax.tree.leaves(g)[0])[0] for g in present)
+        dark = _dark(present[0])
+        for entry, group in zip(padded, groups, strict=True):
+            have = 0 if group is None else np.shape(jax.tree.leaves(group)[0])[0]
+            parts = ([] if group is None else [group]) + [dark] * (most - have)
+            entry[kind] = _concat(parts)
+    out = [dataclasses.replace(g, **entry) for g, entry in zip(lights, padded, strict=True)]
+    for i, g in enumerate(out):
+        if _light_layout(g) != _light_layout(out[0]):
+            raise ValueError(f"views[{i}].lights: differ from views[0]'s in a static setting "
+                             "(shadow flags or area-light samples); sharded or chunked fits "
+                             "stack the views' lights (fit with devices=1 and chunk=None)")
+    return out
+
+
+def _concat(groups):
+    """Light groups of one kind, concatenated along the light axis (shadow flags as one
+    tuple per group, so that equal groups have equal static structure)."""
+    if not hasattr(groups[0], "shadows"):
+        return jax.tree.map(lambda *x: np.concatenate(x), *groups)
+    flags = sum((_flags(g) for g in groups), ())
+    plain = [dataclasses.replace(g, shadows=False) for g in groups]
+    return dataclasses.replace(jax.tree.map(lambda *x: np.concatenate(x), *plain),
+                               shadows=flags)
+
+
+def _flags(group):
+    n = np.shape(jax.tree.leaves(group)[0])[0]
+    return group.shadows if isinstance(group.shadows, tuple) else (bool(group.shadows),) * n
+
+
+@dataclasses.dataclass
+class ShardedViews:
+    """A FitData's views stacked, chunked and placed on a device mesh (module docstring).
+    fit_data: the plain FitData (for the closed-form start and the report), its views'
+    arrays NumPy views into the chunks (no second copy); mesh: the 1-D
+    "views" Mesh; chunks: list of Chunk in host memory; count: kept pixel-channels over
+    all views (the loss's denominator); n_views: the real views; chunk_size: views per
+    chunk (a multiple of the device count)."""
+
+    fit_data: FitData
+    mesh: Mesh
+    chunks: list
+    count: int
+    n_views: int
+    chunk_size: int
+    _resident: list | None = None
+    _shared: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def lights(self):
+        return self.fit_data.lights
+
+    @property
+    def views(self):
+        return self.fit_data.views
+
+    @property
+    def n_devices(self) -> int:
+        return self.mesh.devices.size
+
+    def sharded(self, tree):
+        """tree placed with its leading axis split over the mesh (each process supplies
+        the rows its devices hold)."""
+        return _put(tree, NamedSharding(self.mesh, P(AXIS)))
+
+    def replicated(self, tree):
+        return _put(tree, NamedSharding(self.mesh, P()))
+
+    def resident_chunk(self):
+        """The one chunk on the devices, transferred once and kept."""
+        if self._resident is None:
+            self._resident = [self.sharded(self.chunks[0])]
+        return self._resident[0]
+
+    def accumulate(self, fn, total):
+        """total = fn(total, chunk) over the chunks on the devices. With one chunk it is
+        transferred once and kept; with several, each is transferred as it is used, and
+        the next only once the previous one's sums are done (JAX dispatches
+        asynchronously: without the wait, every chunk would be in memory at once)."""
+        if len(self.chunks) == 1:
+            return fn(total, self.resident_chunk())
+        for host in self.chunks:
+            total = jax.block_until_ready(fn(total, self.sharded(host)))
+        return total
+
+    def shared(self, spec):
+        """Shared, replicated on the devices (placed once per kind of spec)."""
+        if spec.fits_lights not in self._shared:
+            self._shared[spec.fits_lights] = self._place_shared(spec)
+        return self._shared[spec.fits_lights]
+
+    def _place_shared(self, spec):
+        data = self.fit_data
+        if spec.fits_lights:
+            for i, g in enumerate(data.lights):
+                if _light_layout(g) != _light_layout(data.lights[0]):
+                    raise ValueError(f"views[{i}].lights: other kinds or counts than "
+                                     "views[0]'s; a sharded or chunked fit of the lights "
+                                     "needs one light layout (fit with devices=1 and "
+                                     "chunk=None)")
+        return self.replicated(Shared(data.material, data.global_ambient, data.settings,
+                                      tuple(data.lights) if spec.fits_lights else ()))
+
+    # ---- what fitting.run and fitting.gauss_newton call ----
+
+    def loss(self, params, spec, kind="mse"):
+        """The loss (a scalar on the devices), as fitting.loss.make_loss(spec, kind)."""
+        check_kind(kind)
+        params, shared = self.replicated(params), self.shared(spec)
+        total = self.replicated(jnp.zeros((), _dtype(params)))
+        total = self.accumulate(lambda t, chunk: _chunk_loss(
+            params, t, shared, chunk, spec, kind, self.n_views), total)
+        return total / self.count
+
+    def value_and_grad(self, params, spec, kind="mse"):
+        """(loss, gradient with respect to params), accumulated over the chunks."""
+        check_kind(kind)
+        params, shared = self.replicated(params), self.shared(spec)
+        total = self.replicated((jnp.zeros((), _dtype(params)),
+                                 jax.tree.map(jnp.zeros_like, params)))
+        total = self.accumulate(lambda t, chunk: _chunk_value_grad(
+            params, t, shared, chunk, spec, kind, self.n_views), total)
+        value, grads = total
+        return value / self.count, jax.tree.map(lambda g: g / self.count, grads)
+
+    def linearize(self, params, spec, kind="mse"):
+        """(loss, J^T W J [p, p], J^T W r [p]) as fitting.gauss_newton.linearize, J^T W J
+        and J^T W r summed over the chunks."""
+        check_kind(kind)
+        params, shared = self.replicated(params), self.shared(spec)
+        p = ravel_pytree(params)[0].shape[0]
+        dtype = _dtype(params)
+        total = self.replicated((jnp.zeros((), dtype), jnp.zeros((p, p), dtype),
+                                 jnp.zeros(p, dtype)))
+        total = self.accumulate(lambda t, chunk: _chunk_normal(
+            params, t, shared, chunk, spec, kind, self.n_views), total)
+        loss, hess, grad = total
+        return loss / self.count, hess, grad
+
+    def step_fn(self, spec, options, optimizer):
+        """step(params, opt_state, self) -> (params, opt_state, loss) for an optax method:
+        L-BFGS (its line search evaluates the loss inside the compiled step) runs
+        fitting.step.make_step on the one chunk; Adam accumulates the gradient over the
+        chunks, then makes one update."""
+        if options.method == "lbfgs":  # FitOptions: chunk None, so one chunk
+            step = _lbfgs_step(spec, options.loss, self.n_views, self.count, optimizer)
+            shared = self.shared(spec)
+
+            def lbfgs(params, opt_state, data):
+                chunk = data.resident_chunk()
+                return step(self.replicated(params), self.replicated(opt_state),
+                            (shared, chunk))
+            return lbfgs
+        update = _update(optimizer)
+
+        def adam(params, opt_state, data):
+            loss, grads = data.value_and_grad(params, spec, options.loss)
+            return update(self.replicated(params), self.replicated(opt_state), loss, grads)
+        return adam
+
+
+def _put(tree, sharding):
+    """tree's leaves placed with `sharding`; across several processes each process
+    supplies, from its own host copy, the slices its devices hold."""
+    if sharding.is_fully_addressable:  # one process: one call for what is not placed
+        leaves, treedef = jax.tree.flatten(tree)
+        moving = [i for i, x in enumerate(leaves)
+                  if not (isinstance(x, jax.Array) and x.sharding == sharding)]
+        for i, x in zip(moving, jax.device_put([leaves[i] for i in moving], sharding),
+                        strict=True):
+            leaves[i] = x
+        return jax.tree.unflatten(treedef, leaves)
+
+    def one(x):
+        if isinstance(x, jax.Array) and x.sharding == sharding:
+            return x
+        host = np.asarray(x)
+        return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
+    return jax.tree.map(one, tree)
+
+
+def _dtype(params):
+    return jax.tree.leaves(params)[0].dtype
+
+
+def shard_views(data: FitData, devices="all", chunk=None, *,
+                consume=False) -> ShardedViews:
+    """`data`'s views laid out for a sharded, chunked fit (module docstring). devices:
+    'all' or a count; chunk: the most views per chunk (None: all views in one chunk),
+    rounded up to a multiple of the device count. Use the returned ShardedViews' fit_data
+    in place of `data` from then on: it shares its memory with the chunks. consume: free
+    each view's arrays in `data` (jax.Array.delete) once its chunk holds them, so that
+    the cache is not held twice while it is stacked; `data`'s views are unusable after."""
+    if not isinstance(data, FitData):
+        raise TypeError(f"data: got {type(data).__name__}; expected fitting.FitData")
+    found = device_list(devices)
+    if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int)
+                              or chunk < 1):
+        raise ValueError(f"chunk: got {chunk!r}; expected None or an integer >= 1")
+    _check_stackable(data)
+    views, n_dev = data.views, len(found)
+    n_views = len(views)
+    n_chunks = 1 if chunk is None else math.ceil(n_views / chunk)
+    size = math.ceil(math.ceil(n_views / n_chunks) / n_dev) * n_dev  # balanced chunks
+    n_chunks = math.ceil(n_views / size)
+    n = max(max(v.pixels.shape[0] for v in views), 1)
+    s = max(max(v.points.shape[0] for v in views), 1)
+    lights = common_lights(data.lights)
+    extra = n_chunks * size - n_views  # views of weight 0 (copies of view 0)
+    slots = [(v, light, i) for i, (v, light) in enumerate(zip(views, lights, strict=True))]
+    slots += [(None, lights[0], None)] * extra
+    sizes = [(v.pixels.shape[0], v.points.shape[0]) for v in views]
+    chunks = []
+    for start in range(0, n_chunks * size, size):
+        part = slots[start:start + size]
+        chunks.append(_chunk([v for v, _, _ in part], [light for _, light, _ in part],
+                             [i for _, _, i in part], n, s))
+        if consume:
+            for v, _, _ in part:
+                for leaf in jax.tree.leaves(v):
+                    if isinstance(leaf, jax.Array) and not leaf.is_deleted():
+                        leaf.delete()
+    count = 3 * sum(k for k, _ in sizes)
+    mesh = Mesh(np.array(found), (AXIS,))
+    lean = dataclasses.replace(data, views=tuple(
+        _unpadded(chunks[i // size], i % size, *sizes[i]) for i in range(n_views)))
+    return ShardedViews(lean, mesh, chunks, count, n_views, size)
+
+
+def _unpadded(chunk, row, n, s):
+    """The ViewSamples of n pixels and s samples in the stacked `chunk`'s row, as NumPy
+    views: the plain FitData of a ShardedViews shares its memory with the chunks (the
+    closed-form start and the report read it, transferred per call)."""
+    cut = lambda a, k: None if a is None else a[row, :k]
+    samples = chunk.samples
+    reader = samples.reader
+    return ViewSamples(cut(samples.points, s), cut(samples.normals, s),
+                       cut(samples.view_dirs, s), cut(samples.target, n),
+                       cut(samples.pixels, n),
+                       dataclasses.replace(reader, ids=cut(reader.ids, n),
+                                           weights=cut(reader.weights, n),
+                                           table=cut(reader.table, n)),
+                       cut(samples.objects, s))
+
+
+def for_options(data: FitData, options):
+    """The data a fit with `options` runs on: ShardedViews when it asks for several
+    devices or a chunk size (fitting.options: devices, chunk), else `data` itself. A
+    sharded `data` is consumed (shard_views): use fit_data(result) from then on."""
+    if wants_sharding(options.devices, options.chunk):
+        return shard_views(data, options.devices, options.chunk, consume=True)
+    return data
+
+
+def fit_data(data) -> FitData:
+    """The plain FitData of `data` (a FitData or a ShardedViews)."""
+    return data.fit_data if isinstance(data, ShardedViews) else data
+
+
+# ---- the compiled chunk functions (one program per chunk shape, spec and loss) ----
+
+
+def _chunk_residuals(params, shared: Shared, chunk: Chunk, spec, n_views):
+    """Residuals [C, N, 3] of the chunk's views (padded pixels included)."""
+    values = to_values(params, spec)
+    material = values_to_material(values, spec, shared.material)
+    lights = chunk.lights
+    if "lights" in values:  # fitted lights: every view's, then the chunk's rows
+        every = values_to_lights(values, spec, shared.lights)
+        lights = jax.tree.map(lambda *x: jnp.stack(x)[chunk.view], *every)
+    gains = view_gains(values, n_views)
+
+    def one(samples, light, view):
+        m = material if gains is None else scaled_material(material, gains[view])
+        return predict(m, light, shared.global_ambient, samples, shared.settings) - samples.target
+
+    return jax.vmap(one)(chunk.samples, lights, chunk.view)
+
+
+def _chunk_sum(params, shared, chunk, spec, kind, n_views):
+    """Sum of rho over the chunk's kept pixel-channels."""
+    r = _chunk_residuals(params, shared, chunk, spec, n_views)
+    w = chunk.weight[..., None]
+    return jnp.sum(w * rho(kind, jnp.where(w > 0, r, 0.0)))
+
+
+@partial(jax.jit, static_argnames=("spec", "kind", "n_views"))
+def _chunk_loss(params, total, shared, chunk, spec, kind, n_views):
+    return total + _chunk_sum(params, shared, chunk, spec, kind, n_views)
+
+
+@partial(jax.jit, static_argnames=("spec", "kind", "n_views"))
+def _chunk_value_grad(params, total, shared, chunk, spec, kind, n_views):
+    value, grads = jax.value_and_grad(_chunk_sum)(params, shared, chunk, spec, kind, n_views)
+    return total[0] + value, jax.tree.map(jnp.add, total[1], grads)
+
+
+@partial(jax.jit, static_argnames=("spec", "kind", "n_views"))
+def _chunk_normal(params, total, shared, chunk, spec, kind, n_views):
+    flat, unravel = ravel_pytree(params)
+
+    def residual(x):
+        return _chunk_residuals(unravel(x), shared, chunk, spec, n_views).reshape(-1)
+
+    r = residual(flat)
+    jac = jax.jacfwd(residual)(flat)                            # [M, p]
+    w = jnp.repeat(chunk.weight.reshape(-1), 3)
+    r = jnp.where(w > 0, r, 0.0)
+    irls = w * irls_weight(kind, r)
+    loss = jnp.sum(w * rho(kind, r))
+    return (total[0] + loss, total[1] + jac.T @ (irls[:, None] * jac),
+            total[2] + jac.T @ (irls * r))
+
+
+_UPDATES = {}
+
+
+def _update(optimizer):
+    """update(params, opt_state, loss, grads) -> (params, opt_state, loss): the
+    optimizer's update (grads made NaN where the loss is not finite, as in
+    fitting.step), jitted once per optimizer."""
+    if optimizer not in _UPDATES:
+        def update(params, opt_state, loss, grads):
+            grads = jax.tree.map(lambda g: jnp.where(jnp.isfinite(loss), g, jnp.nan), grads)
+            updates, state = optimizer.update(grads, opt_state, params)
+            return optax.apply_updates(params, updates), state, loss
+        _UPDATES[optimizer] = jax.jit(update)
+    return _UPDATES[optimizer]
+
+
+_LBFGS = {}
+
+
+def _lbfgs_step(spec, kind, n_views, count, optimizer):
+    key = (spec, kind, n_views, count, optimizer)
+    if key not in _LBFGS:
+        def loss_fn(params, data):
+            shared, chunk = data
+            return _chunk_sum(params, shared, chunk, spec, kind, n_views) / count
+        _LBFGS[key] = make_step(loss_fn, optimizer)
+    return _LBFGS[key]
