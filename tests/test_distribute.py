@@ -140,6 +140,7 @@ print("ok")
 """
 
 
+@pytest.mark.cost(25)
 def test_four_devices_fit_equals_one_device_fit():
     """Adam, 20 steps on 8 views of 16 px lit by a directional or a point light: sharded
     over 4 CPU devices in chunks of 4 (one view per device; asked for 1, rounded up to 4),
