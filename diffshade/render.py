@@ -118,7 +118,8 @@ def shade_fragments(scene, proj: Projected, frags: Fragments, settings, active=N
     else:
         height, width, k = frags.face_ids.shape
         capacity = height * width * min(k, ACTIVE_SLOTS_PER_PIXEL)
-        lit = on_active(light, active, capacity, *samples.leaves(), axis_name=axis_name)
+        lit = on_active(light, active, capacity, *samples.leaves(), axis_name=axis_name,
+                        host=host)
     parts, colour = read(lit, reader, host)
     # interpolated clamped colours can exceed 1 by a rounding error; keep [0, 1] exact
     return parts, clamp01(colour) if settings.clamp else colour
