@@ -8,7 +8,9 @@ directional light travelling along (-0.3, -0.5, -1).
   forward; hard forward + backward (value_and_grad of the MSE to a grey image with
   respect to the material); soft forward; soft f+b material; soft f+b material and
   vertices; the cached material step of a fit (fitting.build_cache + make_step: an Adam
-  step on the kept pixels of the same view, as benchmarks/fit_step.py times it).
+  step on the kept pixels of the same view, as benchmarks/fit_step.py times it); the
+  soft cached material step (value_and_grad of the MSE w.r.t. the material of
+  diffshade.render_cached on the soft render's cache_shading: fixed geometry, re-lit).
 - Mitsuba 3 (variant llvm_ad_rgb, the `prb` integrator with max_depth 2: direct light,
   all a convex object with one light has), `diffuse` BSDF with reflectance kd, 4 samples
   per pixel, box pixel filter, the same mesh (positions, faces, normals), a `perspective`
@@ -50,7 +52,8 @@ ROWS = (("hard_forward", "hard forward", "forward"),
         ("soft_forward", "soft forward", "forward"),
         ("soft_fb_material", "soft f+b, material", "forward_backward"),
         ("soft_fb_material_vertices", "soft f+b, material + vertices", None),
-        ("cached_step", "cached material step", "forward_backward"))
+        ("cached_step", "cached material step", "forward_backward"),
+        ("soft_cached_step", "soft cached material step", "forward_backward"))
 KEYS = [key for key, _, _ in ROWS]
 
 
@@ -102,6 +105,22 @@ def cached_step(scene, settings, repeats):
     return {"compile_s": first, "median_s": float(np.median(times))}
 
 
+def soft_cached(scene, settings, target):
+    """value_and_grad of the MSE w.r.t. the material on the soft render's fixed geometry
+    (diffshade.cache_shading, computed once): (function, arguments) for measure."""
+    import jax
+    import jax.numpy as jnp
+
+    import diffshade as ds
+
+    cache = ds.cache_shading(scene, ds.rasterize_scene(scene, settings), settings)
+
+    def loss(material, scene, cache):
+        moved = ds.replace(scene, material=material)
+        return jnp.mean((ds.render_cached(moved, cache, settings) - target) ** 2)
+    return jax.value_and_grad(loss), (scene.material, scene, cache)
+
+
 def diffshade_worker(args):
     """All diffshade timings, and the mesh and Lambert render for the camera check."""
     import jax.numpy as jnp
@@ -120,7 +139,9 @@ def diffshade_worker(args):
              "soft_fb_material": lambda: measure(*mse_grad(scene, soft, target), args.repeats),
              "soft_fb_material_vertices": lambda: measure(*mse_grad(scene, soft, target, True),
                                                           args.repeats),
-             "cached_step": lambda: cached_step(scene, hard, args.repeats)}
+             "cached_step": lambda: cached_step(scene, hard, args.repeats),
+             "soft_cached_step": lambda: measure(*soft_cached(scene, soft, target),
+                                                 args.repeats)}
     out = {key: tasks[key]() for key in args.only}
     lambert = ds.render(judged_scene(args.size, args.subdivisions, lambert=True), hard)
     np.savez(args.exchange, vertices=np.asarray(scene.mesh.vertices, np.float32),

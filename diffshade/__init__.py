@@ -49,13 +49,14 @@ from diffshade.scenefile import (
 )
 from diffshade.settings import RenderSettings
 from diffshade.shading import shade
+from diffshade.shading_cache import ShadingCache, cache_shading, render_cached
 
 # What users call. Everything else (light classes, blend variants, mesh utilities, the
 # scene-file dict writer, io helpers) stays importable from its module.
 __all__ = [
     # the types a user holds
     "Camera", "Fragments", "Material", "Mesh", "RenderSettings", "Scene", "SceneFileError",
-    "SceneObject",
+    "SceneObject", "ShadingCache",
     # building a scene
     "ambient_light", "area_light", "box", "directional_light", "icosphere", "load_mesh",
     "look_at",
@@ -64,8 +65,8 @@ __all__ = [
     "BUILTIN_SCENES", "builtin_scene", "load_scene", "load_scenes", "save_scene",
     "scene_from_dict", "scenes_from_dict",
     # rendering
-    "rasterize_scene", "render", "render_fragments", "render_parts", "render_views",
-    "stack_cameras",
+    "cache_shading", "rasterize_scene", "render", "render_cached", "render_fragments",
+    "render_parts", "render_views", "stack_cameras",
     # the pipeline's ops
     "blend", "interpolate", "project", "rasterize", "shade",
     # images

@@ -7,27 +7,65 @@ gathers the active slots into an array of fixed `capacity`, evaluates the functi
 and scatters the results back (zeros elsewhere) when at most `capacity` slots are active,
 and evaluates it everywhere otherwise (`lax.cond` picks at run time; under `vmap` both
 branches run). Gradients flow through either branch.
+
+The indices of the active slots come from a compiled host kernel on the CPU backend
+(`host=True`; through `jax.pure_callback`, hostcall.py): XLA's `jnp.nonzero` (a cumulative
+sum and a scatter) took ~11 ms for the 524,288 slots of a 256^2, K = 8 render, more than
+lighting the active slots; the kernel takes well under 1 ms.
 """
 
 import jax
 import jax.numpy as jnp
+import numba
+import numpy as np
+
+from diffshade.hostcall import host_call
 
 
-def on_active(fn, active, capacity, *arrays, axis_name=None):
+@numba.njit(cache=True, nogil=True)
+def _first_active(mask, capacity):
+    """(indices [capacity] int32 of the first `capacity` True entries of mask [N], padded
+    with N; count [] int32 of all True entries)."""
+    n = mask.shape[0]
+    idx = np.full(capacity, n, np.int32)
+    count = 0
+    for i in range(n):
+        if mask[i]:
+            if count < capacity:
+                idx[count] = i
+            count += 1
+    return idx, np.int32(count)
+
+
+def active_indices(mask, capacity, host=None):
+    """(indices [capacity] int32 of the True entries of mask [N] bool, in order, padded
+    with N; the number of True entries, [] int32). host: by the compiled kernel (default:
+    on the CPU backend), else jnp.nonzero."""
+    host = jax.default_backend() == "cpu" if host is None else host
+    if not host:
+        return (jnp.nonzero(mask, size=capacity, fill_value=mask.shape[0])[0].astype(jnp.int32),
+                jnp.sum(mask, dtype=jnp.int32))
+    shapes = (jax.ShapeDtypeStruct((capacity,), jnp.int32), jax.ShapeDtypeStruct((), jnp.int32))
+    return host_call(lambda m: _first_active(np.asarray(m, np.bool_), capacity), shapes, mask)
+
+
+def on_active(fn, active, capacity, *arrays, axis_name=None, host=None):
     """fn(*arrays) -> pytree of [N, ...] arrays, for arrays [*S, ...] and active [*S] bool
     (N = prod(S)); returns the pytree reshaped to [*S, ...]. Entries where `active` is
     False are 0 or fn's value (the caller must not depend on them).
 
     axis_name: the name of an enclosing `vmap` axis (a batch of views): the branch is then
     chosen once for the whole batch (compacted when every member fits), so that vmap
-    keeps the `lax.cond` instead of running both branches."""
+    keeps the `lax.cond` instead of running both branches. host: find the active entries
+    with the compiled kernel (active_indices)."""
     shape = active.shape
     n = active.size
     flat = [a.reshape((n,) + a.shape[len(shape):]) for a in arrays]
-    mask = jax.lax.stop_gradient(active).reshape(n)
+    if capacity >= n:
+        return jax.tree.map(lambda o: o.reshape(shape + o.shape[1:]), fn(*flat))
+    idx, count = active_indices(jax.lax.stop_gradient(active).reshape(n), capacity, host)
 
     def compacted(flat):
-        idx = jnp.nonzero(mask, size=capacity, fill_value=n)[0]
         out = fn(*[jnp.take(a, idx, axis=0, mode="clip") for a in flat])
         return jax.tree.map(
             lambda o: jnp.zeros((n,) + o.shape[1:], o.dtype).at[idx].set(o, mode="drop"), out)
@@ -35,11 +73,8 @@ def on_active(fn, active, capacity, *arrays, axis_name=None):
     def everywhere(flat):
         return fn(*flat)
 
-    if capacity >= n:
-        out = everywhere(flat)
-    else:
-        fits = jnp.sum(mask) <= capacity
-        if axis_name is not None:
-            fits = jax.lax.pmin(fits.astype(jnp.int32), axis_name) > 0
-        out = jax.lax.cond(fits, compacted, everywhere, flat)
+    fits = count <= capacity
+    if axis_name is not None:
+        fits = jax.lax.pmin(fits.astype(jnp.int32), axis_name) > 0
+    out = jax.lax.cond(fits, compacted, everywhere, flat)
     return jax.tree.map(lambda o: o.reshape(shape + o.shape[1:]), out)

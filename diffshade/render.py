@@ -107,9 +107,13 @@ def shade_fragments(scene, proj: Projected, frags: Fragments, settings, active=N
     """(ShadingParts, colour) per fragment, each [H, W, K, 3], by settings.shading.
 
     active: optional [H, W, K] bool, the fragments whose colour matters; Phong shading
-    may then skip the others (their values are then 0; see diffshade.compact, and its
-    axis_name for a batch of views)."""
+    then interpolates and lights only those (the others' values are 0 or unspecified;
+    see diffshade.compact, and its axis_name for a batch of views)."""
     host = settings.use_host_kernels()
+    if active is not None and settings.shading == "phong":
+        # interpolate (and differentiate) only the fragments that will be lit: the
+        # interpolation kernels skip empty slots
+        frags = dataclasses.replace(frags, face_ids=jnp.where(active, frags.face_ids, -1))
     samples, reader = shading_samples(scene, proj, frags, settings.shading, host)
     maps = shadow_maps(scene, settings)
     light = lambda *leaves: shade_samples(scene, Samples(*leaves), settings, maps)
@@ -118,7 +122,8 @@ def shade_fragments(scene, proj: Projected, frags: Fragments, settings, active=N
     else:
         height, width, k = frags.face_ids.shape
         capacity = height * width * min(k, ACTIVE_SLOTS_PER_PIXEL)
-        lit = on_active(light, active, capacity, *samples.leaves(), axis_name=axis_name)
+        lit = on_active(light, active, capacity, *samples.leaves(), axis_name=axis_name,
+                        host=host)
     parts, colour = read(lit, reader, host)
     # interpolated clamped colours can exceed 1 by a rounding error; keep [0, 1] exact
     return parts, clamp01(colour) if settings.clamp else colour

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffshade.compact import on_active
+from diffshade.compact import active_indices, on_active
 
 pytestmark = pytest.mark.usefixtures("x64")
 
@@ -31,11 +31,25 @@ def _plain(x, y, flag):
     return jax.tree.map(lambda o: o.reshape(x.shape[:-1] + o.shape[1:]), out)
 
 
+@pytest.mark.parametrize("host", [True, False])
+@pytest.mark.parametrize("capacity", [40, 10])
+def test_active_indices_equal_numpy(capacity, host):
+    active = _inputs(0.3)[-1].reshape(-1)
+    want = np.flatnonzero(np.asarray(active))
+    assert 10 < want.size < 40
+    idx, count = jax.jit(lambda m: active_indices(m, capacity, host))(active)
+    assert int(count) == want.size
+    n = min(capacity, want.size)
+    np.testing.assert_array_equal(np.asarray(idx)[:n], want[:n])
+    np.testing.assert_array_equal(np.asarray(idx)[n:], active.size)
+
+
+@pytest.mark.parametrize("host", [True, False])
 @pytest.mark.parametrize("capacity", [40, 60, 120, 200])
-def test_values_and_gradients_at_active_entries(capacity):
+def test_values_and_gradients_at_active_entries(capacity, host):
     x, y, flag, active = _inputs(0.4)
     assert int(active.sum()) > 40  # capacity 40 takes the fallback branch, the others fit
-    got = jax.jit(lambda x, y: on_active(_fn, active, capacity, x, y, flag))(x, y)
+    got = jax.jit(lambda x, y: on_active(_fn, active, capacity, x, y, flag, host=host))(x, y)
     want = _plain(x, y, flag)
     for key in ("a", "b"):
         np.testing.assert_allclose(np.asarray(got[key])[np.asarray(active)],
@@ -43,7 +57,8 @@ def test_values_and_gradients_at_active_entries(capacity):
     weight = jnp.asarray(np.random.default_rng(1).normal(size=(6, 5, 4, 3)))
 
     def loss(x, y, compact):
-        out = on_active(_fn, active, capacity, x, y, flag) if compact else _plain(x, y, flag)
+        out = (on_active(_fn, active, capacity, x, y, flag, host=host) if compact
+               else _plain(x, y, flag))
         mask = active[..., None]
         return jnp.sum(jnp.where(mask, out["a"] * weight + out["b"], 0.0))
     g_got = jax.jit(jax.grad(lambda x, y: loss(x, y, True), argnums=(0, 1)))(x, y)

@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+import reference
 from soft_reference import dense_fragments, soft_reference
 
 from diffshade import (
@@ -34,6 +35,7 @@ from diffshade import (
     spot_light,
 )
 from diffshade.numerics import float_dtype
+from diffshade.shading_cache import cache_shading, render_cached
 
 pytestmark = pytest.mark.usefixtures("x64")
 
@@ -170,6 +172,73 @@ VARIANTS = {
 def test_soft_render_equals_the_oracle_for_scene_variants(variant):
     scene = VARIANTS[variant]()
     assert_matches_oracle(scene, covering(scene, sigma=1.5, gamma=1e-3))
+
+
+# ------------------------------------------------------------------------ cached shading
+
+
+def other_material():
+    return material(ka=(0.1, 0.3, 0.2), kd=(0.2, 0.4, 0.8), ks=0.7, shininess=6.0)
+
+
+@pytest.mark.parametrize("name, shading, two_sided", [("sphere", "phong", False),
+                                                      ("triangles", "gouraud", True),
+                                                      ("triangles", "flat", False)])
+def test_cached_shading_equals_the_oracle_for_any_material(name, shading, two_sided):
+    scene = SCENES[name](two_sided=two_sided)
+    # gamma 1e-5: the sphere's back faces get a blend weight of 0 (in float64 too)
+    settings = covering(scene, shading=shading, sigma=1.5, gamma=1e-5)
+    frags = rasterize_scene(scene, settings)
+    cache = cache_shading(scene, frags, settings)
+    if name == "sphere":  # only the fragments with a non-zero blend weight are kept
+        assert 0 < cache.pixels.shape[0] < int(np.sum(np.asarray(frags.valid)))
+    for s in (scene, replace(scene, material=other_material())):
+        np.testing.assert_allclose(np.asarray(render_cached(s, cache, settings)),
+                                   np.asarray(soft_reference(s, settings)), rtol=0, atol=1e-5)
+
+
+def test_cached_shading_in_hard_mode_equals_the_reference():
+    scene = replace(sphere_scene(), material=other_material())
+    settings = RenderSettings()
+    cache = cache_shading(scene, rasterize_scene(scene, settings), settings)
+    ref, frags = reference.render(scene)
+    clear = frags.edge_dist > 1e-6
+    np.testing.assert_allclose(np.asarray(render_cached(scene, cache, settings))[clear],
+                               ref[clear], rtol=0, atol=1e-9)
+
+
+def test_cached_shading_gradients_equal_central_differences():
+    scene = sphere_scene()
+    settings = soft(faces_per_pixel=8, sigma=1.0, gamma=1e-3)
+    cache = cache_shading(scene, rasterize_scene(scene, settings), settings)
+    weights = jnp.asarray(np.random.default_rng(3).normal(size=(20, 24, 4)))
+
+    def loss(kd, shininess, colour):
+        light = replace(scene.lights, point=replace(scene.lights.point, diffuse=colour))
+        s = replace(scene, lights=light,
+                    material=replace(scene.material, kd=kd, shininess=shininess))
+        return jnp.sum(weights * render_cached(s, cache, settings))
+    args = (scene.material.kd, scene.material.shininess, scene.lights.point.diffuse)
+    grads = jax.grad(loss, argnums=(0, 1, 2))(*args)
+    eps = 1e-6
+    for i, (arg, grad) in enumerate(zip(args, grads, strict=True)):
+        flat = np.asarray(arg, np.float64).reshape(-1)
+        for j in range(flat.size):
+            step = np.zeros_like(flat)
+            step[j] = eps
+            shifted = [list(args), list(args)]
+            shifted[0][i] = jnp.asarray((flat + step).reshape(np.shape(arg)))
+            shifted[1][i] = jnp.asarray((flat - step).reshape(np.shape(arg)))
+            want = (loss(*shifted[0]) - loss(*shifted[1])) / (2 * eps)
+            np.testing.assert_allclose(np.asarray(grad).reshape(-1)[j], want, rtol=1e-6,
+                                       atol=1e-8)
+
+
+def test_cached_shading_rejects_a_transparent_scene():
+    scene = replace(triangles_scene(), material=material(kd=0.5, kt=0.3))
+    settings = soft(faces_per_pixel=4)
+    with pytest.raises(ValueError, match="transparent"):
+        cache_shading(scene, rasterize_scene(scene, settings), settings)
 
 
 def test_culling_rules_match_the_oracle():
