@@ -10,21 +10,31 @@
      (default 48d2648, before this change: custom_vjp ops, reverse mode only), so that
      today's and the earlier figures come from one run on one machine.
 2. Batched views: 4 views of icosphere(4) at 128^2, soft Phong, K = 8: one
-   `render_views` call against a Python loop of `render`, forward and forward + backward
-   (with respect to vertices and kd, summed over the views).
+   `render_views` call against a Python loop of `render` inside one `jit`: forward,
+   forward + backward with respect to vertices and kd, and with respect to the material
+   only (kd, ks), each summed over the views. Loop and batch run in one process, in
+   turns (one call of each per round), so that the load of a shared machine hits both
+   alike; printed are the medians of the per-round ratios, of wall and of CPU time.
 
-Each path runs in its own process. Printed: compile seconds (lower + compile) and the
-median of --repeats calls after one warm-up call.
+Each path of 1. runs in its own process, 2. in one more. Printed: compile seconds (lower +
+compile) and the median of --repeats calls after warm-up.
 
     .venv/bin/python benchmarks/transforms.py [--repeats 20] [--baseline 48d2648]
+        [--only judged|views|search]
+
+`--only search` times the host face search of the 4 views alone (numba, no JAX): 4 calls
+of find_candidates against one call of its batch form; run it with and without
+OMP_WAIT_POLICY=passive in the environment to see the OpenMP threads' spinning.
 """
 
 import argparse
 import json
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
+import time
 
 from raster import measure  # benchmarks/raster.py, beside this script
 
@@ -68,17 +78,75 @@ def judged(path, repeats):
             "forward_backward": measure(jax.value_and_grad(loss), (params,), repeats)}
 
 
+def interleaved(fns, args, repeats, jit=True):
+    """Compile each fn (jit=True), warm it up, then time them in turns (one call of each
+    per round), so that a changing load on the machine hits all of them alike. Per fn:
+    compile seconds, median wall and CPU seconds (process_time: all threads); and per
+    round the wall and CPU times, from which main() takes the medians of the ratios."""
+    import jax
+
+    compiled, out = {}, {}
+    for name, fn in fns.items():
+        t0 = time.perf_counter()
+        compiled[name] = jax.jit(fn).lower(*args).compile() if jit else fn
+        out[name] = {"compile_s": time.perf_counter() - t0, "times_s": [], "cpu_s": []}
+        for _ in range(2):
+            jax.block_until_ready(compiled[name](*args))
+    for _ in range(repeats):
+        for name in fns:
+            t0, c0 = time.perf_counter(), time.process_time()
+            jax.block_until_ready(compiled[name](*args))
+            out[name]["times_s"].append(time.perf_counter() - t0)
+            out[name]["cpu_s"].append(time.process_time() - c0)
+    for r in out.values():
+        r["median_s"] = statistics.median(r["times_s"])
+        r["cpu_median_s"] = statistics.median(r["cpu_s"])
+    return out
+
+
+def views_setup():
+    import diffshade as ds
+
+    eyes = [(0.0, 0.0, 3.0), (2.0, 0.5, 2.2), (-2.0, 1.0, 2.0), (0.5, -2.5, 1.8)]
+    scene = sphere_scene(128)
+    cams = [ds.look_at(e, (0.0, 0.0, 0.0), width=128, height=128, fov_y=45.0) for e in eyes]
+    return scene, cams
+
+
+def search(repeats):
+    """The host face search of the 4 views alone (numba, no JAX): 4 calls against one
+    call of find_candidates' batch form, in turns."""
+    import numpy as np
+
+    import diffshade as ds
+    from diffshade.candidates import find_candidates
+    from diffshade.raster import soft_radius
+
+    settings = settings_for("host")
+    scene, cams = views_setup()
+    clips = np.stack([np.asarray(ds.project(ds.replace(scene, camera=c)).clip) for c in cams])
+    faces = np.asarray(scene.mesh.faces)
+    kw = dict(width=128, height=128, k=settings.faces_per_pixel,
+              radius_px=float(soft_radius(settings)), sigma=settings.sigma,
+              gamma=settings.gamma)
+    fns = {"loop": lambda: [find_candidates(c, faces, cams[0].near, cams[0].far, **kw)
+                            for c in clips],
+           "batched": lambda: find_candidates(clips, faces, cams[0].near, cams[0].far, **kw)}
+    out = {"loop": {}, "batched": {}}
+    for name, r in interleaved(fns, (), repeats, jit=False).items():
+        out[name]["search"] = r
+    return out
+
+
 def views(repeats):
-    """render_views against a loop of render, 4 views at 128^2."""
+    """render_views against a loop of render, 4 views at 128^2, timed in turns."""
     import jax
     import jax.numpy as jnp
 
     import diffshade as ds
 
     settings = settings_for("host")
-    eyes = [(0.0, 0.0, 3.0), (2.0, 0.5, 2.2), (-2.0, 1.0, 2.0), (0.5, -2.5, 1.8)]
-    scene = sphere_scene(128)
-    cams = [ds.look_at(e, (0.0, 0.0, 0.0), width=128, height=128, fov_y=45.0) for e in eyes]
+    scene, cams = views_setup()
     stacked = ds.stack_cameras(cams)
 
     def loop(s):
@@ -87,18 +155,26 @@ def views(repeats):
     def batched(s):
         return ds.render_views(s, stacked, settings)
 
-    def loss_of(render_all):
+    def loss_of(render_all, names):
         def loss(params):
-            v, kd = params
-            s = ds.replace(scene, mesh=ds.replace(scene.mesh, vertices=v),
-                           material=ds.replace(scene.material, kd=kd))
+            s = ds.replace(scene, mesh=ds.replace(scene.mesh, **{
+                n: v for n, v in params.items() if n == "vertices"}),
+                material=ds.replace(scene.material, **{
+                    n: v for n, v in params.items() if n != "vertices"}))
             return jnp.mean(render_all(s) ** 2)
         return jax.value_and_grad(loss)
-    params = (scene.mesh.vertices, scene.material.kd)
-    out = {}
-    for name, fn in (("loop", loop), ("batched", batched)):
-        out[name] = {"forward": measure(fn, (scene,), repeats),
-                     "forward_backward": measure(loss_of(fn), (params,), repeats)}
+    geometry = {"vertices": scene.mesh.vertices, "kd": scene.material.kd}
+    material = {"kd": scene.material.kd, "ks": scene.material.ks}
+    parts = {"forward": ({"loop": loop, "batched": batched}, (scene,)),
+             "forward_backward": ({name: loss_of(fn, geometry) for name, fn in
+                                   (("loop", loop), ("batched", batched))}, (geometry,)),
+             "material_forward_backward": ({name: loss_of(fn, material) for name, fn in
+                                            (("loop", loop), ("batched", batched))},
+                                           (material,))}
+    out = {"loop": {}, "batched": {}}
+    for part, (fns, args) in parts.items():
+        for name, r in interleaved(fns, args, repeats).items():
+            out[name][part] = r
     return out
 
 
@@ -137,14 +213,38 @@ def main():
     parser.add_argument("--baseline", default=BASELINE,
                         help="git revision to measure side by side ('' to skip)")
     parser.add_argument("--out", default=os.path.join(ROOT, "benchmarks/results/transforms.json"))
+    parser.add_argument("--only", choices=("judged", "views", "search"),
+                        help="run one of the two parts (default: both)")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
         kind, _, path = args.worker.partition(":")
-        result = judged(path, args.repeats) if kind == "judged" else views(args.repeats)
+        result = (judged(path, args.repeats) if kind == "judged" else
+                  search(args.repeats) if kind == "search" else views(args.repeats))
         print(json.dumps(result))
         return
-    results = {"judged": {}}
+    # a part not run keeps its figures from the last run (the results file)
+    results = {}
+    if args.only and os.path.exists(args.out):
+        with open(args.out) as f:
+            results = json.load(f)
+    results["meta"] = {"repeats": args.repeats, "baseline": args.baseline,
+                       "cpus": os.cpu_count(), "loadavg_before": os.getloadavg()}
+    if args.only in (None, "judged"):
+        judged_part(args, results)
+    if args.only in (None, "views"):
+        views_part(args, results, "views")
+    if args.only in (None, "search"):
+        views_part(args, results, "search")
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    results["meta"]["loadavg_after"] = os.getloadavg()
+    with open(args.out, "w") as f:
+        json.dump(results, f, indent=1)
+    print(f"wrote {args.out}")
+
+
+def judged_part(args, results):
+    results["judged"] = {}
     print("judged scene: 5,120 faces, 256^2, K = 8, soft Phong, float32")
     with tempfile.TemporaryDirectory() as tmp:
         paths = [("host", None), ("jax", None)]
@@ -154,21 +254,31 @@ def main():
             results["judged"][path] = spawn(f"judged:{path}", args, tree)
             label = f"baseline {args.baseline}" if path == "baseline" else path
             print(line(label, results["judged"][path]), flush=True)
-    print("4 views of 5,120 faces at 128^2, soft Phong, K = 8 (default path)")
-    results["views"] = spawn("views", args)
-    for name in ("loop", "batched"):
-        print(line(name, results["views"].get(name, results["views"])))
-    if "loop" in results["views"]:
-        for part in ("forward", "forward_backward"):
-            ratio = (results["views"]["loop"][part]["median_s"]
-                     / results["views"]["batched"][part]["median_s"])
-            print(f"batched speed-up, {part}: {ratio:.2f}x")
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    results["meta"] = {"repeats": args.repeats, "baseline": args.baseline,
-                       "cpus": os.cpu_count(), "loadavg": os.getloadavg()}
-    with open(args.out, "w") as f:
-        json.dump(results, f, indent=1)
-    print(f"wrote {args.out}")
+
+
+def views_part(args, results, kind):
+    """The batched-views part: `views` (render_views against a loop of render) or `search`
+    (the host face search alone; OMP_WAIT_POLICY etc. are passed on to the worker)."""
+    key = kind if kind == "views" else f"search_{os.environ.get('OMP_WAIT_POLICY', 'default')}"
+    print(f"4 views of 5,120 faces at 128^2, soft Phong, K = 8 (default path): {kind}, "
+          f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', '(unset)')}")
+    results[key] = spawn(kind, args)
+    if "error" in results[key]:
+        print(line(kind, results[key]))
+        return
+    results[key]["speedup"] = {}
+    for part in results[key]["loop"]:
+        loop, batched = results[key]["loop"][part], results[key]["batched"][part]
+        ratios = {measure_kind: statistics.median(a / b for a, b in zip(
+            loop[field], batched[field], strict=True))
+            for measure_kind, field in (("wall", "times_s"), ("cpu", "cpu_s"))}
+        results[key]["speedup"][part] = ratios
+        print(f"batched speed-up, {part:26s} median of per-round ratios: wall "
+              f"{ratios['wall']:.2f}x, CPU {ratios['cpu']:.2f}x  (medians: loop "
+              f"{loop['median_s'] * 1e3:.0f} ms / {loop['cpu_median_s'] * 1e3:.0f} ms "
+              f"CPU, batched {batched['median_s'] * 1e3:.0f} ms / "
+              f"{batched['cpu_median_s'] * 1e3:.0f} ms CPU; compile "
+              f"{loop['compile_s']:.1f} s / {batched['compile_s']:.1f} s)")
 
 
 if __name__ == "__main__":

@@ -107,11 +107,15 @@ def _covered_depth(coeffs, tri, f, x, y):
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _search_hard(clip, faces, width, height, k, cull_backfaces, bands):
-    ids = np.full((width * height, k), -1, np.int32)
-    keys = np.full((width * height, k), np.inf)
-    dropped = np.zeros(bands, np.int64)
-    for band in prange(bands):
+def _search_hard(clips, faces, width, height, k, cull_backfaces, bands):
+    views = clips.shape[0]
+    all_ids = np.full((views, width * height, k), -1, np.int32)
+    all_keys = np.full((views, width * height, k), np.inf)
+    all_dropped = np.zeros((views, bands), np.int64)
+    # one item per (view, band): the views of a batch share one parallel loop
+    for item in prange(views * bands):
+        view, band = item // bands, item % bands
+        clip, ids, keys, dropped = clips[view], all_ids[view], all_keys[view], all_dropped[view]
         band_r0, band_r1 = _band_rows(band, bands, height)
         tri, coeffs, box = np.empty((1, 3, 4)), np.empty((1, 3, 3)), np.empty(4)
         for f in range(faces.shape[0]):
@@ -128,7 +132,7 @@ def _search_hard(clip, faces, width, height, k, cull_backfaces, bands):
                     z = _covered_depth(coeffs, tri, 0, (2.0 * col + 1.0) / width - 1.0, y)
                     if z < np.inf:
                         dropped[band] += _insert(ids, keys, row * width + col, f, z)
-    return ids, dropped.sum()
+    return all_ids, all_dropped.sum(1)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -199,11 +203,18 @@ def _coverage_logit(signed_d2, sigma):
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _search_soft(clip, faces, width, height, k, cull_backfaces, radius_px, soft, bands):
-    ids = np.full((width * height, k), -1, np.int32)
-    keys = np.full((width * height, k), np.inf)
-    dropped = np.zeros(bands, np.int64)
-    for band in prange(bands):
+def _search_soft(clips, faces, width, height, k, cull_backfaces, radii, params, perspective,
+                 bands):
+    views = clips.shape[0]
+    all_ids = np.full((views, width * height, k), -1, np.int32)
+    all_keys = np.full((views, width * height, k), np.inf)
+    all_dropped = np.zeros((views, bands), np.int64)
+    # one item per (view, band): the views of a batch share one parallel loop
+    for item in prange(views * bands):
+        view, band = item // bands, item % bands
+        clip, ids, keys, dropped = clips[view], all_ids[view], all_keys[view], all_dropped[view]
+        radius_px = radii[view]
+        soft = (params[view, 0], params[view, 1], params[view, 2], params[view, 3], perspective)
         band_r0, band_r1 = _band_rows(band, bands, height)
         tri, coeffs = np.empty((3, 4)), np.empty((3, 3))
         scr, edge, zndc, inv_len = np.empty((3, 2)), np.empty((3, 2)), np.empty(3), np.empty(3)
@@ -247,7 +258,7 @@ def _search_soft(clip, faces, width, height, k, cull_backfaces, radius_px, soft,
                         continue
                     key -= _coverage_logit(sd2, soft[0])
                     dropped[band] += _insert(ids, keys, pixel, f, key)
-    return ids, dropped.sum()
+    return all_ids, all_dropped.sum(1)
 
 
 def find_candidates(clip, faces, near=0.1, far=100.0, *, width, height, k,
@@ -263,14 +274,24 @@ def find_candidates(clip, faces, near=0.1, far=100.0, *, width, height, k,
     fragments at nearly the same depth the one that covers the pixel outranks neighbours
     that only graze it. Returns (face_ids [H, W, k] int32, -1 where fewer faces reach the
     pixel; dropped: [] int32, fragments beyond the k kept).
+
+    A batch of B views of one mesh: clip [B, V, 4], and near, far, radius_px, sigma and
+    gamma each a scalar or [B]; returns face_ids [B, H, W, k] and dropped [B]. The views
+    are searched in one parallel loop (over views x bands of rows), not one after another.
     """
-    clip = np.ascontiguousarray(clip, np.float64)
+    clip = np.asarray(clip, np.float64)
+    batched = clip.ndim == 3
+    clips = np.ascontiguousarray(clip if batched else clip[None])
+    views = clips.shape[0]
+    per_view = lambda x: np.ascontiguousarray(np.broadcast_to(np.asarray(x, np.float64), views))
+    radii = per_view(radius_px)
     bands = min(height, 2 * numba.get_num_threads())
     faces = np.ascontiguousarray(faces, np.int64)
-    if radius_px > 0.0:
-        soft = (float(sigma), float(gamma), float(near), float(far), bool(perspective))
-        ids, dropped = _search_soft(clip, faces, width, height, k, cull_backfaces, radius_px,
-                                    soft, bands)
+    if np.any(radii > 0.0):
+        params = np.stack([per_view(sigma), per_view(gamma), per_view(near), per_view(far)], 1)
+        ids, dropped = _search_soft(clips, faces, width, height, k, cull_backfaces, radii,
+                                    params, bool(perspective), bands)
     else:
-        ids, dropped = _search_hard(clip, faces, width, height, k, cull_backfaces, bands)
-    return ids.reshape(height, width, k), np.int32(dropped)
+        ids, dropped = _search_hard(clips, faces, width, height, k, cull_backfaces, bands)
+    ids, dropped = ids.reshape(views, height, width, k), dropped.astype(np.int32)
+    return (ids, dropped) if batched else (ids[0], dropped[0])

@@ -35,25 +35,33 @@ def _unpack(x, was64):
     return np.asarray(x).view(np.float64)[..., 0] if was64 else np.asarray(x)
 
 
-def host_call(fn, result_shapes, *args):
+def host_call(fn, result_shapes, *args, batched=False):
     """fn(*numpy arrays) -> tuple of numpy arrays shaped like result_shapes (a tuple of
-    jax.ShapeDtypeStruct); run under jit and vmap (sequentially) as pure_callback does."""
+    jax.ShapeDtypeStruct); run under jit and vmap as pure_callback does.
+
+    Under vmap, fn runs once per batch member (one after another), unless `batched`: fn
+    then gets the whole batch in one call, every argument with the same leading batch
+    axes (of size 1 where that argument is not batched; pure_callback's "expand_dims"),
+    and returns results with leading axes of the broadcast batch shape."""
     args = [jnp.asarray(a) for a in args]
     args_64 = [_is64(a.dtype) for a in args]
     outs_64 = [_is64(s.dtype) for s in result_shapes]
     packed = tuple(jax.ShapeDtypeStruct(s.shape + (2,), np.uint32) if is64 else s
                    for s, is64 in zip(result_shapes, outs_64, strict=True))
+    ndims = [a.ndim for a in args]
 
     def host(*host_args):
         values = [_unpack(a, is64) for a, is64 in zip(host_args, args_64, strict=True)]
+        lead = np.broadcast_shapes(*(v.shape[:v.ndim - n] for v, n in
+                                     zip(values, ndims, strict=True)))
         with _LOCK:
             results = fn(*values)
         out = []
         for r, s, is64 in zip(results, result_shapes, outs_64, strict=True):
-            r = np.ascontiguousarray(r, s.dtype).reshape(s.shape)
-            out.append(r.view(np.uint32).reshape(s.shape + (2,)) if is64 else r)
+            r = np.ascontiguousarray(r, s.dtype).reshape(lead + s.shape)
+            out.append(r.view(np.uint32).reshape(lead + s.shape + (2,)) if is64 else r)
         return tuple(out)
     results = jax.pure_callback(host, packed, *[_pack(a) for a in args],
-                                vmap_method="sequential")
+                                vmap_method="expand_dims" if batched else "sequential")
     return tuple(jax.lax.bitcast_convert_type(r, jnp.float64) if is64 else r
                  for r, is64 in zip(results, outs_64, strict=True))

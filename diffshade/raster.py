@@ -2,8 +2,9 @@
 
 Two stages. The search (which faces cover which pixel, nearest first) is discrete and
 non-differentiable: a compiled kernel on the host (candidates.py, through
-`jax.pure_callback`, hostcall.py), or tile binning in JAX (tile_search.py), as
-RenderSettings.kernels says. Everything computed *from* the chosen face ids is
+`jax.pure_callback`, hostcall.py; under `vmap`, views of one mesh are searched in one
+call), or tile binning in JAX (tile_search.py), as RenderSettings.kernels says.
+Everything computed *from* the chosen face ids is
 differentiable with respect to vertices and camera: barycentrics from 2D homogeneous edge
 functions (equivalent to the lecture notes' perspective correction b_i/w_i / sum_j
 b_j/w_j), the soft signed distance and the eye-space depth. The per-fragment part is a
@@ -16,9 +17,11 @@ fixed and pass it back to `render_fragments` (fitting materials then never re-ra
 """
 
 import dataclasses
+from functools import partial
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from diffshade import fragment_kernels as kernels
 from diffshade.candidates import find_candidates
@@ -85,12 +88,27 @@ def search_faces(clip, faces, camera, k, settings, soft):
               jax.ShapeDtypeStruct((), jnp.int32))
 
     def search(clip, faces, near, far, radius, sigma, gamma):
-        return find_candidates(clip, faces, near, far, width=camera.width,
-                               height=camera.height, k=k, cull_backfaces=settings.cull_backfaces,
-                               radius_px=float(radius), sigma=float(sigma), gamma=float(gamma),
-                               perspective=perspective)
+        # under vmap (a batch of views) every argument has leading batch axes: one call
+        # searches all the views (find_candidates' batch form)
+        lead = np.broadcast_shapes(clip.shape[:-2], faces.shape[:-2], near.shape,
+                                   far.shape, radius.shape, sigma.shape, gamma.shape)
+        flat = lambda x, tail=0: np.broadcast_to(
+            x, lead + x.shape[x.ndim - tail:]).reshape((-1,) + x.shape[x.ndim - tail:])
+        one = partial(find_candidates, width=camera.width, height=camera.height, k=k,
+                      cull_backfaces=settings.cull_backfaces, perspective=perspective)
+        batch = (flat(clip, 2), flat(faces, 2), flat(near), flat(far), flat(radius),
+                 flat(sigma), flat(gamma))
+        if (batch[1] == batch[1][:1]).all():  # views of one mesh: one call
+            ids, dropped = one(*batch[:1], batch[1][0], *batch[2:4], radius_px=batch[4],
+                               sigma=batch[5], gamma=batch[6])
+        else:
+            ids, dropped = map(np.stack, zip(*(
+                one(c, f, n, r, radius_px=float(p), sigma=float(s), gamma=float(g))
+                for c, f, n, r, p, s, g in zip(*batch, strict=True)), strict=True))
+        return ids.reshape(lead + ids.shape[1:]), dropped.reshape(lead)
     clip, near, far, radius, sigma, gamma = operands
-    return host_call(search, shapes, clip, faces, near, far, radius, sigma, gamma)
+    return host_call(search, shapes, clip, faces, near, far, radius, sigma, gamma,
+                     batched=True)
 
 
 def _screen_positions(clip, width, height):

@@ -3,9 +3,11 @@ candidates.find_candidates, an independent implementation, in float64: face ids 
 `dropped` must be equal exactly, hard and soft, with and without back-face culling, for
 several K, image sizes that are not multiples of the tile, a mesh crossing the near plane
 and an orthographic camera; overflowing tiles count their untested (face, tile) pairs;
-traced parameters under jit, vmap over cameras and use inside grad.
+traced parameters under jit, vmap over cameras and use inside grad. The host search's
+batch form (several views in one call, under vmap) against one call per view.
 """
 
+import dataclasses
 from functools import partial
 
 import jax
@@ -15,6 +17,8 @@ import pytest
 
 from diffshade import Mesh, icosphere, look_at, make_scene, model_matrix, project, torus
 from diffshade.candidates import find_candidates
+from diffshade.raster import search_faces
+from diffshade.settings import RenderSettings
 from diffshade.tile_search import search_tiles
 
 pytestmark = pytest.mark.usefixtures("x64")
@@ -223,3 +227,52 @@ def test_usable_inside_grad():
     grad = jax.jit(jax.grad(loss))(clip)
     np.testing.assert_array_equal(grad, jax.grad(corner_w_sum)(clip, ids))
     assert np.isfinite(grad).all() and np.abs(grad).sum() > 0
+
+
+def test_host_search_batch_equals_one_call_per_view():
+    """find_candidates' batch form (views x bands in one parallel loop), with per-view
+    near, far, radius, sigma and gamma, hard and soft: the ids and drop counts of separate
+    calls, exactly."""
+    near_plane = dataclasses.replace(through_near_plane().camera, width=37, height=29)
+    scenes = [sphere(), make_scene(icosphere(2), near_plane), make_scene(icosphere(2), look_at(
+        (-1.0, 0.5, 2.5), (0.1, 0.0, 0.0), width=37, height=29, near=0.5, far=20.0))]
+    clips = np.stack([np.asarray(project(s).clip) for s in scenes])
+    near = np.array([float(s.camera.near) for s in scenes])
+    far = np.array([float(s.camera.far) for s in scenes])
+    faces = np.asarray(scenes[0].mesh.faces)
+    for radius, sigma, gamma in (((0.0,) * 3, 1.0, 1e-4), ((1.5, 2.5, 1.0), (0.5, 1.0, 0.1),
+                                                           (1e-4, 1.0, 0.01))):
+        got = find_candidates(clips, faces, near, far, width=37, height=29, k=4,
+                              radius_px=np.array(radius), sigma=sigma, gamma=gamma)
+        assert got[0].shape == (3, 29, 37, 4) and got[1].shape == (3,)
+        for i in range(3):
+            want = find_candidates(clips[i], faces, near[i], far[i], width=37, height=29, k=4,
+                                   radius_px=radius[i], sigma=np.broadcast_to(sigma, 3)[i],
+                                   gamma=np.broadcast_to(gamma, 3)[i])
+            assert (want[0] >= 0).any()
+            assert_same((got[0][i], got[1][i]), want)
+
+
+def test_host_search_under_vmap_equals_separate_calls():
+    """search_faces on the host path under vmap: views of one mesh go to the kernel in one
+    call, a batch of different meshes (faces batched) one mesh at a time; both give the
+    unbatched results."""
+    settings = RenderSettings(raster="soft", kernels="host")
+    cams = [look_at(eye, (0.0, 0.0, 0.0), width=23, height=19, fov_y=45.0)
+            for eye in ((0.4, 0.6, 3.5), (-1.0, 0.5, 2.5))]
+    mesh = icosphere(2)
+    # another mesh of the same size: the same triangles listed in reverse order
+    meshes = [mesh, Mesh(mesh.vertices, mesh.faces[::-1], mesh.normals)]
+    run = lambda clip, faces, cam: search_faces(clip, faces, cam, 4, settings, True)
+    clip = lambda mesh, cam: project(make_scene(mesh, cam)).clip
+    for vary_mesh in (False, True):
+        pairs = [(meshes[i] if vary_mesh else mesh, cams[i]) for i in range(2)]
+        clips = jnp.stack([clip(m, c) for m, c in pairs])
+        faces = jnp.stack([m.faces for m, _ in pairs])
+        stacked = jax.tree.map(lambda *a: jnp.stack(a), *cams)
+        got = jax.jit(jax.vmap(run))(clips, faces, stacked)
+        for i, (m, c) in enumerate(pairs):
+            want = jax.jit(run)(clip(m, c), m.faces, c)
+            assert (np.asarray(want[0]) >= 0).any()
+            assert_same((np.asarray(got[0][i]), int(got[1][i])),
+                        (np.asarray(want[0]), int(want[1])))
