@@ -25,8 +25,8 @@ gradient; its silhouette's sideways motion acts only through the point's project
 
 `visibility(shadow_map, points, normals, light_dir, settings)` takes any map. An area or
 sphere light with shadows (diffshade.area_lights) gets one cube map per sample point
-(`area_maps`: `point_map` vmapped over the light's `sample_points`, so S samples cost S
-times a point light's six maps), and `sampled_visibility` averages the per-sample
+(`area_maps`: `point_map` in a loop over the light's `sample_points`, so S samples cost
+S times a point light's six maps), and `sampled_visibility` averages the per-sample
 visibilities weighted by each sample's unshadowed diffuse contribution: in soft raster
 every sample's test is the smooth one above, so the penumbra is smooth too.
 """
@@ -163,9 +163,11 @@ def directional_map(direction, world, faces, settings) -> ShadowMap:
 
 def area_maps(kind, light, world, faces, settings) -> ShadowMap:
     """One cube map per sample point of an area or sphere light (a single light): a
-    ShadowMap whose leaves have a leading sample axis S (depth [S, 6, size, size])."""
+    ShadowMap whose leaves have a leading sample axis S (depth [S, 6, size, size]). Built
+    by a loop over the samples (`lax.map`), so that the rasterization's intermediates
+    (its fragments) are held for one sample's maps at a time, not S-fold as a vmap would."""
     points, _ = sample_points(kind, light)
-    return jax.vmap(lambda q: point_map(q, world, faces, settings))(points)
+    return jax.lax.map(lambda q: point_map(q, world, faces, settings), points)
 
 
 def _light_map(kind, group, i, world, faces, settings):

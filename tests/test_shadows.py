@@ -12,6 +12,9 @@
   lights' positions and directions, the vertices and kd in soft mode, and render_views
   against a loop of renders.
 - The flag in the Python factories and in scene files, and its bad values.
+- Area and sphere lights with shadows: the penumbrae of a disk and a sphere light against
+  a ray-traced quadrature over each light (SphereOverPlane.floor_irradiance, NumPy
+  ray/sphere tests), and check_grads of soft penumbrae (float64).
 """
 
 import jax
@@ -191,21 +194,32 @@ def test_render_views_with_shadows_equals_a_loop_of_renders():
 def test_scene_files_carry_the_flag_per_light():
     camera = ds.look_at((0.0, 2.6, 3.4), (0.0, -0.6, 0.0), width=8, height=8)
     lights = [ds.point_light(POINT, shadows=True), ds.point_light((1.0, 1.0, 1.0)),
-              ds.directional_light(SUN, shadows=True), ds.spot_light(*SPOT[:2])]
+              ds.directional_light(SUN, shadows=True), ds.spot_light(*SPOT[:2]),
+              ds.area_light(DISK[0], normal=DISK[1], radius=DISK[2]),
+              ds.area_light(DISK[0], normal=DISK[1], radius=DISK[2], shadows=True),
+              ds.sphere_light(*BALL, shadows=True)]
     scene = ds.make_scene(ds.icosphere(0), camera, lights)
     assert scene.lights.point.shadows == (True, False)
     assert scene.lights.directional.shadows == (True,)
     assert scene.lights.spot.shadows == (False,)
+    assert scene.lights.disk.shadows == (False, True)
+    assert scene.lights.sphere.shadows == (True,)
     data = scene_to_dict(scene, ds.RenderSettings(shadow_map_size=64, shadow_bias=2.0))
-    assert [light.get("shadows", False) for light in data["lights"]] == [True, True, False, False]
+    assert [light.get("shadows", False) for light in data["lights"]] == [
+        True, True, False, False, False, True, True]
     again, settings = scene_from_dict(data)
     assert again.lights.point.shadows == (True, False)
+    assert again.lights.disk.shadows == (False, True) and again.lights.sphere.shadows == (True,)
     assert settings.shadow_map_size == 64 and settings.shadow_bias == 2.0
 
 
 @pytest.mark.parametrize("make,message", [
     (lambda: ds.point_light((0, 1, 0), shadows="yes"),
      "shadows: got 'yes'; expected True or False"),
+    (lambda: ds.area_light((0, 1, 0), normal=(0, -1, 0), radius=1.0, shadows=1),
+     "shadows: got 1; expected True or False"),
+    (lambda: ds.sphere_light((0, 1, 0), 0.5, shadows=None),
+     "shadows: got None; expected True or False"),
     (lambda: ds.spot_light((0, 1, 0), (0, -1, 0), cutoff=85.0, shadows=True),
      "cutoff: got 85.0; expected at most 80 degrees for a spot with shadows"),
     (lambda: ds.RenderSettings(shadow_map_size=0), "shadow_map_size: got 0; expected an integer"),

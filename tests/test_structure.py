@@ -138,7 +138,7 @@ def test_an_area_light_without_shadows_lowers_without_shadow_maps(settings):
     for name in ("disk", "ball"):
         # no rasterization but the camera's
         assert counts[name]["fragment_geometry_op"] == 1, name
-        # shadows: one more rasterization (every sample's cube map in one batched op), map
+        # shadows: one more rasterization (every sample's cube map, in a loop), map
         # lookups (a cube-face argmax) and one more rematerialized loop body (over the
         # samples' visibilities)
         added = counts[f"{name}_shadowed"] - counts[name]
