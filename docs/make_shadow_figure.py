@@ -48,8 +48,8 @@ def penumbra_scene(kind):
     light = {"point": lambda: ds.point_light(EXTENDED_AT, attenuation=(1e-6, 0.0, 1.0),
                                              **colour),
              "disk": lambda: ds.area_light(EXTENDED_AT, normal=(0.0, -1.0, 0.0),
-                                           radius=DISK_RADIUS, samples=64, **colour),
-             "sphere": lambda: ds.sphere_light(EXTENDED_AT, BALL_RADIUS, samples=128,
+                                           radius=DISK_RADIUS, samples=32, **colour),
+             "sphere": lambda: ds.sphere_light(EXTENDED_AT, BALL_RADIUS, samples=64,
                                                **colour)}[kind]()
     return ds.make_scene(GEOMETRY.mesh(3, 8), camera, [light],
                          ds.material(ka=0.3, kd=(0.7, 0.6, 0.5), ks=None),
@@ -57,7 +57,7 @@ def penumbra_scene(kind):
 
 
 def penumbra_figure(out):
-    settings = ds.RenderSettings(shadow_map_size=256)
+    settings = ds.RenderSettings(shadow_map_size=128)
     panels = [np.asarray(ds.render(penumbra_scene(kind), settings))[..., :3]
               for kind in ("point", "disk", "sphere")]
     gap = np.ones((SIZE, 4, 3))
