@@ -6,8 +6,10 @@ so the difference between a mesh render and this image is the error of tessellat
 interpolation, resolution and rasterization alone. `supersample=s` shoots s x s rays per
 pixel on a regular grid and averages the composited colour and the coverage.
 
-`SphereOverPlane` is the reference for shadows: its mesh, and its exact hard shadow from
-a point or directional light (ray/sphere tests in NumPy float64, per pixel centre).
+`SphereOverPlane` is the reference for shadows: its mesh, its exact hard shadow from
+a point or directional light (ray/sphere tests in NumPy float64, per pixel centre), and
+the irradiance of its floor from a disk or a spherical light with the sphere's shadow
+(penumbrae: a midpoint quadrature over the light, each node tested against the sphere).
 """
 
 import dataclasses
@@ -137,6 +139,72 @@ class SphereOverPlane:
         limit = 1.0 if kind == "point" else np.inf
         hit = np.isfinite(_segment_sphere(points, to_light, center, self.radius, limit))
         return on_plane, on_plane & hit
+
+
+    def floor_points(self, camera: Camera):
+        """Where each pixel centre's camera ray meets the floor's plane: [H, W, 3]."""
+        origins, dirs = pixel_rays(camera)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (self.plane_y - origins[..., 1]) / dirs[..., 1]
+        return origins + t[..., None] * dirs
+
+    def floor_irradiance(self, points, light, nodes=64, chunk=256):
+        """Irradiance per unit colour of floor points [..., 3] (normal +y) from a disk or a
+        spherical light (the radiometry of docs/area-lights.md), NumPy float64: (E with
+        the sphere's shadow, E without it), [...] each. light: ("disk", centre, emitting
+        normal, radius) or ("sphere", centre, radius). A midpoint rule of nodes^2 points
+        (`chunk` at a time): over the disk's area (uniform in r^2 and azimuth), or over
+        the sphere's cone of directions (uniform in solid angle)."""
+        u = (np.arange(nodes) + 0.5) / nodes
+        a, b = (x.ravel() for x in np.meshgrid(u, u, indexing="ij"))
+        points = np.asarray(points, np.float64)[..., None, :]  # [..., 1, 3]: nodes next
+        shadowed = unshadowed = 0.0
+        for i in range(0, a.size, chunk):
+            to_light, share, limit = _quadrature_nodes(light, points, a[i:i + chunk],
+                                                       2.0 * np.pi * b[i:i + chunk])
+            hit = np.isfinite(_segment_sphere(points, to_light, np.asarray(self.center),
+                                              self.radius, limit))
+            shadowed = shadowed + np.sum(np.where(hit, 0.0, share), -1) / a.size
+            unshadowed = unshadowed + np.sum(share, -1) / a.size
+        return shadowed, unshadowed
+
+
+def _quadrature_nodes(light, points, a, phi):
+    """(vectors from points [..., 1, 3] towards each node [..., N, 3], each node's share of
+    E times the node count [..., N], how far along the vector the light is) for nodes at
+    unit-square coordinates (a, phi / 2 pi) [N]."""
+    if light[0] == "disk":
+        _, centre, normal, radius = light
+        normal = np.asarray(normal, np.float64) / np.linalg.norm(normal)
+        t1, t2 = _tangents(normal)
+        r = radius * np.sqrt(a)
+        at = np.asarray(centre) + (r * np.cos(phi))[:, None] * t1 + (r * np.sin(phi))[:, None] * t2
+        to_light = at - points
+        dist2 = np.sum(to_light * to_light, -1)
+        unit = to_light / np.sqrt(dist2)[..., None]
+        facing = np.maximum(-unit @ normal, 0.0)
+        return to_light, np.maximum(unit[..., 1], 0.0) * facing / dist2, 1.0
+    _, centre, radius = light
+    axis = np.asarray(centre, np.float64) - points
+    dist2 = np.sum(axis * axis, -1)
+    axis = axis / np.sqrt(dist2)[..., None]
+    one_minus = 1.0 - np.sqrt(1.0 - radius * radius / dist2)  # 1 - cos(the cone's half-angle)
+    cos_t = 1.0 - a * one_minus
+    sin_t = np.sqrt(np.maximum(1.0 - cos_t * cos_t, 0.0))
+    t1, t2 = _tangents(axis)
+    to_light = ((sin_t * np.cos(phi))[..., None] * t1 + (sin_t * np.sin(phi))[..., None] * t2
+                + cos_t[..., None] * axis)
+    # radiance 1 / (pi R^2) times the cone's solid angle 2 pi (1 - cos a); seen from the
+    # floor, the occluder is never beyond the light
+    return to_light, np.maximum(to_light[..., 1], 0.0) * 2.0 * one_minus / radius**2, np.inf
+
+
+def _tangents(normal):
+    """Two unit vectors [..., 3] completing unit normal [..., 3] to an orthonormal frame."""
+    helper = np.where(np.abs(normal[..., :1]) < 0.9, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    t1 = np.cross(normal, helper)
+    t1 = t1 / np.linalg.norm(t1, axis=-1, keepdims=True)
+    return t1, np.cross(normal, t1)
 
 
 def _segment_sphere(origins, dirs, center, radius, limit):

@@ -19,8 +19,18 @@ for the projected solid angle of a polygon (Arvo 1995, "Applications of irradian
 tensors"), Omega_p = -1/2 sum_i Theta_i n.Gamma_i, after clipping the polygon to p's
 horizon; E = Omega_p / A. Everything else sums a fixed stratified sample pattern (seed
 SEED, the light's static `samples` count): sample j acts as a point light with direction
-L_j and weight w_j, its share of the integral. A visibility factor per sample (a shadow
-test) would multiply w_j: that is where penumbrae come in (`sample_incidence`).
+L_j and weight w_j, its share of the integral.
+
+Shadows (shadows=True, docs/shadows.md): the light's `samples` fixed points
+(`sample_points`: the rectangle's and the disk's own sample pattern, stratified points
+over a sphere's whole surface) each get a shadow map (diffshade.shadows.sampled_visibility);
+at a point p the light's diffuse and specular terms are multiplied by
+V(p) = sum_j c_j vis_j / sum_j c_j, c_j = max(N.L_j, 0) max(-n_j.L_j, 0) / r_j^2 the
+unshadowed diffuse contribution of sample point j (n_j its emitting normal). For a disk
+this makes the diffuse term exactly the average over samples of visibility times
+contribution; for a rectangle it is the closed form times the contribution-weighted
+visibility, for a sphere its (cone-sampled) irradiance times the same, and for
+specular terms the same factor applied to the unshadowed sum.
 """
 
 import math
@@ -37,6 +47,7 @@ from diffshade.lights import (
     _colours,
     _direction,
     _scalar,
+    _shadows,
 )
 from diffshade.numerics import (
     dot,
@@ -71,36 +82,38 @@ def _radius(radius):
 
 
 def area_light(center, edge_u=None, edge_v=None, *, normal=None, radius=None, color=None,
-               ambient=0.0, diffuse=None, specular=None, samples=16):
+               ambient=0.0, diffuse=None, specular=None, samples=16, shadows=False):
     """A rectangle (center and edge vectors edge_u, edge_v: it spans center + s edge_u +
     t edge_v, s, t in [-1/2, 1/2], and emits towards edge_u x edge_v) or a disk (center,
     normal: the side it emits towards, radius). A zero-size light is allowed (a zero
-    rectangle emits nothing: it has no normal). samples: the count of the sampled terms."""
+    rectangle emits nothing: it has no normal). samples: the count of the sampled terms;
+    shadows=True: a shadow map from each sample point (penumbrae; module docstring)."""
     rect = edge_u is not None or edge_v is not None
     disk = normal is not None or radius is not None
     if rect == disk:
         got = "both a rectangle's edges and a disk's normal" if rect else "neither"
         raise ValueError(f"edge_u, normal: got {got}; expected edge_u and edge_v (a "
                          "rectangle) or normal and radius (a disk)")
-    count = _sample_count(samples)
+    count, flag = _sample_count(samples), _shadows(shadows)
     colours = _colours(color, ambient, diffuse, specular)
     centre = _array("center", center, (3,))
     if rect:
         return RectLight(centre, _array("edge_u", edge_u, (3,)), _array("edge_v", edge_v, (3,)),
-                         *colours, samples=count)
+                         *colours, samples=count, shadows=flag)
     if radius is None or normal is None:
         missing = "radius" if radius is None else "normal"
         raise ValueError(f"{missing}: missing; expected a disk's normal and radius")
     return DiskLight(centre, _direction("normal", normal), _radius(radius), *colours,
-                     samples=count)
+                     samples=count, shadows=flag)
 
 
 def sphere_light(position, radius, color=None, *, ambient=0.0, diffuse=None, specular=None,
-                 samples=16) -> SphereLight:
-    """A spherical light of the given radius (0: a point light with 1/d^2 falloff)."""
+                 samples=16, shadows=False) -> SphereLight:
+    """A spherical light of the given radius (0: a point light with 1/d^2 falloff);
+    shadows as `area_light`'s."""
     return SphereLight(_array("position", position, (3,)), _radius(radius),
                        *_colours(color, ambient, diffuse, specular),
-                       samples=_sample_count(samples))
+                       samples=_sample_count(samples), shadows=_shadows(shadows))
 
 
 # ----------------------------------------------------------------- sample patterns
@@ -126,6 +139,14 @@ def concentric_disk(square):
     return np.stack([r * np.cos(phi), r * np.sin(phi)], -1)
 
 
+def uniform_sphere(square):
+    """The area-preserving map of [N, 2] unit-square points to the unit sphere (z = 1 - 2u,
+    azimuth 2 pi v): [N, 3]."""
+    z = 1.0 - 2.0 * square[:, 0]
+    r, phi = np.sqrt(np.maximum(1.0 - z * z, 0.0)), 2.0 * np.pi * square[:, 1]
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], -1)
+
+
 def orthonormal_frame(n):
     """Two unit tangents [..., 3] completing unit n [..., 3] to an orthonormal frame
     (Duff et al. 2017, branchless)."""
@@ -141,14 +162,21 @@ def orthonormal_frame(n):
 # ------------------------------------------------------ per-sample incidence (samples)
 
 
+def from_point(points, q, emit_normal):
+    """Incidence at points [..., 3] of light point q [3] emitting towards emit_normal [3]:
+    (unit direction to q [..., 3], max(-n_L.L, 0) / r^2 [..., 1])."""
+    to_light = q - points
+    light_dir = safe_normalize(to_light)
+    facing = jnp.maximum(-dot(emit_normal, light_dir, keepdims=True), 0.0)
+    return light_dir, safe_div(facing, dot(to_light, to_light, keepdims=True))
+
+
 def _planar(points, emit_normal, count):
     """Incidence of a sample at light point q: (unit direction to q, weight [..., 1]) =
     max(-n_L.L, 0) / r^2 / count."""
     def at(q):
-        to_light = q - points
-        light_dir = safe_normalize(to_light)
-        facing = jnp.maximum(-dot(emit_normal, light_dir, keepdims=True), 0.0)
-        return light_dir, safe_div(facing, dot(to_light, to_light, keepdims=True)) / count
+        light_dir, weight = from_point(points, q, emit_normal)
+        return light_dir, weight / count
     return at
 
 
@@ -195,6 +223,28 @@ def sample_incidence(kind, light, points):
     """(pattern [S, 2] NumPy, at): at(pattern[j]) -> (unit direction to sample j [..., 3],
     its weight [..., 1]) at points [..., 3]; sum_j weight_j max(N.L_j, 0) estimates E."""
     return _INCIDENCE[kind](light, points)
+
+
+def sample_points(kind, light):
+    """The light's fixed sample points [S, 3] and their emitting normals [S, 3], the points
+    its shadow maps are rendered from: a rectangle's and a disk's are the points of its
+    sampled terms; a sphere's (whose sampled terms use directions that follow the shading
+    point) are stratified over its whole surface, emitting outwards (so about half of
+    them face any given point)."""
+    pattern = stratified_square(light.samples)
+    if kind == "sphere":
+        outward = jnp.asarray(uniform_sphere(pattern), light.position.dtype)
+        return light.position + light.radius * outward, outward
+    if kind == "rect":
+        st = jnp.asarray(pattern - 0.5, light.center.dtype)
+        normal = safe_normalize(jnp.cross(light.edge_u, light.edge_v))
+        points = light.center + st[:, :1] * light.edge_u + st[:, 1:] * light.edge_v
+    else:
+        normal = safe_normalize(light.normal)
+        t1, t2 = orthonormal_frame(normal)
+        xy = jnp.asarray(concentric_disk(pattern), light.center.dtype)
+        points = light.center + light.radius * (xy[:, :1] * t1 + xy[:, 1:] * t2)
+    return points, jnp.broadcast_to(normal, points.shape)
 
 
 # ------------------------------------------------------- the rectangle's closed form
@@ -297,17 +347,27 @@ def _sampled(kind, light, material, points, normals, view_dirs, settings, light_
     return (d if diffuse else None), (None if material.ks is None else s)
 
 
-def terms(kind, light, material, points, normals, view_dirs, settings, light_terms):
-    """(ambient, diffuse, specular or None) of one area or sphere light, [..., 3] each.
-    light_terms: shading._light_terms (one point-like light at one direction and scale)."""
-    ambient = material.ka * light.ambient
+def _unshadowed(kind, light, material, points, normals, view_dirs, settings, light_terms):
+    """(diffuse, specular or None) of one area or sphere light without shadows."""
     if kind != "rect":
-        d, s = _sampled(kind, light, material, points, normals, view_dirs, settings,
+        return _sampled(kind, light, material, points, normals, view_dirs, settings,
                         light_terms, diffuse=True)
-        return ambient, d, s
     diffuse = material.kd * light.diffuse * rect_irradiance(light, points, normals)
     if material.ks is None:
-        return ambient, diffuse, None
+        return diffuse, None
     _, s = _sampled(kind, light, material, points, normals, view_dirs, settings, light_terms,
                     diffuse=False)
-    return ambient, diffuse, s
+    return diffuse, s
+
+
+def terms(kind, light, material, points, normals, view_dirs, settings, light_terms,
+          seen=None):
+    """(ambient, diffuse, specular or None) of one area or sphere light, [..., 3] each.
+    light_terms: shading._light_terms (one point-like light at one direction and scale);
+    seen: None, or the light's visibility V [..., 1] (diffshade.shadows.sampled_visibility),
+    which scales its diffuse and specular terms (module docstring)."""
+    d, s = _unshadowed(kind, light, material, points, normals, view_dirs, settings,
+                       light_terms)
+    if seen is not None:
+        d, s = seen * d, None if s is None else seen * s
+    return material.ka * light.ambient, d, s

@@ -7,7 +7,7 @@ their input; `color=` sets diffuse = specular = color and leaves ambient at 0.
 and leaves a type absent (`None`) when the scene has none, so that no code for it is
 traced or compiled. Area and extended lights (rectangle, disk, sphere) are declared here
 too; their factories and shading are diffshade.area_lights (docs/area-lights.md).
-Whether a light casts shadows (`shadows=True`; point, spot and directional lights) is
+Whether a light casts shadows (`shadows=True`; every type but the ambient light) is
 static structure: a stacked group holds a tuple of one flag per light, and only the
 flagged lights get a shadow pass (diffshade.shadows).
 
@@ -84,17 +84,20 @@ class SpotLight:
 
 
 def _sampled(cls):
-    """A light pytree whose `samples` (the static sample count) is metadata."""
+    """A light pytree whose `samples` (the static sample count) and `shadows` are
+    metadata."""
     cls = dataclasses.dataclass(frozen=True)(cls)
-    fields = [f.name for f in dataclasses.fields(cls) if f.name != "samples"]
-    return jax.tree_util.register_dataclass(cls, data_fields=fields, meta_fields=["samples"])
+    meta = ["samples", "shadows"]
+    fields = [f.name for f in dataclasses.fields(cls) if f.name not in meta]
+    return jax.tree_util.register_dataclass(cls, data_fields=fields, meta_fields=meta)
 
 
 @_sampled
 class RectLight:
     """A one-sided rectangular (parallelogram) emitter: center [..., 3], edge vectors
     edge_u, edge_v [..., 3] (it emits towards edge_u x edge_v); colours [..., 3];
-    samples: the static sample count of its sampled terms (area_lights.py)."""
+    samples: the static sample count of its sampled terms (area_lights.py); shadows:
+    static, see `shadow_flags` (a shadow map per sample, diffshade.shadows)."""
 
     center: jax.Array
     edge_u: jax.Array
@@ -103,12 +106,13 @@ class RectLight:
     diffuse: jax.Array
     specular: jax.Array
     samples: int = 16
+    shadows: bool | tuple = False
 
 
 @_sampled
 class DiskLight:
     """A one-sided disk emitter: center [..., 3], normal [..., 3] (it emits towards the
-    normal), radius [...]; colours [..., 3]; samples as RectLight."""
+    normal), radius [...]; colours [..., 3]; samples and shadows as RectLight."""
 
     center: jax.Array
     normal: jax.Array
@@ -117,12 +121,13 @@ class DiskLight:
     diffuse: jax.Array
     specular: jax.Array
     samples: int = 16
+    shadows: bool | tuple = False
 
 
 @_sampled
 class SphereLight:
-    """A spherical emitter: position [..., 3], radius [...]; colours [..., 3]; samples as
-    RectLight."""
+    """A spherical emitter: position [..., 3], radius [...]; colours [..., 3]; samples and
+    shadows as RectLight."""
 
     position: jax.Array
     radius: jax.Array
@@ -130,6 +135,7 @@ class SphereLight:
     diffuse: jax.Array
     specular: jax.Array
     samples: int = 16
+    shadows: bool | tuple = False
 
 
 @_pytree

@@ -316,9 +316,10 @@ _LIGHTS = {
                           "exponent": _NUMBER}),
     # a rectangle (edge_u, edge_v) or a disk (normal, radius): area_light says which
     "area": (area_light, {"center": _Required(_VEC3), "edge_u": _VEC3, "edge_v": _VEC3,
-                          "normal": _VEC3, "radius": _NUMBER, **_COLOURS, "samples": _PIXELS}),
+                          "normal": _VEC3, "radius": _NUMBER, **_COLOURS, "samples": _PIXELS,
+                          "shadows": _BOOL}),
     "sphere": (sphere_light, {"position": _Required(_VEC3), "radius": _Required(_NUMBER),
-                              **_COLOURS, "samples": _PIXELS}),
+                              **_COLOURS, "samples": _PIXELS, "shadows": _BOOL}),
 }
 _LIGHT_TYPE = _choice(tuple(_LIGHTS))
 

@@ -25,7 +25,7 @@ from diffshade import area_lights
 from diffshade.lights import LightGroups
 from diffshade.material import Material
 from diffshade.numerics import dot, safe_div, safe_norm, safe_normalize, safe_pow
-from diffshade.shadows import visibility
+from diffshade.shadows import sampled_visibility, visibility
 
 
 @jax.tree_util.register_dataclass
@@ -149,9 +149,12 @@ def shade(material: Material, lights: LightGroups, global_ambient, points, norma
             d, s = seen * d, None if s is None else seen * s
         ambient, diffuse = ambient + a, diffuse + d
         specular = specular if s is None else specular + s
-    for kind, _, light in _lights(lights, area_lights.KINDS):
+    for kind, index, light in _lights(lights, area_lights.KINDS):
+        maps = (shadow_maps or {}).get((kind, index))
+        seen = None if maps is None else sampled_visibility(kind, light, maps, points,
+                                                            normals, settings)
         a, d, s = area_lights.terms(kind, light, material, points, normals, view_dirs,
-                                    settings, _light_terms)
+                                    settings, _light_terms, seen)
         ambient, diffuse = ambient + a, diffuse + d
         specular = specular if s is None else specular + s
     emission = (jnp.zeros(shape, points.dtype) if material.emission is None

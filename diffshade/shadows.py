@@ -23,8 +23,12 @@ Which face a texel holds is a discrete search, as in any rasterization; its dept
 differentiable in the vertices and the light. An occluder's depth therefore has a
 gradient; its silhouette's sideways motion acts only through the point's projection.
 
-`visibility(shadow_map, points, normals, light_dir, settings)` takes any map, so a light
-made of samples (an area light) can build `point_map` per sample position and reuse it.
+`visibility(shadow_map, points, normals, light_dir, settings)` takes any map. An area or
+sphere light with shadows (diffshade.area_lights) gets one cube map per sample point
+(`area_maps`: `point_map` in a loop over the light's `sample_points`, so S samples cost
+S times a point light's six maps), and `sampled_visibility` averages the per-sample
+visibilities weighted by each sample's unshadowed diffuse contribution: in soft raster
+every sample's test is the smooth one above, so the penumbra is smooth too.
 """
 
 import dataclasses
@@ -33,6 +37,8 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 
+from diffshade.area_lights import KINDS as AREA_KINDS
+from diffshade.area_lights import from_point, sample_points
 from diffshade.camera import Camera, projection_matrix, view_matrix
 from diffshade.lights import SHADOW_SPOT_CUTOFF, shadow_flags
 from diffshade.numerics import dot, safe_div, safe_norm, safe_normalize, tiny
@@ -155,8 +161,20 @@ def directional_map(direction, world, faces, settings) -> ShadowMap:
     return _build(cams, world, faces, settings, 2.0 * radius / size, False)
 
 
+def area_maps(kind, light, world, faces, settings) -> ShadowMap:
+    """One cube map per sample point of an area or sphere light (a single light): a
+    ShadowMap whose leaves have a leading sample axis S (depth [S, 6, size, size]). Built
+    by a loop over the samples (`lax.map`), so that the rasterization's intermediates
+    (its fragments) are held for one sample's maps at a time, not S-fold as a vmap would."""
+    points, _ = sample_points(kind, light)
+    return jax.lax.map(lambda q: point_map(q, world, faces, settings), points)
+
+
 def _light_map(kind, group, i, world, faces, settings):
     """The map of light i of a stacked group (only the fields a map needs are read)."""
+    if kind in AREA_KINDS:
+        light = jax.tree.map(lambda a: a[i], group)
+        return area_maps(kind, light, world, faces, settings)
     if kind == "point":
         return point_map(group.position[i], world, faces, settings)
     if kind == "spot":
@@ -166,11 +184,12 @@ def _light_map(kind, group, i, world, faces, settings):
 
 
 def shadow_maps(scene, settings):
-    """{(kind, index in its group): ShadowMap} for every light of `scene` with shadows, or
-    None when none has: nothing is then rasterized from the lights."""
+    """{(kind, index in its group): ShadowMap} for every light of `scene` with shadows (for
+    an area or sphere light, `area_maps`), or None when none has: nothing is then
+    rasterized from the lights."""
     maps = {}
     world = transform_points(scene.model, scene.mesh.vertices)
-    for kind in ("directional", "point", "spot"):
+    for kind in ("directional", "point", "spot", *AREA_KINDS):
         group = getattr(scene.lights, kind)
         if group is None:
             continue
@@ -239,3 +258,24 @@ def visibility(shadow_map: ShadowMap, points, normals, light_dir, settings):
                                  / width) * wx * wy
                   for dc, wx in ((0, 1.0 - fx), (1, fx)) for dr, wy in ((0, 1.0 - fy), (1, fy)))
     return jnp.where(inside, lit, 1.0)[..., None]
+
+
+def sampled_visibility(kind, light, maps: ShadowMap, points, normals, settings):
+    """How much of an area or sphere light (a single light) reaches each point: [..., 1],
+    V = sum_j c_j vis_j / sum_j c_j over its sample points j, c_j = max(N.L_j, 0)
+    max(-n_j.L_j, 0) / r_j^2 (the sample's unshadowed diffuse contribution), vis_j the
+    `visibility` in its map (maps: `area_maps`); 1 where no sample contributes. A scan
+    over the samples, each step rematerialized in the backward pass."""
+    sample_at, emit_normals = sample_points(kind, light)
+    zeros = jnp.zeros(points.shape[:-1] + (1,), points.dtype)
+
+    def step(sums, sample):
+        q, emit_normal, shadow_map = sample
+        light_dir, facing = from_point(points, q, emit_normal)
+        weight = facing * jnp.maximum(dot(normals, light_dir, keepdims=True), 0.0)
+        seen = visibility(shadow_map, points, normals, light_dir, settings)
+        return (sums[0] + weight * seen, sums[1] + weight), None
+
+    (lit, total), _ = jax.lax.scan(jax.checkpoint(step), (zeros, zeros),
+                                   (sample_at, emit_normals, maps))
+    return safe_div(lit, total, fallback=1.0)

@@ -708,8 +708,9 @@ def test_2048_square_hard_render_fits_in_memory_and_covers_the_sphere():
 
 # ---------------------------------------------------------------------- shadow maps
 # A second, smaller catalogue of one shared structure: a 20-face sphere over a 2-face
-# floor, lit by a point light, a spot and a directional light, all three with shadows
-# (diffshade/shadows.py), in both raster modes. Cases differ in values only and render in
+# floor, lit by a point light, a spot, a directional light, a disk and a sphere light, all
+# with shadows (diffshade/shadows.py; the disk and the sphere two samples each, so two cube
+# maps each: penumbrae), in both raster modes. Cases differ in values only and render in
 # one vmap per raster mode; values and gradients with respect to every float leaf of the
 # mesh, the lights and the material must be finite.
 
@@ -725,8 +726,10 @@ SPHERE_RADIUS = 0.5
 
 
 def shadow_scene(center=(0.0, 0.0, 0.0), floor_y=-1.0, bulb=(-1.0, 1.8, -1.0),
-                 spot=((1.2, 1.8, -0.6), (-1.5, -2.8, 1.2)), sun=(0.2, -1.0, 1.1)):
-    """floor_y None: the floor touches the sphere's lowest vertex."""
+                 spot=((1.2, 1.8, -0.6), (-1.5, -2.8, 1.2)), sun=(0.2, -1.0, 1.1),
+                 disk=((-0.8, 2.0, 0.6), (0.2, -1.0, 0.1), 0.5), ball=((0.7, 1.9, 0.4), 0.3)):
+    """floor_y None: the floor touches the sphere's lowest vertex. disk: a disk light's
+    centre, normal and radius; ball: a sphere light's centre and radius."""
     sphere = icosphere(0, SPHERE_RADIUS)
     floor_y = np.asarray(sphere.vertices)[:, 1].min() + center[1] if floor_y is None else floor_y
     floor = np.array([[-2.0, floor_y, -2.0], [2.0, floor_y, -2.0], [2.0, floor_y, 2.0],
@@ -740,19 +743,31 @@ def shadow_scene(center=(0.0, 0.0, 0.0), floor_y=-1.0, bulb=(-1.0, 1.8, -1.0),
                   fov_y=40.0)
     lights = [point_light(bulb, 0.8, ambient=0.05, shadows=True),
               spot_light(*spot, 0.7, cutoff=40.0, ambient=0.05, shadows=True),
-              directional_light(sun, 0.6, ambient=0.05, shadows=True)]
+              directional_light(sun, 0.6, ambient=0.05, shadows=True),
+              area_light(disk[0], normal=disk[1], radius=disk[2], color=2.0, samples=2,
+                         shadows=True),
+              sphere_light(*ball, 2.0, samples=2, shadows=True)]
     return make_scene(mesh, cam, lights, material(ka=0.2, kd=0.6, ks=0.3, shininess=20.0),
                       global_ambient=0.1)
 
 
 SHADOW_CASES = {
     "shadow_generic": dict(),
-    "light_inside_object": dict(bulb=(0.0, 0.0, 0.0), spot=((0.05, 0.1, 0.0), (0.0, -1.0, 0.0))),
+    "light_inside_object": dict(bulb=(0.0, 0.0, 0.0), spot=((0.05, 0.1, 0.0), (0.0, -1.0, 0.0)),
+                                disk=((0.0, 0.1, 0.0), (0.0, -1.0, 0.1), 0.2),
+                                ball=((0.05, 0.0, 0.05), 0.2)),
     "caster_touching_receiver": dict(floor_y=None),
+    # the area lights' samples straddle the floor's plane, on the sphere's shadow edge
     "grazing_light_on_shadow_edge": dict(bulb=(-3.0, -0.99, 0.1), sun=(1.0, -1e-3, 0.2),
-                                         spot=((-3.0, -0.98, 0.0), (1.0, 0.0, 0.05))),
+                                         spot=((-3.0, -0.98, 0.0), (1.0, 0.0, 0.05)),
+                                         disk=((-3.0, -0.99, 0.1), (1.0, 1e-3, 0.0), 0.3),
+                                         ball=((-3.0, -0.98, 0.0), 0.1)),
     "object_behind_light": dict(bulb=(0.0, 0.0, 3.0), sun=(0.0, 1.0, 0.0),
-                                spot=((0.0, 0.0, 2.0), (0.0, 0.3, 1.0))),
+                                spot=((0.0, 0.0, 2.0), (0.0, 0.3, 1.0)),
+                                disk=((0.0, 0.0, 3.0), (0.0, 0.0, 1.0), 0.5),
+                                ball=((0.0, 0.0, 2.5), 0.3)),
+    "zero_size_area_lights": dict(disk=((-0.8, 2.0, 0.6), (0.2, -1.0, 0.1), 0.0),
+                                  ball=((0.7, 1.9, 0.4), 0.0)),
 }
 
 

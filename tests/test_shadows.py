@@ -12,6 +12,9 @@
   lights' positions and directions, the vertices and kd in soft mode, and render_views
   against a loop of renders.
 - The flag in the Python factories and in scene files, and its bad values.
+- Area and sphere lights with shadows: the penumbrae of a disk and a sphere light against
+  a ray-traced quadrature over each light (SphereOverPlane.floor_irradiance, NumPy
+  ray/sphere tests), and check_grads of soft penumbrae (float64).
 """
 
 import jax
@@ -192,21 +195,32 @@ def test_render_views_with_shadows_equals_a_loop_of_renders():
 def test_scene_files_carry_the_flag_per_light():
     camera = ds.look_at((0.0, 2.6, 3.4), (0.0, -0.6, 0.0), width=8, height=8)
     lights = [ds.point_light(POINT, shadows=True), ds.point_light((1.0, 1.0, 1.0)),
-              ds.directional_light(SUN, shadows=True), ds.spot_light(*SPOT[:2])]
+              ds.directional_light(SUN, shadows=True), ds.spot_light(*SPOT[:2]),
+              ds.area_light(DISK[0], normal=DISK[1], radius=DISK[2]),
+              ds.area_light(DISK[0], normal=DISK[1], radius=DISK[2], shadows=True),
+              ds.sphere_light(*BALL, shadows=True)]
     scene = ds.make_scene(ds.icosphere(0), camera, lights)
     assert scene.lights.point.shadows == (True, False)
     assert scene.lights.directional.shadows == (True,)
     assert scene.lights.spot.shadows == (False,)
+    assert scene.lights.disk.shadows == (False, True)
+    assert scene.lights.sphere.shadows == (True,)
     data = scene_to_dict(scene, ds.RenderSettings(shadow_map_size=64, shadow_bias=2.0))
-    assert [light.get("shadows", False) for light in data["lights"]] == [True, True, False, False]
+    assert [light.get("shadows", False) for light in data["lights"]] == [
+        True, True, False, False, False, True, True]
     again, settings = scene_from_dict(data)
     assert again.lights.point.shadows == (True, False)
+    assert again.lights.disk.shadows == (False, True) and again.lights.sphere.shadows == (True,)
     assert settings.shadow_map_size == 64 and settings.shadow_bias == 2.0
 
 
 @pytest.mark.parametrize("make,message", [
     (lambda: ds.point_light((0, 1, 0), shadows="yes"),
      "shadows: got 'yes'; expected True or False"),
+    (lambda: ds.area_light((0, 1, 0), normal=(0, -1, 0), radius=1.0, shadows=1),
+     "shadows: got 1; expected True or False"),
+    (lambda: ds.sphere_light((0, 1, 0), 0.5, shadows=None),
+     "shadows: got None; expected True or False"),
     (lambda: ds.spot_light((0, 1, 0), (0, -1, 0), cutoff=85.0, shadows=True),
      "cutoff: got 85.0; expected at most 80 degrees for a spot with shadows"),
     (lambda: ds.RenderSettings(shadow_map_size=0), "shadow_map_size: got 0; expected an integer"),
@@ -226,3 +240,81 @@ def test_scene_file_rejects_a_non_boolean_flag():
     expected = r"^lights\[0\].shadows: got 1; expected true or false"
     with pytest.raises(ds.SceneFileError, match=expected):
         scene_from_dict(data)
+
+
+# ------------------------------------------------- area and sphere lights: penumbrae
+
+DISK = ((-0.5, 2.0, -1.0), (0.0, -1.0, 0.0), 0.5)  # centre, emitting normal, radius
+BALL = ((0.5, 2.0, -1.0), 0.4)  # a sphere light: centre, radius
+AREA_POWER, AREA_SIZE, AREA_MAP = 4.0, 40, 64
+# the penumbra's error, per unit of the light's brightest unshadowed floor pixel: mean and
+# max over the penumbra's pixels. Set by the samples (a visible fraction moves in steps of
+# about 1/samples; a sphere's samples cover its whole surface, so about half face a point:
+# it gets 32) and the 64^2 maps. Measured: disk 0.021 and 0.085, sphere 0.029 and 0.155.
+PENUMBRA_TOL = {"disk": (0.04, 0.15), "sphere": (0.05, 0.25)}
+
+
+def penumbra_scene(camera, samples=(16, 32)):
+    """The sphere over the floor under a disk light (red) and a sphere light (green), both
+    with shadows; samples: the disk's and the sphere's."""
+    lights = [ds.area_light(DISK[0], normal=DISK[1], radius=DISK[2], color=rgb(0, AREA_POWER),
+                            samples=samples[0], shadows=True),
+              ds.sphere_light(*BALL, rgb(1, AREA_POWER), samples=samples[1], shadows=True)]
+    return ds.make_scene(GEOMETRY.mesh(2, 4), camera, lights, ds.material(ka=KA, kd=KD, ks=None),
+                         global_ambient=GLOBAL)
+
+
+def test_area_and_sphere_light_penumbrae_match_a_ray_traced_reference():
+    camera = ds.look_at((0.0, 4.5, 3.2), (0.0, -1.0, 0.5), width=AREA_SIZE, height=AREA_SIZE,
+                        fov_y=40.0)
+    settings = ds.RenderSettings(shadow_map_size=AREA_MAP, clamp=False)
+    image = np.asarray(ds.render(penumbra_scene(camera), settings), np.float64)
+    points = GEOMETRY.floor_points(camera)
+    on_floor, _ = GEOMETRY.shadow(camera, ("point", DISK[0]))
+    floor = on_floor & ~near_edge(on_floor, width=1)
+    references = {"disk": ("disk", *DISK), "sphere": ("sphere", *BALL)}
+    for c, (name, light) in enumerate(references.items()):
+        seen, unshadowed = GEOMETRY.floor_irradiance(points, light, nodes=32)
+        want = KA * GLOBAL + KD * AREA_POWER * seen
+        scale = KD * AREA_POWER * unshadowed[floor].max()
+        fraction = seen / np.where(unshadowed > 0, unshadowed, 1.0)
+        penumbra = floor & (fraction > 0.02) & (fraction < 0.98)
+        # the umbra and the fully lit floor: a pixel away from the penumbra (the icosphere
+        # is inscribed in the reference's sphere, and the maps have texels)
+        umbra = floor & (fraction <= 1e-9) & ~near_edge(fraction <= 1e-9, width=1)
+        lit = floor & (fraction >= 1.0 - 1e-9) & ~near_edge(fraction >= 1.0 - 1e-9, width=1)
+        assert penumbra.sum() >= 120 and umbra.sum() >= 10 and lit.sum() >= 250, name
+        error = np.abs(image[..., c] - want)
+        mean_tol, max_tol = PENUMBRA_TOL[name]
+        assert error[penumbra].mean() < mean_tol * scale, (name, error[penumbra].mean() / scale)
+        assert error[penumbra].max() < max_tol * scale, (name, error[penumbra].max() / scale)
+        # the umbra keeps only the ambient term; lit points the unshadowed light (its
+        # samples' estimate of the irradiance: 1% for a disk, exact for a sphere)
+        np.testing.assert_allclose(image[umbra, c], KA * GLOBAL, atol=1e-6, err_msg=name)
+        np.testing.assert_allclose(image[lit, c], want[lit], atol=0.01 * scale, err_msg=name)
+        # the tolerance tells a penumbra from the hard shadow of the light's centre
+        _, hard = GEOMETRY.shadow(camera, ("point", light[1]))
+        hard_error = np.abs(KD * AREA_POWER * unshadowed * ~hard - KD * AREA_POWER * seen)
+        assert hard_error[penumbra].mean() > 2 * mean_tol * scale, name
+
+
+@pytest.mark.usefixtures("x64")
+def test_soft_penumbrae_pass_check_grads_wrt_the_lights_and_geometry():
+    camera = ds.look_at((0.0, 4.5, 3.2), (0.0, -1.0, 0.5), width=12, height=12, fov_y=40.0)
+    scene = ds.replace(penumbra_scene(camera, samples=(2, 2)), mesh=GEOMETRY.mesh(0, 1))
+    weights = jnp.asarray(np.random.default_rng(1).uniform(0.5, 1.5, (12, 12, 4)))
+    lights = scene.lights
+    params = {"disk": lights.disk.center, "radius": lights.disk.radius,
+              "ball": lights.sphere.position, "ball_radius": lights.sphere.radius,
+              "vertices": scene.mesh.vertices}
+
+    def loss(p):
+        groups = ds.replace(lights, disk=ds.replace(lights.disk, center=p["disk"],
+                                                    radius=p["radius"]),
+                            sphere=ds.replace(lights.sphere, position=p["ball"],
+                                              radius=p["ball_radius"]))
+        s = ds.replace(scene, lights=groups, mesh=ds.replace(scene.mesh, vertices=p["vertices"]))
+        return jnp.sum(weights * ds.render(s, TINY_SOFT))
+
+    check_grads(jax.jit(loss), (params,), order=1, modes=("fwd", "rev"), eps=1e-6, atol=1e-5,
+                rtol=1e-5)

@@ -34,6 +34,7 @@ from jax.extend import core as jex_core
 
 from diffshade import (
     RenderSettings,
+    area_light,
     directional_light,
     icosphere,
     look_at,
@@ -44,6 +45,7 @@ from diffshade import (
     render,
     replace,
     scene_object,
+    sphere_light,
     spot_light,
 )
 
@@ -120,6 +122,28 @@ def test_only_soft_raster_compiles_the_sigmoid_coverage():
     hard = primitive_counts(scene_with([SUN]), SETTINGS)
     soft = primitive_counts(scene_with([SUN]), SOFT)
     assert hard["log1p"] == 0 and soft["log1p"] >= 1
+
+
+@RASTERS
+def test_an_area_light_without_shadows_lowers_without_shadow_maps(settings):
+    disk = {"normal": (0.0, 0.0, -1.0), "radius": 0.3, "samples": 4}
+    lights = {"disk": [area_light((0.0, 1.0, 2.0), **disk)],
+              "disk_flag_false": [area_light((0.0, 1.0, 2.0), **disk, shadows=False)],
+              "disk_shadowed": [area_light((0.0, 1.0, 2.0), **disk, shadows=True)],
+              "ball": [sphere_light((0.0, 1.0, 2.0), 0.3, samples=4)],
+              "ball_shadowed": [sphere_light((0.0, 1.0, 2.0), 0.3, samples=4, shadows=True)]}
+    counts = {name: primitive_counts(scene_with(group), settings)
+              for name, group in lights.items()}
+    assert counts["disk_flag_false"] == counts["disk"]
+    for name in ("disk", "ball"):
+        # no rasterization but the camera's
+        assert counts[name]["fragment_geometry_op"] == 1, name
+        # shadows: one more rasterization (every sample's cube map, in a loop), map
+        # lookups (a cube-face argmax) and one more rematerialized loop body (over the
+        # samples' visibilities)
+        added = counts[f"{name}_shadowed"] - counts[name]
+        assert added["fragment_geometry_op"] == 1 and added["argmax"] >= 1, name
+        assert added["remat2"] >= 1, name
 
 
 def barrier_operands(scene, settings=SETTINGS):
