@@ -22,6 +22,7 @@ are timings, which vary from run to run and with the machine's load.
 
 import argparse
 import datetime
+import functools
 import json
 import os
 import sys
@@ -53,7 +54,13 @@ def sphere_scene(subdivisions, size):
 
 
 def reference(size):
-    """(analytic RGBA [H, W, 4], highlight mask [H, W]) for the study's scene."""
+    """(analytic RGBA [H, W, 4], highlight mask [H, W]) for the study's scene, computed once
+    per size and float precision."""
+    return _reference(size, bool(jax.config.jax_enable_x64))
+
+
+@functools.cache
+def _reference(size, x64):
     scene = sphere_scene(1, size)
     settings = ds.RenderSettings()
     ref = np.asarray(render_analytic_sphere(scene, settings, supersample=REFERENCE_SUPERSAMPLE))
@@ -267,7 +274,7 @@ def report(results):
 def report_fitting(rows):
     print("\n== fitting: parameter error (max relative, all coefficients and shininess)")
     for title, columns in FITTING_TABLES:
-        chosen = [r for r in rows if r["study"] in title.split("+")]
+        chosen = [r for r in rows if r["study"] == title]
         if chosen:
             print_table(chosen, columns)
 
