@@ -60,10 +60,9 @@ def plot_fitting(ax, rows):
                 label="Adam, current iterate")
         ax.plot([r["wall_s"] for r in steps], [r["best_rel_error"] for r in steps], "s--",
                 label="Adam, lowest loss so far (what fit returns)")
-    for r in rows:
-        if r["study"] in ("method", "scaling") and r["method"] == "linear":
-            ax.scatter(r["wall_s"], r["max_rel_error"], marker="*", s=120, color="C3",
-                       label="linear solver" if r["study"] == "method" else None)
+    linear = [r for r in rows if r["study"] in ("method", "scaling") and r["method"] == "linear"]
+    ax.scatter([r["wall_s"] for r in linear], [r["max_rel_error"] for r in linear], marker="*",
+               s=120, color="C3", label="linear solver (noise-free targets)")
     _axes(ax, "fitting: parameter error vs wall time", "wall time (s)",
           "max relative error")
     ax.legend(fontsize=7)

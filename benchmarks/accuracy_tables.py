@@ -45,9 +45,11 @@ def with_faces(rows):
 def sections(results):
     measured = results.get("measured", {})
     if measured:
-        yield "Measured (UTC; load average before and after each section):\n\n" + "\n".join(
-            f"- {name}: {m['start_utc']}, {m['minutes']} min, load {m['load_before']} → "
-            f"{m['load_after']}" for name, m in measured.items())
+        yield "When each section was measured:\n\n" + "\n".join(
+            f"- {name}: " + (m["note"] if "note" in m else
+                             f"{m['start_utc']} UTC, {m['minutes']} min, load average "
+                             f"{m['load_before']} before and {m['load_after']} after")
+            for name, m in measured.items())
     mesh = with_faces(sorted(results["mesh"],
                              key=lambda r: (r["size"], r["shading"], r["subdivisions"])))
     yield "### Mesh vs analytic sphere\n\n" + table(mesh, MESH + [("pareto", "Pareto", "{}")])
