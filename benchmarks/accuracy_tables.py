@@ -20,7 +20,7 @@ FITTING_TITLES = {
     "method": "Adam to its stopping rule against the linear solver (same data)",
     "scaling": "the linear solver against resolution and views (noise-free targets)",
     "noise": ("the linear solver on noisy or 8-bit targets against views (median and "
-              "largest error over 5 seeds)"),
+              "largest error over the seeds)"),
     "mismatch": ("targets from a finer mesh and Phong shading than the fit's (linear "
                  "solver, 128², 3 views × 2 lights)"),
     "cache": "the fragment cache (one Adam step, 128², 6 images)",

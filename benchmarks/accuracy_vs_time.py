@@ -290,7 +290,7 @@ FITTING_TABLES = [
                  ("wall_s", "wall s", "{:.2f}"), ("max_rel_error", "max rel err", "{:.1e}"),
                  ("worst", "worst", "{}")]),
     ("noise", [("size", "px", "{}"), ("noise_std", "noise std", "{}"),
-               ("quantized", "8-bit", "{}"), ("views", "views", "{}"),
+               ("quantized", "8-bit", "{}"), ("views", "views", "{}"), ("seeds", "seeds", "{}"),
                ("median_rel_error", "median rel err", "{:.1e}"),
                ("max_rel_error", "max rel err", "{:.1e}"), ("wall_s", "wall s", "{:.2f}")]),
     ("mismatch", [("target", "targets", "{}"), ("subdivisions", "fit subdiv", "{}"),
