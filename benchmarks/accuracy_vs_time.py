@@ -2,7 +2,7 @@
 
     python benchmarks/accuracy_vs_time.py                 # the full study (docs/accuracy-vs-time.md
                                                           # gives its run time)
-    python benchmarks/accuracy_vs_time.py --quick         # a minute or two; CI runs it
+    python benchmarks/accuracy_vs_time.py --quick         # ~1.5 CPU-minutes; CI runs it
     python benchmarks/accuracy_vs_time.py --plots docs/img  # also draw the PNG plots
     python benchmarks/accuracy_vs_time.py --sections fitting --merge  # rerun one section,
                                                           # keep the others in --out
