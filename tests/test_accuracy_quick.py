@@ -69,8 +69,9 @@ def test_published_errors_reproduce(quick):
     for row in results["mesh"]:
         published = _published("mesh", row, ("subdivisions", "shading", "size"))
         for key in ("rmse_255", "max_255", "highlight_rmse_255"):
-            # float32 renders: rounding moves these by far less than 1e-3 (of 1/255)
-            assert row[key] == pytest.approx(published[key], abs=1e-3), (row, key)
+            # float32 rounding moves these by up to ~1e-5 relative between runs (a max of
+            # 95.2746 once and 95.2757 once): rel 1e-4 keeps every printed digit
+            assert row[key] == pytest.approx(published[key], rel=1e-4, abs=1e-4), (row, key)
     for row in (r for r in results["fitting"] if r["study"] == "noise"):
         published = _published("fitting", row, ("study", "size", "views", "noise_std",
                                                 "quantized", "seeds"))
