@@ -2,16 +2,29 @@
 
 Parameter error against the known truth, as a function of what it costs: optimizer steps
 (Adam) and wall time, the linear-coefficient solver, image resolution, number of views,
-and the per-step time with and without the fragment cache. The error of a fit is the
-largest relative error over every fitted coefficient channel and shininess.
+noisy and 8-bit targets, targets rendered by a finer mesh or another shading than the
+fit's, the per-step time with and without the fragment cache, and the compile time of a
+fresh process. The error of a fit is the largest relative error over every fitted
+coefficient channel and shininess ('worst' names that parameter).
+
+Every error is deterministic: datasets come from fixed seeds (SEED, NOISE_SEEDS), fits
+start from fitting.DEFAULT_INIT and run a fixed number of steps or to their stopping
+rule, in a fixed order. The columns ending in _s or _ms are timings and vary from run to
+run (and with the machine's load).
 """
 
+import dataclasses
+import json
+import os
+import subprocess
+import sys
 import time
 
 import jax
 import numpy as np
 from fit_step import time_step
 
+import diffshade as ds
 from data_synth import make_dataset
 from fitting import (
     DEFAULT_INIT,
@@ -27,66 +40,122 @@ from fitting import (
 )
 
 SEED = 3
+NOISE_SEEDS = (3, 4, 5, 6, 7)
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def material_errors(material, truth):
+    """{parameter: largest relative error over its channels} for ka, kd, ks, shininess."""
+    return {name: float(np.max(np.abs(np.asarray(getattr(material, name), np.float64)
+                                      - np.asarray(getattr(truth, name), np.float64))
+                               / np.abs(np.asarray(getattr(truth, name), np.float64))))
+            for name in ("ka", "kd", "ks", "shininess")}
 
 
 def material_error(material, truth):
     """Largest relative error over ka, kd, ks (per channel) and shininess."""
-    worst = 0.0
-    for name in ("ka", "kd", "ks", "shininess"):
-        fitted = np.asarray(getattr(material, name), np.float64)
-        true = np.asarray(getattr(truth, name), np.float64)
-        worst = max(worst, float(np.max(np.abs(fitted - true) / np.abs(true))))
-    return worst
+    return max(material_errors(material, truth).values())
 
 
-def timed_fit(dataset, **kwargs):
-    """(result, compile_s): an untimed warm-up fit first compiles everything, so the
-    result's wall_time is the steady-state time of a fit (cache building included)."""
-    start = time.perf_counter()
-    fit(dataset, with_uncertainty=False, **{**kwargs, "steps": 2})
-    compile_s = time.perf_counter() - start
-    return fit(dataset, with_uncertainty=False, **kwargs), compile_s
+def error_columns(material, truth):
+    """max_rel_error and the parameter it comes from ('worst')."""
+    errors = material_errors(material, truth)
+    worst = max(errors, key=errors.get)
+    return {"max_rel_error": errors[worst], "worst": worst}
 
 
 def steps_rows(dataset, checkpoints):
-    """Adam: parameter error and wall time after each checkpoint step count."""
+    """Adam with a fixed step budget (no stopping rule): at each checkpoint the error of
+    the current iterate and of the lowest-loss parameters seen so far (what `fit`
+    returns when its budget ends there), the loss of the current iterate, and wall time."""
     fit(dataset, method="adam", steps=2, with_uncertainty=False)
     rows, start = [], time.perf_counter()
+    seen = {"previous": DEFAULT_INIT, "best": None, "best_loss": np.inf}
 
     def record(step, loss, material):
+        # loss is the loss of the parameters before this step (the previous iterate)
+        if loss < seen["best_loss"]:
+            seen["best"], seen["best_loss"] = seen["previous"], float(loss)
+        seen["previous"] = material
         if step + 1 in checkpoints:
             rows.append({"study": "steps", "method": "adam", "steps": step + 1,
-                         "wall_s": time.perf_counter() - start,
-                         "max_rel_error": material_error(material, dataset.truth)})
+                         "wall_s": time.perf_counter() - start, "loss": float(loss),
+                         "max_rel_error": material_error(material, dataset.truth),
+                         "best_rel_error": material_error(seen["best"], dataset.truth)})
         return False
     fit(dataset, method="adam", steps=max(checkpoints), tol=0.0, atol=0.0,
         with_uncertainty=False, callback=record)
     return rows
 
 
-def method_rows(dataset, adam_steps):
-    """Adam (to convergence or adam_steps) versus the linear-coefficient solver."""
+def timed_fit(dataset, **kwargs):
+    """A fit's result after an untimed warm-up fit of 2 steps (which compiles it), so that
+    result.wall_time is the steady-state time of a fit (cache building included)."""
+    fit(dataset, with_uncertainty=False, **{**kwargs, "steps": 2})
+    return fit(dataset, with_uncertainty=False, **kwargs)
+
+
+def method_rows(dataset):
+    """Adam to its stopping rule versus the linear-coefficient solver."""
     rows = []
-    for method, steps in (("adam", adam_steps), ("linear", None)):
-        result, compile_s = timed_fit(dataset, method=method, steps=steps)
+    for method in ("adam", "linear"):
+        result = timed_fit(dataset, method=method)
         rows.append({"study": "method", "method": method, "steps": result.n_steps,
-                     "wall_s": result.wall_time, "compile_s": compile_s,
-                     "max_rel_error": material_error(result.material, dataset.truth)})
+                     "wall_s": result.wall_time, **error_columns(result.material,
+                                                                 dataset.truth)})
     return rows
 
 
-def scaling_rows(sizes, views, quantize):
+def scaling_rows(sizes, views):
     """The linear solver's error and wall time against resolution and number of views."""
     rows = []
     for size in sizes:
         for n_views in views:
-            dataset = make_dataset(n_views=n_views, size=size, seed=SEED,
-                                   quantize_8bit=quantize)
-            result, compile_s = timed_fit(dataset, method="linear")
+            dataset = make_dataset(n_views=n_views, size=size, seed=SEED)
+            result = timed_fit(dataset, method="linear")
             rows.append({"study": "scaling", "method": "linear", "size": size,
-                         "views": n_views, "quantized": quantize, "wall_s": result.wall_time,
-                         "compile_s": compile_s,
-                         "max_rel_error": material_error(result.material, dataset.truth)})
+                         "views": n_views, "wall_s": result.wall_time,
+                         **error_columns(result.material, dataset.truth)})
+    return rows
+
+
+def noise_rows(size, views, conditions, seeds=NOISE_SEEDS):
+    """The linear solver on degraded targets against the number of views: per condition
+    (noise_std, 8-bit) and view count, the median and the largest error over `seeds`
+    (each seed draws its own material and noise)."""
+    rows = []
+    for noise_std, quantize in conditions:
+        for n_views in views:
+            errors, walls = [], []
+            for seed in seeds:
+                dataset = make_dataset(n_views=n_views, size=size, seed=seed,
+                                       noise_std=noise_std, quantize_8bit=quantize)
+                result = fit(dataset, method="linear", with_uncertainty=False)
+                errors.append(material_error(result.material, dataset.truth))
+                walls.append(result.wall_time)
+            rows.append({"study": "noise", "method": "linear", "size": size,
+                         "views": n_views, "noise_std": noise_std, "quantized": quantize,
+                         "seeds": len(seeds), "median_rel_error": float(np.median(errors)),
+                         "max_rel_error": float(np.max(errors)),
+                         "wall_s": float(np.median(walls))})
+    return rows
+
+
+def mismatch_rows(size, target_level, fitted):
+    """Targets rendered from an icosphere of subdivision `target_level` with Phong
+    shading, fitted (linear solver) with the coarser meshes and shadings of `fitted`
+    ((subdivisions, shading) pairs): the model error a fit meets on real data."""
+    target = make_dataset(shape=ds.icosphere(target_level), size=size, seed=SEED,
+                          shading="phong")
+    rows = []
+    for level, shading in fitted:
+        dataset = dataclasses.replace(target, mesh=ds.icosphere(level),
+                                      settings=ds.RenderSettings(shading=shading))
+        result = timed_fit(dataset, method="linear")
+        rows.append({"study": "mismatch", "method": "linear", "size": size,
+                     "target": f"subdiv {target_level} phong", "subdivisions": level,
+                     "shading": shading, "wall_s": result.wall_time,
+                     **error_columns(result.material, dataset.truth)})
     return rows
 
 
@@ -101,22 +170,64 @@ def cache_rows(dataset, runs):
                              ("full_render", make_render_loss(spec),
                               render_data(dataset, cached))):
         first, times = time_step(make_step(loss, optimizer), params, state, data, runs, 3)
-        rows.append({"study": "cache", "path": name, "compile_s": first,
+        rows.append({"study": "cache", "path": name, "first_call_s": first,
                      "step_ms": float(np.median(times) * 1e3)})
     return rows
 
 
+# One fit from a fresh interpreter: argv = method size; prints one JSON line.
+_FRESH = """
+import json, sys, time
+start = time.perf_counter()
+from data_synth import make_dataset
+from fitting import fit
+imported = time.perf_counter()
+dataset = make_dataset(size=int(sys.argv[2]), seed=int(sys.argv[3]))
+made = time.perf_counter()
+times = []
+for _ in range(2):
+    t = time.perf_counter()
+    fit(dataset, method=sys.argv[1], with_uncertainty=False)
+    times.append(time.perf_counter() - t)
+print(json.dumps({"import_s": imported - start, "dataset_s": made - imported,
+                  "first_fit_s": times[0], "second_fit_s": times[1]}))
+"""
+
+
+def fresh_rows(size, methods):
+    """Compile time of a fit in a fresh process with the persistent compilation cache off
+    (DIFFSHADE_COMPILE_CACHE=0; numba's kernel cache stays as installed): the first fit
+    (compile + run) less the second (run) of the same dataset, with import and dataset
+    times (the targets' render compiles there) beside it."""
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    env.update(DIFFSHADE_COMPILE_CACHE="0",
+               PYTHONPATH=os.pathsep.join(p for p in (ROOT, env.get("PYTHONPATH")) if p))
+    rows = []
+    for method in methods:
+        out = subprocess.run([sys.executable, "-c", _FRESH, method, str(size), str(SEED)],
+                             env=env, cwd=ROOT, capture_output=True, text=True, check=True)
+        times = json.loads(out.stdout.strip().splitlines()[-1])
+        rows.append({"study": "fresh", "method": method, "size": size, **times,
+                     "compile_s": times["first_fit_s"] - times["second_fit_s"]})
+    return rows
+
+
 def fitting_study(quick=False):
-    """All fitting rows (quick: a seconds-long subset)."""
-    size = 48 if quick else 128
-    dataset = make_dataset(size=size, seed=SEED)
-    checkpoints = (10, 50) if quick else (10, 30, 100, 300, 1000, 3000)
-    rows = steps_rows(dataset, set(checkpoints))
-    rows += method_rows(dataset, max(checkpoints))
-    sizes, views = ((32,), (1, 3)) if quick else ((32, 64, 128, 256), (1, 2, 3, 5))
-    rows += scaling_rows(sizes, views, quantize=False)
-    if not quick:
-        rows += scaling_rows((64, 128), (3,), quantize=True)
-    rows += cache_rows(dataset, 5 if quick else 50)
+    """All fitting rows (quick: a subset whose error rows are also full-study rows)."""
+    if quick:
+        rows = scaling_rows((32,), (1,))
+        rows += noise_rows(32, (1,), ((0.0, True),), seeds=NOISE_SEEDS[:1])
+        jax.clear_caches()
+        return rows
+    dataset = make_dataset(size=128, seed=SEED)
+    rows = steps_rows(dataset, {10, 30, 100, 300, 1000, 3000})
+    rows += method_rows(dataset)
+    rows += cache_rows(dataset, 50)
+    rows += scaling_rows((32, 64, 128, 256), (1, 2, 4, 8))
+    rows += noise_rows(128, (1, 2, 4, 8), ((0.0, True), (0.01, False), (0.03, False)))
+    rows += noise_rows(32, (1,), ((0.0, True),), seeds=NOISE_SEEDS[:1])  # the quick row
+    rows += mismatch_rows(128, 6, [(level, shading) for shading in ("gouraud", "phong")
+                                   for level in (2, 3, 4, 5)])
+    rows += fresh_rows(128, ("linear", "adam"))
     jax.clear_caches()
     return rows

@@ -53,15 +53,39 @@ def plot_generic(ax, rows, label_keys, title, error_key="rmse_255", time_key="fw
 
 
 def plot_fitting(ax, rows):
+    """Adam's error at its checkpoints (iterate and best loss) and the linear solver's."""
     steps = sorted((r for r in rows if r["study"] == "steps"), key=lambda r: r["wall_s"])
-    ax.plot([r["wall_s"] for r in steps], [r["max_rel_error"] for r in steps], "o-",
-            label="Adam (checkpoints)")
-    for r in rows:
-        if r["study"] == "method" and r["method"] == "linear":
-            ax.scatter(r["wall_s"], r["max_rel_error"], marker="*", s=120, color="C3",
-                       label="linear solver")
+    if steps:
+        ax.plot([r["wall_s"] for r in steps], [r["max_rel_error"] for r in steps], "o-",
+                label="Adam, current iterate")
+        ax.plot([r["wall_s"] for r in steps], [r["best_rel_error"] for r in steps], "s--",
+                label="Adam, lowest loss so far (what fit returns)")
+    linear = [r for r in rows if r["study"] in ("method", "scaling") and r["method"] == "linear"]
+    ax.scatter([r["wall_s"] for r in linear], [r["max_rel_error"] for r in linear], marker="*",
+               s=120, color="C3", label="linear solver (noise-free targets)")
     _axes(ax, "fitting: parameter error vs wall time", "wall time (s)",
           "max relative error")
+    ax.legend(fontsize=7)
+
+
+def plot_noise(ax, rows):
+    """The linear solver's median error against the number of views, per target kind."""
+    for key in sorted({(r["size"], r["noise_std"], r["quantized"]) for r in rows
+                       if r["study"] == "noise"}):
+        sel = sorted((r for r in rows if r["study"] == "noise"
+                      and (r["size"], r["noise_std"], r["quantized"]) == key),
+                     key=lambda r: r["views"])
+        size, noise, quantized = key
+        label = f"{size}px " + ("8-bit" if quantized else f"noise {noise}")
+        ax.plot([r["views"] for r in sel], [r["median_rel_error"] for r in sel], "o-",
+                label=label)
+    clean = sorted((r for r in rows if r["study"] == "scaling" and r["size"] == 128),
+                   key=lambda r: r["views"])
+    if clean:
+        ax.plot([r["views"] for r in clean], [r["max_rel_error"] for r in clean], "k:",
+                label="128px noise-free")
+    _axes(ax, "fitting: error vs views (linear solver)", "views (× 2 lights)",
+          "median max relative error")
     ax.legend(fontsize=7)
 
 
@@ -79,6 +103,7 @@ def draw_all(results, folder):
                                                "fwd_bwd_ms"))]
     if "fitting" in results:
         panels.append(("fitting", lambda ax: plot_fitting(ax, results["fitting"])))
+        panels.append(("noise", lambda ax: plot_noise(ax, results["fitting"])))
     for name, draw in panels:
         # a bare Figure needs no GUI backend (scripts, CI, notebooks alike)
         fig = Figure(figsize=(6, 4.5), dpi=120)

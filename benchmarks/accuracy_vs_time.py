@@ -1,8 +1,11 @@
 """What accuracy costs in time: rendering and fitting settings against ground truth.
 
-    python benchmarks/accuracy_vs_time.py                 # the full study (tens of minutes)
-    python benchmarks/accuracy_vs_time.py --quick         # seconds; CI runs this
+    python benchmarks/accuracy_vs_time.py                 # the full study (docs/accuracy-vs-time.md
+                                                          # gives its run time)
+    python benchmarks/accuracy_vs_time.py --quick         # ~1.5 CPU-minutes; CI runs it
     python benchmarks/accuracy_vs_time.py --plots docs/img  # also draw the PNG plots
+    python benchmarks/accuracy_vs_time.py --sections fitting --merge  # rerun one section,
+                                                          # keep the others in --out
 
 Rendering error is measured against an analytic sphere (diffshade.analytic: the exact
 ray-sphere intersection, shaded with the exact normal by the same lighting core),
@@ -11,9 +14,17 @@ errors are all visible. Errors are in 1/255 units: RMSE over the image, the maxi
 absolute error, and the RMSE inside the highlights (pixels where the reference's specular
 part exceeds 0.05). Times are steady-state medians after warm-up, compile reported
 separately; 'fwd+bwd' is the gradient of an MSE loss with respect to the material.
+
+Every error column is deterministic (no random input; fixed seeds in the fitting study)
+and reproduces to the printed digit on the same machine; the columns ending in _s or _ms
+are timings, which vary from run to run and with the machine's load.
 """
 
 import argparse
+import datetime
+import functools
+import json
+import os
 import sys
 from pathlib import Path
 
@@ -43,7 +54,13 @@ def sphere_scene(subdivisions, size):
 
 
 def reference(size):
-    """(analytic RGBA [H, W, 4], highlight mask [H, W]) for the study's scene."""
+    """(analytic RGBA [H, W, 4], highlight mask [H, W]) for the study's scene, computed once
+    per size and float precision."""
+    return _reference(size, bool(jax.config.jax_enable_x64))
+
+
+@functools.cache
+def _reference(size, x64):
     scene = sphere_scene(1, size)
     settings = ds.RenderSettings()
     ref = np.asarray(render_analytic_sphere(scene, settings, supersample=REFERENCE_SUPERSAMPLE))
@@ -182,7 +199,9 @@ MESH_COLUMNS = [("subdivisions", "subdiv", "{}"), ("shading", "shading", "{}"),
 
 def configs(quick):
     if quick:
-        return {"levels": (1, 3, 5), "modes": ("phong",), "sizes": (48,), "ss_sizes": (48,),
+        # the mesh rows are rows of the full study too (tests/test_accuracy_quick.py
+        # compares them with the published ones)
+        return {"levels": (1, 3, 5), "modes": ("phong",), "sizes": (64,), "ss_sizes": (48,),
                 "factors": (1, 2), "sigmas": (0.5,), "gammas": (1e-4,), "ks": (4,),
                 "precision_sizes": (48,), "repeats": 2}
     return {"levels": (1, 2, 3, 4, 5, 6), "modes": ("flat", "gouraud", "phong"),
@@ -191,36 +210,59 @@ def configs(quick):
             "precision_sizes": (128, 256), "repeats": 5}
 
 
-def run(quick=False, fitting_study=None):
-    """All rendering studies (and the fitting study when given): a dict of row lists."""
+SECTIONS = ("mesh", "supersample", "soft", "precision", "fitting")
+
+
+def run(quick=False, fitting_study=None, sections=SECTIONS):
+    """The rendering studies and the fitting study (when given) named in `sections`: a
+    dict of row lists, and under "measured" when and under what load each section ran."""
     c = configs(quick)
-    results = {
-        "mesh": pareto(mesh_rows(c["levels"], c["modes"], c["sizes"], c["repeats"])),
-        "supersample": supersample_rows(5, c["ss_sizes"], c["factors"], c["repeats"]),
-        "soft": soft_rows(4, c["ss_sizes"][0], c["sigmas"], c["gammas"], c["ks"],
-                          c["repeats"]),
-        "precision": precision_rows(5, c["precision_sizes"], c["repeats"]),
+    studies = {
+        "mesh": lambda: pareto(mesh_rows(c["levels"], c["modes"], c["sizes"], c["repeats"])),
+        "supersample": lambda: supersample_rows(5, c["ss_sizes"], c["factors"], c["repeats"]),
+        "soft": lambda: soft_rows(4, c["ss_sizes"][0], c["sigmas"], c["gammas"], c["ks"],
+                                  c["repeats"]),
+        "precision": lambda: precision_rows(5, c["precision_sizes"], c["repeats"]),
+        "fitting": None if fitting_study is None else lambda: fitting_study(quick),
     }
-    if fitting_study is not None:
-        results["fitting"] = fitting_study(quick)
+    results, measured = {}, {}
+    for name in sections:
+        if studies[name] is None:
+            continue
+        start, load = datetime.datetime.now(datetime.UTC), os.getloadavg()[0]
+        results[name] = studies[name]()
+        measured[name] = {"start_utc": start.strftime("%Y-%m-%d %H:%M"),
+                          "minutes": round((datetime.datetime.now(datetime.UTC) - start)
+                                           .total_seconds() / 60, 1),
+                          "load_before": round(load, 1),
+                          "load_after": round(os.getloadavg()[0], 1)}
+    results["measured"] = measured
     return results
 
 
 def report(results):
-    print("\n== mesh: subdivision x shading x resolution vs the analytic sphere")
-    print_table(results["mesh"], MESH_COLUMNS + [("pareto", "pareto", "{}")])
-    print("\n== supersampling (anti-aliased silhouettes)")
-    print_table(results["supersample"], [("size", "size", "{}"), ("factor", "factor", "{}"),
-                                         ("silhouette_rmse_255", "silhouette/255", "{:.2f}")]
-                + MESH_COLUMNS[3:])
-    print("\n== soft rasterization (Phong): against the hard image and the analytic sphere")
-    print_table(results["soft"], [("sigma", "sigma px2", "{}"), ("gamma", "gamma", "{}"),
-                                  ("K", "K", "{}"), ("vs_hard_rmse_255", "vs hard/255",
-                                                     "{:.2f}")] + MESH_COLUMNS[3:])
-    print("\n== float32 vs float64")
-    print_table(results["precision"], [("dtype", "dtype", "{}")] + MESH_COLUMNS[2:])
+    if "mesh" in results:
+        print("\n== mesh: subdivision x shading x resolution vs the analytic sphere")
+        print_table(results["mesh"], MESH_COLUMNS + [("pareto", "pareto", "{}")])
+    if "supersample" in results:
+        print("\n== supersampling (anti-aliased silhouettes)")
+        print_table(results["supersample"], [("size", "size", "{}"),
+                                             ("factor", "factor", "{}"),
+                                             ("silhouette_rmse_255", "silhouette/255",
+                                              "{:.2f}")] + MESH_COLUMNS[3:])
+    if "soft" in results:
+        print("\n== soft rasterization (Phong): against the hard image and the analytic "
+              "sphere")
+        print_table(results["soft"], [("sigma", "sigma px2", "{}"), ("gamma", "gamma", "{}"),
+                                      ("K", "K", "{}"), ("vs_hard_rmse_255", "vs hard/255",
+                                                         "{:.2f}")] + MESH_COLUMNS[3:])
+    if "precision" in results:
+        print("\n== float32 vs float64")
+        print_table(results["precision"], [("dtype", "dtype", "{}")] + MESH_COLUMNS[2:])
     if "fitting" in results:
         report_fitting(results["fitting"])
+    if "mesh" not in results or "supersample" not in results:
+        return
     for bound in (1.0, 2.0):
         best = cheapest_within(results["mesh"] + results["supersample"], bound)
         text = ("none" if best is None else
@@ -230,19 +272,37 @@ def report(results):
 
 
 def report_fitting(rows):
-    by = lambda study: [r for r in rows if r["study"] == study]
     print("\n== fitting: parameter error (max relative, all coefficients and shininess)")
-    print_table(by("steps") + by("method"), [("study", "study", "{}"),
-                                             ("method", "method", "{}"),
-                                             ("steps", "steps", "{}"),
-                                             ("wall_s", "wall s", "{:.2f}"),
-                                             ("max_rel_error", "max rel err", "{:.2e}")])
-    print_table(by("scaling"), [("size", "size", "{}"), ("views", "views", "{}"),
-                                ("quantized", "8-bit", "{}"), ("wall_s", "wall s", "{:.2f}"),
-                                ("compile_s", "compile s", "{:.1f}"),
-                                ("max_rel_error", "max rel err", "{:.2e}")])
-    print_table(by("cache"), [("path", "loss path", "{}"), ("step_ms", "step ms", "{:.2f}"),
-                              ("compile_s", "compile s", "{:.2f}")])
+    for title, columns in FITTING_TABLES:
+        chosen = [r for r in rows if r["study"] == title]
+        if chosen:
+            print_table(chosen, columns)
+
+
+FITTING_TABLES = [
+    ("steps", [("steps", "steps", "{}"), ("wall_s", "wall s", "{:.2f}"),
+               ("loss", "loss", "{:.1e}"), ("max_rel_error", "iterate err", "{:.1e}"),
+               ("best_rel_error", "best-loss err", "{:.1e}")]),
+    ("method", [("method", "method", "{}"), ("steps", "steps", "{}"),
+                ("wall_s", "wall s", "{:.2f}"), ("max_rel_error", "max rel err", "{:.1e}"),
+                ("worst", "worst", "{}")]),
+    ("scaling", [("size", "px", "{}"), ("views", "views", "{}"),
+                 ("wall_s", "wall s", "{:.2f}"), ("max_rel_error", "max rel err", "{:.1e}"),
+                 ("worst", "worst", "{}")]),
+    ("noise", [("size", "px", "{}"), ("noise_std", "noise std", "{}"),
+               ("quantized", "8-bit", "{}"), ("views", "views", "{}"), ("seeds", "seeds", "{}"),
+               ("median_rel_error", "median rel err", "{:.1e}"),
+               ("max_rel_error", "max rel err", "{:.1e}"), ("wall_s", "wall s", "{:.2f}")]),
+    ("mismatch", [("target", "targets", "{}"), ("subdivisions", "fit subdiv", "{}"),
+                  ("shading", "fit shading", "{}"), ("wall_s", "wall s", "{:.2f}"),
+                  ("max_rel_error", "max rel err", "{:.1e}"), ("worst", "worst", "{}")]),
+    ("cache", [("path", "loss path", "{}"), ("step_ms", "step ms", "{:.1f}"),
+               ("first_call_s", "first call s", "{:.1f}")]),
+    ("fresh", [("method", "method", "{}"), ("size", "px", "{}"),
+               ("import_s", "import s", "{:.1f}"), ("dataset_s", "dataset s", "{:.1f}"),
+               ("first_fit_s", "first fit s", "{:.1f}"),
+               ("second_fit_s", "second fit s", "{:.1f}"), ("compile_s", "compile s", "{:.1f}")]),
+]
 
 
 def main(argv=None):
@@ -251,15 +311,31 @@ def main(argv=None):
     parser.add_argument("--out", default="benchmarks/results/accuracy_vs_time.json")
     parser.add_argument("--plots", default=None, help="folder for the PNG plots")
     parser.add_argument("--no-fitting", action="store_true", help="skip the fitting study")
+    parser.add_argument("--sections", default=",".join(SECTIONS),
+                        help=f"comma-separated sections to run (default: all of {SECTIONS})")
+    parser.add_argument("--merge", action="store_true",
+                        help="keep the other sections of the existing --out file")
     args = parser.parse_args(argv)
+    sections = [s for s in args.sections.split(",") if s]
+    unknown = [s for s in sections if s not in SECTIONS]
+    if unknown:
+        parser.error(f"--sections: got {unknown}; expected names from {SECTIONS}")
     study = None
     if not args.no_fitting:
         from accuracy_fitting import fitting_study
         study = fitting_study
-    results = run(args.quick, study)
-    report(results)
+    results = run(args.quick, study, sections)
+    if args.merge and os.path.exists(args.out):
+        with open(args.out, encoding="utf-8") as file:
+            old = json.load(file)
+        if old.get("quick") != args.quick:
+            parser.error(f"--merge: {args.out} has quick={old.get('quick')}; this run has "
+                         f"quick={args.quick}")
+        results = {**{k: old[k] for k in SECTIONS if k in old and k not in results},
+                   **results, "measured": {**old.get("measured", {}), **results["measured"]}}
     write_results(args.out, {"benchmark": "accuracy_vs_time", "quick": args.quick,
                              "reference_supersample": REFERENCE_SUPERSAMPLE, **results})
+    report(results)
     if args.plots:
         from accuracy_plots import draw_all
         draw_all(results, args.plots)

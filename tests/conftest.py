@@ -97,21 +97,40 @@ def cost(item):
     return float(marker.args[0]) if marker else None
 
 
+def module_cost(item):
+    """A module marked as a whole (`pytestmark = pytest.mark.cost(s)`: its tests share a
+    costly module fixture) is dealt as one unit of that cost."""
+    marks = getattr(getattr(item, "module", None), "pytestmark", [])
+    marks = marks if isinstance(marks, list) else [marks]
+    return next((float(m.args[0]) for m in marks if m.name == "cost"), None)
+
+
 def deal(items, workers):
     """`items` reordered so that each worker's share starts with its marked tests."""
-    marked = sorted((i for i in items if cost(i) is not None), key=cost, reverse=True)
-    unmarked = [i for i in items if cost(i) is None]
+    units, seen = [], {}
+    for item in items:
+        if module_cost(item) is not None:
+            key = item.module.__name__
+            if key not in seen:
+                seen[key] = len(units)
+                units.append(([], module_cost(item)))
+            units[seen[key]][0].append(item)
+        elif cost(item) is not None:
+            units.append(([item], cost(item)))
+    units.sort(key=lambda unit: unit[1], reverse=True)
+    dealt = {id(i) for unit, _ in units for i in unit}
+    unmarked = [i for i in items if id(i) not in dealt]
     sizes = xdist_shares(len(items), workers)
     heads, load = [[] for _ in sizes], [0.0] * len(sizes)
-    for item in marked:
-        k = min((k for k in range(len(sizes)) if len(heads[k]) < sizes[k]),
-                key=lambda k: load[k])
-        heads[k].append(item)
-        load[k] += cost(item)
+    for unit, seconds in units:
+        k = min((k for k in range(len(sizes)) if len(heads[k]) + len(unit) <= sizes[k]),
+                key=lambda k: load[k], default=int(np.argmin(load)))
+        heads[k] += unit
+        load[k] += seconds
     ordered, rest = [], iter(unmarked)
     for head, size in zip(heads, sizes, strict=True):
-        ordered += head + [next(rest) for _ in range(size - len(head))]
-    return ordered
+        ordered += head + [next(rest) for _ in range(max(0, size - len(head)))]
+    return ordered + list(rest)
 
 
 def pytest_collection_modifyitems(config, items):

@@ -4,7 +4,6 @@ import itertools
 from types import SimpleNamespace
 
 import pytest
-
 from conftest import deal, xdist_shares
 
 
@@ -39,3 +38,16 @@ def test_marked_tests_lead_each_share_and_balance_their_cost():
     best = min(abs(sum(c for c, s in zip(costs, side, strict=True) if s) * 2 - sum(costs))
                for side in itertools.product([0, 1], repeat=4))
     assert abs(245 - 190) == best
+
+
+def test_a_module_marked_as_a_whole_is_dealt_as_one_unit():
+    shared = SimpleNamespace(__name__="test_shared", pytestmark=[
+        SimpleNamespace(name="cost", args=(80,))])
+    together = [item(f"s{i}") for i in range(3)]
+    for t in together:
+        t.module = shared
+        t.get_closest_marker = lambda _, m=shared.pytestmark[0]: m
+    light = [item(f"t{i}") for i in range(9)]
+    ordered = deal(light[:4] + [item("h100", 100)] + together + light[4:], 2)
+    names = [i.name for i in ordered]
+    assert names[:1] == ["h100"] and names[6:9] == ["s0", "s1", "s2"]

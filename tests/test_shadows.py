@@ -298,6 +298,7 @@ def test_area_and_sphere_light_penumbrae_match_a_ray_traced_reference():
         assert hard_error[penumbra].mean() > 2 * mean_tol * scale, name
 
 
+@pytest.mark.cost(90)
 @pytest.mark.usefixtures("x64")
 def test_soft_penumbrae_pass_check_grads_wrt_the_lights_and_geometry():
     camera = ds.look_at((0.0, 4.5, 3.2), (0.0, -1.0, 0.5), width=12, height=12, fov_y=40.0)
