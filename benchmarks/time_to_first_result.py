@@ -24,7 +24,9 @@ and writing the result files), read from JAX's compile log (JAX_LOG_COMPILES). T
 of a jitted function nested in another is counted in both, so the tracing figure is an
 upper bound; in the cold run, "rest" includes numba compiling the host kernels. It also
 counts the programs loaded from the cache and those JAX refuses to
-cache because they contain host callbacks (diffshade.compile_cache explains why).
+cache because they contain host callbacks (diffshade.compile_cache explains why), and
+lists the seconds per program (by its name in the log; wall seconds, so they grow with
+the machine's load).
 Writes JSON (default benchmarks/results/time_to_first_result.json).
 """
 
@@ -67,6 +69,11 @@ _PHASES = {"tracing_s": "Finished tracing " + ".*" + _SECONDS,
            "lowering_s": "Finished jaxpr to MLIR module conversion .*" + _SECONDS,
            "compile_or_load_s": "Finished XLA compilation of .*" + _SECONDS}
 
+# The same, per program (its name in the log): tracing, lowering, compilation seconds.
+_PER_PROGRAM = {"tracing_s": r"Finished tracing (\S+) for jit" + _SECONDS,
+                "lowering_s": r"Finished jaxpr to MLIR module conversion jit\((\S+)\)" + _SECONDS,
+                "compile_s": r"Finished XLA compilation of jit\((\S+)\)" + _SECONDS}
+
 
 def _env(cache_dir, numba_dir):
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(
@@ -108,12 +115,22 @@ def run_instrumented(args, cwd, cache_dir, numba_dir):
     log = run["log"]
     phases = {name: sum(float(m.group(1)) for line in log if (m := re.search(pattern, line)))
               for name, pattern in _PHASES.items()}
+    per_program = {}
+    for line in log:
+        for key, pattern in _PER_PROGRAM.items():
+            if m := re.search(pattern, line):
+                row = per_program.setdefault(m.group(1), {"count": 0, "tracing_s": 0.0,
+                                                          "lowering_s": 0.0, "compile_s": 0.0})
+                row[key] += float(m.group(2))
+                row["count"] += key == "compile_s"
     no_cache = sorted({m.group(1) for line in log if "because it uses host callbacks" in line
                        and (m := re.search(r"entry for '([^']+)'", line))})
     return {"wall_s": wall, "interpreter_start_s": wall - run["total_s"],
             "imports_s": run["imports_s"], **phases,
             "rest_s": run["total_s"] - run["imports_s"] - sum(phases.values()),
             "programs": sum("Finished XLA compilation" in line for line in log),
+            "by_program": dict(sorted(per_program.items(),
+                                      key=lambda item: -item[1]["compile_s"])),
             "cache_hits": sum("Persistent compilation cache hit" in line for line in log),
             "not_cacheable_host_callbacks": no_cache}
 
@@ -162,7 +179,12 @@ def main():
         print(f"fit {kind}: " + ", ".join(f"{k[:-2]} {v:.2f} s" for k, v in row.items()
                                            if k.endswith("_s")))
         print(f"  {row['programs']} programs, {row['cache_hits']} from the cache; "
-              f"not cacheable (host callbacks): {', '.join(row['not_cacheable_host_callbacks'])}")
+              f"not cacheable (host callbacks): "
+              f"{', '.join(row['not_cacheable_host_callbacks']) or 'none'}")
+        print("  per program (name x count: compile, lowering, tracing seconds): " + "; ".join(
+            f"{name} x{p['count']}: {p['compile_s']:.2f}, {p['lowering_s']:.2f}, "
+            f"{p['tracing_s']:.2f}" for name, p in row["by_program"].items()
+            if p["compile_s"] + p["lowering_s"] + p["tracing_s"] >= 0.05))
     print("load average before / after:", results["load_average_before"],
           results["load_average_after"])
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))

@@ -11,6 +11,12 @@ Callbacks run one at a time (a lock): XLA may start independent callbacks (say, 
 views rendered in one jit) on two threads at once, and numba's fallback threading layer
 (workqueue, used where neither OpenMP nor TBB is installed) aborts the process on
 concurrent parallel kernels.
+
+Called outside any trace (every argument a concrete array), host_call runs `fn` at once
+on the NumPy arrays: nothing is compiled. A program that contains a callback cannot be
+kept in JAX's persistent compilation cache (diffshade.compile_cache), so code that runs
+a host kernel on fixed inputs (the fitting cache's candidate search, fitting.cache) calls
+it this way, between jitted programs that have no callback.
 """
 
 import threading
@@ -35,6 +41,13 @@ def _unpack(x, was64):
     return np.asarray(x).view(np.float64)[..., 0] if was64 else np.asarray(x)
 
 
+def _canonical(x):
+    """x as a NumPy array of the dtype jnp.asarray would give it (float32 for a Python
+    float unless x64 is on), without running a JAX program."""
+    x = np.asarray(x)
+    return x.astype(jax.dtypes.canonicalize_dtype(x.dtype), copy=False)
+
+
 def host_call(fn, result_shapes, *args, batched=False):
     """fn(*numpy arrays) -> tuple of numpy arrays shaped like result_shapes (a tuple of
     jax.ShapeDtypeStruct); run under jit and vmap as pure_callback does.
@@ -42,7 +55,14 @@ def host_call(fn, result_shapes, *args, batched=False):
     Under vmap, fn runs once per batch member (one after another), unless `batched`: fn
     then gets the whole batch in one call, every argument with the same leading batch
     axes (of size 1 where that argument is not batched; pure_callback's "expand_dims"),
-    and returns results with leading axes of the broadcast batch shape."""
+    and returns results with leading axes of the broadcast batch shape.
+
+    Called outside a trace, fn runs at once on NumPy arrays: nothing is compiled."""
+    if not any(isinstance(a, jax.core.Tracer) for a in args):  # eager: run it now
+        with _LOCK:
+            results = fn(*[_canonical(a) for a in args])
+        return tuple(jax.device_put(np.ascontiguousarray(r, s.dtype).reshape(s.shape))
+                     for r, s in zip(results, result_shapes, strict=True))
     args = [jnp.asarray(a) for a in args]
     args_64 = [_is64(a.dtype) for a in args]
     outs_64 = [_is64(s.dtype) for s in result_shapes]

@@ -23,7 +23,6 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-import trimesh
 
 from diffshade.numerics import (
     float_dtype,
@@ -444,6 +443,8 @@ def mesh_from_trimesh(tm, *, weighting="angle", crease_angle=None):
     Only positions and faces are taken: normals are our own (`vertex_normals`, or crease
     splitting when crease_angle is given), never trimesh's.
     """
+    import trimesh  # here, not at import: it takes a second (scipy) and most runs never need it
+
     if isinstance(tm, trimesh.Scene):
         tm = trimesh.util.concatenate(tm.dump())
     if not isinstance(tm, trimesh.Trimesh):
@@ -519,6 +520,8 @@ def _read_trimesh(path):
     """trimesh.Trimesh of the file at path, its arrays checked (`_check_arrays`) before
     trimesh's processing (which drops NaN vertices silently) and then processed: merged
     duplicated vertices, as STL stores each triangle alone."""
+    import trimesh  # see mesh_from_trimesh
+
     try:
         tm = trimesh.load(path, force="mesh", process=False)
     # trimesh's loaders raise many exception types; all mean "cannot read this file".

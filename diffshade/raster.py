@@ -240,13 +240,19 @@ def fragments_from_ids(proj: Projected, faces, face_ids, dropped, soft=False,
                      dist if soft else None)
 
 
+def search_depth(settings, layers=1) -> int:
+    """Faces kept per pixel by the search: settings.faces_per_pixel in soft mode, else
+    `layers` (see rasterize)."""
+    return settings.faces_per_pixel if settings.raster == "soft" else layers
+
+
 def rasterize(proj: Projected, faces, camera, settings, layers=1) -> Fragments:
     """Hard mode: the `layers` nearest covering faces per pixel, nearest first (1: a
     z-buffer; transparency composites several). Soft mode: up to settings.faces_per_pixel
     faces whose soft footprint reaches the pixel, ranked by their weight in the soft blend
     (candidates.find_candidates)."""
     soft = settings.raster == "soft"
-    k = settings.faces_per_pixel if soft else layers
-    face_ids, dropped = search_faces(proj.clip, faces, camera, k, settings, soft)
+    face_ids, dropped = search_faces(proj.clip, faces, camera, search_depth(settings, layers),
+                                     settings, soft)
     return fragments_from_ids(proj, faces, face_ids, dropped, soft=soft,
                               host=settings.use_host_kernels())

@@ -30,7 +30,8 @@ from diffshade.material import material as make_material
 from diffshade.numerics import clamp01, float_dtype
 from diffshade.objects import take_material
 from diffshade.project import project
-from diffshade.render import rasterize_scene, view_dirs
+from diffshade.raster import fragments_from_ids, search_depth, search_faces
+from diffshade.render import view_dirs
 from diffshade.samples import Reader, read, shading_samples
 from diffshade.shading import ShadingParts, shade
 from fitting.data import Dataset, view_scene
@@ -85,17 +86,54 @@ def erode(mask, margin: int):
     return mask
 
 
+_project = jax.jit(project)
+
+
+@partial(jax.jit, static_argnames=("depth",))
+def _fragments(proj, faces, camera, settings, found, depth):
+    soft = settings.raster == "soft"
+    if found is None:  # JAX's tile search (settings.kernels)
+        found = search_faces(proj.clip, faces, camera, depth, settings, soft)
+    return fragments_from_ids(proj, faces, *found, soft=soft, host=False)
+
+
+def geometry_scene(dataset: Dataset, index: int):
+    """View `index`'s Scene with a fixed material and no lights: what rasterizing needs,
+    one pytree structure for every view (so they share the compilations)."""
+    return view_scene(dataset, index, _GEOMETRY_MATERIAL, LightGroups())
+
+
+def fixed_fragments(scene, settings, layers=1):
+    """(Projected, Fragments) of `scene`: diffshade.rasterize's fragments, equal to them
+    up to float rounding, for geometry that does not change (a fit's views).
+
+    Nothing here compiles a host callback, so every program is kept by JAX's persistent
+    compilation cache (diffshade.compile_cache): with host kernels (settings.kernels) the
+    candidate search runs once, on NumPy arrays between two jitted programs
+    (diffshade.hostcall), and the per-fragment geometry is computed in jax.numpy."""
+    proj = _project(scene)
+    depth = search_depth(settings, layers)
+    found = None
+    if settings.use_host_kernels():
+        found = search_faces(proj.clip, scene.mesh.faces, scene.camera, depth, settings,
+                             settings.raster == "soft")
+    return proj, _fragments(proj, scene.mesh.faces, scene.camera, settings, found, depth)
+
+
 @jax.jit
-def view_geometry(scene, settings) -> dict:
-    """Rasterize and project once: the mode's shading samples (diffshade.samples) with
-    their view directions, how the pixels read them, and which pixels are covered
-    ('valid', [H, W]). Lights and material play no part, so views of one camera size
-    share the compilation."""
-    frags = rasterize_scene(scene, settings)
-    samples, reader = shading_samples(scene, project(scene), frags, settings.shading,
-                                      settings.use_host_kernels())
+def _geometry(scene, settings, proj, frags):
+    samples, reader = shading_samples(scene, proj, frags, settings.shading, host=False)
     return {"samples": samples, "reader": reader, "valid": frags.valid[..., 0],
             "view_dirs": view_dirs(scene, samples.points)}
+
+
+def view_geometry(scene, settings) -> dict:
+    """Rasterize and project once (fixed_fragments): the mode's shading samples
+    (diffshade.samples) with their view directions, how the pixels read them, and which
+    pixels are covered ('valid', [H, W]). Lights and material play no part, so views of
+    one camera size share the compilations (geometry_scene)."""
+    proj, frags = fixed_fragments(scene, settings)
+    return _geometry(scene, settings, proj, frags)
 
 
 def kept_pixels(valid, mask, edge_margin):
@@ -132,8 +170,7 @@ def _kept_samples(geo, pixels):
 
 def view_samples(dataset: Dataset, index: int, edge_margin=1) -> ViewSamples:
     """Rasterize view `index` once and return its ViewSamples."""
-    scene = view_scene(dataset, index, _GEOMETRY_MATERIAL, LightGroups())
-    geo = view_geometry(scene, dataset.settings)
+    geo = view_geometry(geometry_scene(dataset, index), dataset.settings)
     view = dataset.views[index]
     pixels = kept_pixels(geo["valid"], view.mask, edge_margin)
     (points, normals, view_dirs, *objects), reader = _kept_samples(geo, pixels)

@@ -151,6 +151,9 @@ def _advance(x, step, state, lower, upper):
 
 def _solve(log_shininess, data, spec, gains=None):
     """(coefficients [p], mean squared residual) at shininess exp(log_shininess)."""
+    # one argument type whoever calls (a Python float would be weakly typed: a second
+    # compilation of normal_equations)
+    log_shininess = np.asarray(log_shininess, np.float64)
     gram, rhs, sq, count = (np.asarray(a, np.float64)
                             for a in normal_equations(log_shininess, data, spec, gains))
     coef = box_least_squares(gram, rhs, 0.0, spec.upper)

@@ -30,6 +30,7 @@ gains and lights stay at the top level (they are the views', not the objects').
 """
 
 import dataclasses
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -231,11 +232,15 @@ def _map_leaves(tree, spec, direction):
     return jax.tree_util.tree_map_with_path(one, tree)
 
 
+# jitted: called outside a trace they are then one program each, not one per operation
+# (each of which JAX would trace, lower and look up in the compilation cache)
+@partial(jax.jit, static_argnames=("spec",))
 def from_values(values: dict, spec: FitSpec) -> dict:
     """Physical values -> unconstrained params (inverse of `to_values`)."""
     return _map_leaves(values, spec, "from_value")
 
 
+@partial(jax.jit, static_argnames=("spec",))
 def to_values(params: dict, spec: FitSpec) -> dict:
     """Unconstrained params -> physical values: coefficients in (0, upper), shininess > 0."""
     return _map_leaves(params, spec, "to_value")

@@ -10,8 +10,9 @@
                    the caller's `extra` keys
     loss.png       the loss history (matplotlib, Agg canvas, log y)
     view_000.png   per view: target | initial | fitted | ERROR_GAIN x |fitted - target|,
-                   rendered with diffshade.render, separated by grey bars; computed in
-                   linear colour and written sRGB-encoded, as every PNG (docs/color.md)
+                   as diffshade.render renders them (`_render_rgb`), separated by grey
+                   bars; computed in linear colour and written sRGB-encoded, as every PNG
+                   (docs/color.md)
     residual_000.npy    per view: fitted - target, linear float32 [H, W, 3] (signed)
     residual_000.png    per view: |fitted - target| / residual_scale, clipped to 1, written
                    sRGB-encoded; residual_scale (in result.json) is the 99th percentile of
@@ -21,6 +22,7 @@
 errors; "at bound" for a value at a bound, which has none), one row per fitted scalar.
 """
 
+import dataclasses
 import math
 import os
 
@@ -30,7 +32,10 @@ import numpy as np
 from diffshade.color import srgb_to_linear
 from diffshade.io import write_json, write_npy, write_png, write_text
 from diffshade.objects import unstack_material
-from diffshade.render import render
+from diffshade.render import render_fragments
+from diffshade.shadows import shadow_maps
+from diffshade.transparency import layers_needed
+from fitting.cache import fixed_fragments, geometry_scene
 from fitting.data import view_scene
 from fitting.dataset import material_dict
 from fitting.gains import GAIN_NAMES, view_materials
@@ -231,9 +236,23 @@ def comparison_table(result, truth=None, status=None) -> str:
                      + [f"note: {n}" for n in notes])
 
 
+_render_fragments = jax.jit(render_fragments)
+
+
 def _render_rgb(dataset, index, material, lights=None):
+    """View `index` rendered with `material` (and `lights`, default the view's): [H, W, 3]
+    float64, equal to diffshade.render up to float rounding. The geometry is the fit's,
+    fixed: the fragments come from fitting.cache.fixed_fragments and the shading runs in
+    jax.numpy (settings.kernels 'jax'), so no program here has a host callback and the
+    persistent compilation cache keeps them all; unless a light casts shadows (the maps
+    are then rasterized as the settings say)."""
     scene = view_scene(dataset, index, material, lights)
-    return np.asarray(render(scene, dataset.settings))[..., :3].astype(np.float64)
+    settings = dataset.settings
+    _, frags = fixed_fragments(geometry_scene(dataset, index), settings,
+                               layers_needed(scene, settings))
+    if jax.eval_shape(lambda s: shadow_maps(s, settings), scene) is None:
+        settings = dataclasses.replace(settings, kernels="jax")
+    return np.asarray(_render_fragments(scene, frags, settings))[..., :3].astype(np.float64)
 
 
 def residual_scale(residuals, kept) -> float:

@@ -39,6 +39,7 @@ from fitting import (
 )
 from fitting.loss import mean_rho
 from fitting.misfit import _neighbour_squares
+from fitting.report import _render_rgb
 
 TRUTH = dict(ka=(0.35, 0.3, 0.5), kd=(0.6, 0.45, 0.3), ks=(0.4, 0.5, 0.3), shininess=35.0)
 SPHERE = ds.icosphere(2)
@@ -170,6 +171,26 @@ def test_edge_margin_drops_the_silhouette(small):
         for r, c in zip(rows, cols, strict=True):  # every kept pixel is 2 steps inside
             assert covered[r - 2:r + 3, c].all() and covered[r, c - 2:c + 3].all()
         assert 0 < len(b.pixels) < len(a.pixels)
+
+
+def test_fixed_geometry_and_panels_compile_no_host_callback(monkeypatch):
+    """The fitting cache's rasterization and the result panels' renders run no host
+    callback inside a compiled program (so the persistent compilation cache keeps them
+    all: the candidate search runs on NumPy arrays between them), yet give render's
+    pixels: the same covered pixels, colours equal to float rounding. (24 px: a size no
+    other test compiles, so everything here is traced afresh.)"""
+    dataset = make_dataset(SPHERE, truth_material(), n_views=1, n_lights=1, size=24)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a host callback was compiled into a program")
+    monkeypatch.setattr(jax, "pure_callback", refuse)
+    data = build_cache(dataset, DEFAULT_INIT, edge_margin=0)
+    image = _render_rgb(dataset, 0, DEFAULT_INIT)
+    monkeypatch.undo()
+    expected = np.asarray(ds.render(view_scene(dataset, 0, DEFAULT_INIT), dataset.settings))
+    np.testing.assert_array_equal(np.asarray(data.views[0].pixels),
+                                  np.flatnonzero(expected[..., 3] > 0))
+    np.testing.assert_allclose(image, expected[..., :3], atol=2e-6)
 
 
 @pytest.mark.parametrize("kind", ["l1", "charbonnier", "huber"])
