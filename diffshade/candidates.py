@@ -106,12 +106,18 @@ def _covered_depth(coeffs, tri, f, x, y):
     return z if -1.0 <= z <= 1.0 else np.inf
 
 
+@numba.njit(cache=True, nogil=True)
+def _batch_outputs(views, pixels, k, bands):
+    """Per view: the K nearest ids (-1: none) and keys (inf) per pixel, and the count of
+    candidates each row band dropped."""
+    return (np.full((views, pixels, k), -1, np.int32), np.full((views, pixels, k), np.inf),
+            np.zeros((views, bands), np.int64))
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _search_hard(clips, faces, width, height, k, cull_backfaces, bands):
     views = clips.shape[0]
-    all_ids = np.full((views, width * height, k), -1, np.int32)
-    all_keys = np.full((views, width * height, k), np.inf)
-    all_dropped = np.zeros((views, bands), np.int64)
+    all_ids, all_keys, all_dropped = _batch_outputs(views, width * height, k, bands)
     # one item per (view, band): the views of a batch share one parallel loop
     for item in prange(views * bands):
         view, band = item // bands, item % bands
@@ -206,9 +212,7 @@ def _coverage_logit(signed_d2, sigma):
 def _search_soft(clips, faces, width, height, k, cull_backfaces, radii, params, perspective,
                  bands):
     views = clips.shape[0]
-    all_ids = np.full((views, width * height, k), -1, np.int32)
-    all_keys = np.full((views, width * height, k), np.inf)
-    all_dropped = np.zeros((views, bands), np.int64)
+    all_ids, all_keys, all_dropped = _batch_outputs(views, width * height, k, bands)
     # one item per (view, band): the views of a batch share one parallel loop
     for item in prange(views * bands):
         view, band = item // bands, item % bands
