@@ -19,7 +19,7 @@ from fitting.inputs import (
     parse_material,
 )
 from fitting.options import FitOptions
-from fitting.params import DEFAULT_INIT, FitSpec
+from fitting.params import DEFAULT_INIT, FitSpec, start_material
 
 CHECKPOINT = "checkpoint.json"
 
@@ -101,6 +101,7 @@ def prepare(args):
     else:
         spec, options = fit_spec(args.fit, args.grey), _new_options(args)
         init = DEFAULT_INIT if args.init is None else parse_material(args.init, "--init")
+        init = start_material(init, spec)
     dataset = load_checked_dataset(args.dataset, args.color_space)
     fingerprint = dataset_fingerprint(dataset)
     state = None
