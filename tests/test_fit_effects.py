@@ -110,3 +110,16 @@ def test_fit_recovers_kd_and_kt_of_a_glass_box_over_a_table_from_shadowed_target
         np.testing.assert_allclose(fitted[i].kd, unstack_material(truth, i).kd, rtol=1e-5,
                                    err_msg=f"object {i}")
     assert "objects[1].kt[r]" in result.at_bound and "objects[0].kt[r]" not in result.at_bound
+
+
+def test_kt_is_one_row_of_the_table_and_the_files_carry_it():
+    from fitting.dataset import material_dict, material_from_dict
+    from fitting.inputs import fit_spec
+    from fitting.params import KINDS, TRANSFORMS, at_bound
+    assert TRANSFORMS[KINDS["kt"].transform].bounds(3.0) == (0.0, 1.0)  # whatever `upper`
+    spec = fit_spec("kd,kt", "kt")  # --fit kd,kt --grey kt
+    assert spec == FitSpec(ka=None, ks=None, shininess=False, kt="grey")
+    assert list(at_bound({"kt": np.array([0.0, 0.5, 1.0])}, spec)) == [True, False, True]
+    glassy = ds.material(kd=0.5, kt=(0.1, 0.2, 0.3))
+    np.testing.assert_allclose(material_from_dict(material_dict(glassy), "x").kt, glassy.kt)
+    assert material_from_dict(material_dict(ds.material()), "x").kt is None
