@@ -159,7 +159,8 @@ def _kept_samples(geo, pixels, arrays):
         return ([a.reshape(n_pixels, -1, a.shape[-1])[pixels].reshape(-1, a.shape[-1])
                  for a in arrays], Reader(ids))
     rows = np.asarray(reader.ids).reshape(n_pixels, -1)[pixels].reshape(-1)
-    used = np.asarray(reader.table)[rows]  # an empty layer (-1) reads a sample unweighted
+    used = np.asarray(reader.table)[rows]  # an empty layer (-1) reads some sample: it weighs
+    # nothing in the composite (ViewSamples.layers)
     unique, inverse = np.unique(used, return_inverse=True)
     weights = None
     if reader.weights is not None:
