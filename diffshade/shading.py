@@ -25,7 +25,7 @@ from diffshade import area_lights
 from diffshade.lights import LightGroups
 from diffshade.material import Material
 from diffshade.numerics import dot, safe_div, safe_norm, safe_normalize, safe_pow
-from diffshade.shadows import sampled_visibility, visibility
+from diffshade.shadows import ShadowMap, sampled_visibility, visibility
 
 
 @jax.tree_util.register_dataclass
@@ -118,12 +118,32 @@ def _lights(lights: LightGroups, kinds=("directional", "point", "spot")):
             for i, light in enumerate(_unstack(getattr(lights, kind)))]
 
 
+def _seen(shadow, points, normals, light_dir, settings):
+    """The visibility [..., 1] a shadow entry stands for: looked up in a ShadowMap, or
+    the visibility itself, computed before (light_visibility)."""
+    if isinstance(shadow, ShadowMap):
+        return visibility(shadow, points, normals, light_dir, settings)
+    return shadow
+
+
+def light_visibility(lights: LightGroups, points, normals, settings, shadow_maps):
+    """{(kind, index): visibility [..., 1]} of the points for every light with a shadow
+    map: what `shade` scales those lights' diffuse and specular terms by. With geometry
+    and lights fixed it is fixed too: a caller computes it once and passes it to `shade`
+    in place of the maps (fitting.cache)."""
+    shadow_maps = shadow_maps or {}
+    return {(kind, index): _seen(shadow_maps[(kind, index)], points, normals,
+                                 _incidence(kind, light, points, settings)[0], settings)
+            for kind, index, light in _lights(lights) if (kind, index) in shadow_maps}
+
+
 def shade(material: Material, lights: LightGroups, global_ambient, points, normals,
           view_dirs, settings, shadow_maps=None) -> ShadingParts:
     """Light samples. points, normals, view_dirs: [..., 3] float world space (normals and
     view_dirs unit); global_ambient: [3]; settings: RenderSettings (specular model, spot
-    edge, shadow lookup); shadow_maps: diffshade.shadows.shadow_maps of the scene, whose
-    lights' diffuse and specular terms are scaled by their visibility (None: no shadows).
+    edge, shadow lookup); shadow_maps: {(kind, index): diffshade.shadows.ShadowMap, or the
+    points' visibility [..., 1] (light_visibility)} of the scene's shadowed lights, whose
+    diffuse and specular terms are scaled by their visibility (None: no shadows).
     Returns ShadingParts, each [..., 3], unclamped.
 
     The loop over lights is unrolled at trace time (the light count is static): written
@@ -143,9 +163,9 @@ def shade(material: Material, lights: LightGroups, global_ambient, points, norma
         incidence = _incidence(kind, light, points, settings)
         light_dir, scale = jax.lax.optimization_barrier(incidence)
         a, d, s = _light_terms(material, light, light_dir, scale, normals, view_dirs, settings)
-        shadow_map = (shadow_maps or {}).get((kind, index))
-        if shadow_map is not None:
-            seen = visibility(shadow_map, points, normals, light_dir, settings)
+        shadow = (shadow_maps or {}).get((kind, index))
+        if shadow is not None:
+            seen = _seen(shadow, points, normals, light_dir, settings)
             d, s = seen * d, None if s is None else seen * s
         ambient, diffuse = ambient + a, diffuse + d
         specular = specular if s is None else specular + s

@@ -66,15 +66,23 @@ def fragment_kt(scene, frags):
     return jnp.where(frags.front[..., None], of(mats[0]), of(mats[1]))
 
 
+def layer_weights(kt, valid):
+    """Hard compositing's weights: kt [..., K, 3] (layers nearest first), valid [..., K]
+    bool -> (T_k (1 - kt_k) [..., K, 3] per valid layer, T_K [..., 3]); the colour is
+    sum_k weights_k c_k + T_K background. Shared with the fitting cache."""
+    transmit = jnp.ones(kt.shape[:-2] + (3,), kt.dtype)
+    weights = []
+    for k in range(kt.shape[-2]):
+        opacity = jnp.where(valid[..., k, None], 1.0 - kt[..., k, :], 0.0)
+        weights.append(transmit * opacity)
+        transmit = transmit * (1.0 - opacity)
+    return jnp.stack(weights, -2), transmit
+
+
 def hard_composite(colours, kt, frags, background):
     """colours, kt: [H, W, K, 3] (layers nearest first); background: [3] -> [H, W, 4]."""
-    transmit = jnp.ones(colours.shape[:-2] + (3,), colours.dtype)
-    rgb = jnp.zeros_like(transmit)
-    for k in range(colours.shape[-2]):
-        opacity = jnp.where(frags.valid[..., k, None], 1.0 - kt[..., k, :], 0.0)
-        rgb = rgb + transmit * opacity * colours[..., k, :]
-        transmit = transmit * (1.0 - opacity)
-    rgb = rgb + transmit * background
+    weights, transmit = layer_weights(kt, frags.valid)
+    rgb = jnp.sum(weights * colours, -2) + transmit * background
     return jnp.concatenate([rgb, 1.0 - jnp.mean(transmit, -1, keepdims=True)], -1)
 
 

@@ -11,6 +11,21 @@ lighting is in the normals (reversed on back faces); the fitted material serves 
 sides. With several objects each sample keeps its object id, which picks its row of the
 (stacked) material.
 
+Shadows: with geometry and lights fixed, which samples a shadowed light reaches is fixed
+too. `build_cache` computes that visibility once per sample and light, with the shadow
+maps and the lookup `render` uses (diffshade.shadows, diffshade.shading
+.light_visibility), and `shade` scales those lights' diffuse and specular terms by it,
+where render does (shadowed points keep only the ambient terms). A fit that moves a
+shadowed light (light_positions) therefore keeps its shadows where the given positions
+cast them.
+
+Transparency: with a material that has a kt (the base material's, see `build_cache`), the
+kept pixels keep their K fragment layers (settings.faces_per_pixel), nearest first, and
+their colours are composited as render composites them (diffshade.transparency
+.layer_weights) with each layer's object's kt, so kt can be fitted. What a pixel shows
+through its last layer is the background, black in a dataset's scenes
+(fitting.data.view_scene), so it adds nothing.
+
 `predict` then runs `diffshade.shade` on the samples and gives the colours of the kept
 pixels, equal to `diffshade.render` at those pixels (tested). Silhouette pixels are left
 out (`edge_margin`) because a pixel cut by the outline is where two rasterizers, or a
@@ -24,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffshade.lights import LightGroups
+from diffshade.lights import LightGroups, shadow_flags
 from diffshade.material import Material
 from diffshade.material import material as make_material
 from diffshade.numerics import clamp01, float_dtype
@@ -33,11 +48,15 @@ from diffshade.project import project
 from diffshade.raster import fragments_from_ids, search_depth, search_faces
 from diffshade.render import view_dirs
 from diffshade.samples import Reader, read, shading_samples
-from diffshade.shading import ShadingParts, shade
+from diffshade.shading import ShadingParts, light_visibility, shade
+from diffshade.shadows import shadow_maps
+from diffshade.transparency import layer_weights, layers_needed
 from fitting.data import Dataset, view_scene
 
-# Geometry does not depend on the material; one fixed material keeps one compilation.
+# Geometry does not depend on the material; one fixed material keeps one compilation
+# (and one with a kt: a transparent material needs every fragment layer).
 _GEOMETRY_MATERIAL = make_material()
+_LAYERED_MATERIAL = make_material(kt=0.0)
 
 
 @jax.tree_util.register_dataclass
@@ -48,9 +67,13 @@ class ViewSamples:
     points, normals, view_dirs: [S, 3] world space (unit normals, reversed on back faces
     under two-sided lighting, and unit view_dirs); target: [N, 3] target colours of the
     kept pixels; pixels: [N] int32 flat index (row * width + column) of each kept pixel;
-    reader: diffshade.samples.Reader of the kept pixels ([N, 1, 1] ids, one row each) into
-    the samples, with no table when sample i is pixel i (Phong); objects: [S] int32
-    object ids of the samples (several objects), or None."""
+    reader: diffshade.samples.Reader of the kept pixels' fragments ([N, 1, K] ids, one row
+    each) into the samples, with no table when sample i is fragment i (Phong); objects:
+    [S] int32 object ids of the samples (several objects), or None; shadows: {(kind,
+    index): [S, 1]} the samples' visibility from each light with shadows, or None;
+    layers: [N, K] bool, the kept pixels' fragment layers that hold a face (nearest
+    first), or None for one opaque layer (K = 1); layer_objects: [N, K] int32 object of
+    each layer (several objects and layers), or None."""
 
     points: jax.Array
     normals: jax.Array
@@ -59,6 +82,9 @@ class ViewSamples:
     pixels: jax.Array
     reader: Reader
     objects: jax.Array | None = None
+    shadows: dict | None = None
+    layers: jax.Array | None = None
+    layer_objects: jax.Array | None = None
 
 
 @partial(jax.tree_util.register_dataclass,
@@ -97,10 +123,12 @@ def _fragments(proj, faces, camera, settings, found, depth):
     return fragments_from_ids(proj, faces, *found, soft=soft, host=False)
 
 
-def geometry_scene(dataset: Dataset, index: int):
-    """View `index`'s Scene with a fixed material and no lights: what rasterizing needs,
-    one pytree structure for every view (so they share the compilations)."""
-    return view_scene(dataset, index, _GEOMETRY_MATERIAL, LightGroups())
+def geometry_scene(dataset: Dataset, index: int, layered=False):
+    """View `index`'s Scene with a fixed material (with a kt when `layered`: every
+    fragment layer is kept) and no lights: what rasterizing needs, one pytree structure
+    for every view (so they share the compilations)."""
+    material = _LAYERED_MATERIAL if layered else _GEOMETRY_MATERIAL
+    return view_scene(dataset, index, material, LightGroups())
 
 
 def fixed_fragments(scene, settings, layers=1):
@@ -124,7 +152,22 @@ def fixed_fragments(scene, settings, layers=1):
 def _geometry(scene, settings, proj, frags):
     samples, reader = shading_samples(scene, proj, frags, settings.shading, host=False)
     return {"samples": samples, "reader": reader, "valid": frags.valid[..., 0],
-            "view_dirs": view_dirs(scene, samples.points)}
+            "view_dirs": view_dirs(scene, samples.points), "face_ids": frags.face_ids}
+
+
+@jax.jit
+def sample_visibility(scene, samples, settings) -> dict:
+    """{(kind, index): [..., 1]} the visibility of the shading samples from every light of
+    the scene with shadows, as render computes it (diffshade.shadows)."""
+    return light_visibility(scene.lights, samples.points, samples.normals, settings,
+                            shadow_maps(scene, settings))
+
+
+def casts_shadows(lights: LightGroups) -> bool:
+    """Whether any light of `lights` has shadows."""
+    groups = [getattr(lights, kind) for kind in ("directional", "point", "spot")]
+    return any(any(shadow_flags(g, jax.tree.leaves(g)[0].shape[0]))
+               for g in groups if g is not None)
 
 
 def view_geometry(scene, settings) -> dict:
@@ -132,7 +175,7 @@ def view_geometry(scene, settings) -> dict:
     (diffshade.samples) with their view directions, how the pixels read them, and which
     pixels are covered ('valid', [H, W]). Lights and material play no part, so views of
     one camera size share the compilations (geometry_scene)."""
-    proj, frags = fixed_fragments(scene, settings)
+    proj, frags = fixed_fragments(scene, settings, layers_needed(scene, settings))
     return _geometry(scene, settings, proj, frags)
 
 
@@ -145,46 +188,74 @@ def kept_pixels(valid, mask, edge_margin):
     return np.flatnonzero(keep).astype(np.int32)
 
 
-def _kept_samples(geo, pixels):
-    """(points, normals, view_dirs) [S, 3] of the samples the kept pixels read (and their
-    object ids [S, 1] with several objects), and the Reader of the pixels into them (only
-    the samples read are kept)."""
-    samples = geo["samples"]
-    arrays = [np.asarray(a) for a in (samples.points, samples.normals, geo["view_dirs"])]
-    if samples.objects is not None:
-        arrays.append(np.asarray(samples.objects)[..., None])
-    reader = geo["reader"]
-    ids = np.arange(len(pixels), dtype=np.int32).reshape(-1, 1, 1)
+def _kept_samples(geo, pixels, arrays):
+    """`arrays` ([..., C] per sample, as geo's samples) at the samples the kept pixels'
+    fragments (K layers each) read: [S, C] each; and the Reader of those fragments into
+    them (only the samples read are kept)."""
+    reader, n_pixels = geo["reader"], np.asarray(geo["valid"]).size
+    layers = np.asarray(geo["face_ids"]).shape[-1]
+    ids = np.arange(len(pixels) * layers, dtype=np.int32).reshape(-1, 1, layers)
     if reader.table is None:
-        return [a.reshape(-1, a.shape[-1])[pixels] for a in arrays], Reader(ids)
-    rows = np.asarray(reader.ids).reshape(-1)[pixels]
-    used = np.asarray(reader.table)[rows]
+        return ([a.reshape(n_pixels, -1, a.shape[-1])[pixels].reshape(-1, a.shape[-1])
+                 for a in arrays], Reader(ids))
+    rows = np.asarray(reader.ids).reshape(n_pixels, -1)[pixels].reshape(-1)
+    used = np.asarray(reader.table)[rows]  # an empty layer (-1) reads some sample: it weighs
+    # nothing in the composite (ViewSamples.layers)
     unique, inverse = np.unique(used, return_inverse=True)
     weights = None
     if reader.weights is not None:
-        weights = np.asarray(reader.weights).reshape(-1, used.shape[1])[pixels]
-        weights = jnp.asarray(weights.reshape(-1, 1, 1, used.shape[1]), float_dtype())
+        weights = np.asarray(reader.weights).reshape(n_pixels, -1, used.shape[1])[pixels]
+        weights = jnp.asarray(weights.reshape(ids.shape + used.shape[1:]), float_dtype())
     return ([a[unique] for a in arrays],
             Reader(ids, weights, jnp.asarray(inverse.reshape(used.shape), jnp.int32)))
 
 
-def view_samples(dataset: Dataset, index: int, edge_margin=1) -> ViewSamples:
-    """Rasterize view `index` once and return its ViewSamples."""
-    geo = view_geometry(geometry_scene(dataset, index), dataset.settings)
+def _layer_fields(dataset, geo, pixels):
+    """(layers [N, K] bool, layer_objects [N, K] int32 or None) of the kept pixels."""
+    face_ids = np.asarray(geo["face_ids"])
+    face_ids = face_ids.reshape(-1, face_ids.shape[-1])[pixels]
+    objects = None
+    if dataset.objects is not None:
+        faces = np.asarray(dataset.objects.faces)[np.maximum(face_ids, 0)]
+        objects = jnp.asarray(faces, jnp.int32)
+    return jnp.asarray(face_ids >= 0), objects
+
+
+def view_samples(dataset: Dataset, index: int, edge_margin=1,
+                 layered=False) -> ViewSamples:
+    """Rasterize view `index` once and return its ViewSamples (with every fragment layer
+    when `layered`: for a transparent material), the visibility of its samples from its
+    lights with shadows included."""
+    scene = geometry_scene(dataset, index, layered)
+    geo = view_geometry(scene, dataset.settings)
     view = dataset.views[index]
     pixels = kept_pixels(geo["valid"], view.mask, edge_margin)
-    (points, normals, view_dirs, *objects), reader = _kept_samples(geo, pixels)
+    samples = geo["samples"]
+    arrays = [samples.points, samples.normals, geo["view_dirs"]]
+    if samples.objects is not None:
+        arrays.append(samples.objects[..., None])
+    shadows = {}
+    if casts_shadows(view.lights):
+        lit = view_scene(dataset, index, scene.material)
+        shadows = sample_visibility(lit, samples, dataset.settings)
+    kept, reader = _kept_samples(geo, pixels, [np.asarray(a) for a in
+                                               [*arrays, *shadows.values()]])
     floats = partial(jnp.asarray, dtype=float_dtype())
-    objects = jnp.asarray(objects[0][:, 0], jnp.int32) if objects else None
+    points, normals, view_dirs = kept[:3]
+    objects = (jnp.asarray(kept[3][:, 0], jnp.int32) if samples.objects is not None
+               else None)
+    visible = dict(zip(shadows, (floats(a) for a in kept[len(arrays):]), strict=True))
+    layers, layer_objects = _layer_fields(dataset, geo, pixels) if layered else (None, None)
     return ViewSamples(floats(points), floats(normals), floats(view_dirs),
                        floats(view.target.reshape(-1, 3)[pixels]), jnp.asarray(pixels), reader,
-                       objects)
+                       objects, visible or None, layers, layer_objects)
 
 
 def build_cache(dataset: Dataset, material: Material, *, edge_margin: int = 1) -> FitData:
     """FitData for `dataset`, with `material` as the base (held-fixed) material.
 
     edge_margin: pixels dropped inside the silhouette (0 keeps every covered pixel).
+    A `material` with a kt (fitting kt needs one) keeps every pixel's fragment layers.
     Raises ValueError when the settings rasterize softly (only hard coverage is cached) or
     when no pixel is kept."""
     if dataset.settings.raster != "hard":
@@ -192,7 +263,8 @@ def build_cache(dataset: Dataset, material: Material, *, edge_margin: int = 1) -
                          "needs 'hard' (fit soft-rasterized data with the full-render loss)")
     if isinstance(edge_margin, bool) or not isinstance(edge_margin, int) or edge_margin < 0:
         raise ValueError(f"edge_margin: got {edge_margin!r}; expected an integer >= 0")
-    views = tuple(view_samples(dataset, i, edge_margin)
+    layered = material.kt is not None
+    views = tuple(view_samples(dataset, i, edge_margin, layered)
                   for i in range(len(dataset.views)))
     if sum(v.pixels.shape[0] for v in views) == 0:
         raise ValueError("dataset: no covered pixel is left in any view (check the cameras, "
@@ -202,29 +274,47 @@ def build_cache(dataset: Dataset, material: Material, *, edge_margin: int = 1) -
                    scene.global_ambient, dataset.settings)
 
 
-def _to_pixels(values, samples: ViewSamples):
-    """Sample values [S, C] -> kept-pixel values [N, C], as render combines them (in XLA:
-    the arrays are small, and a gather beats a host callback per view and step)."""
-    return read(values, samples.reader, host=False).reshape(
-        samples.pixels.shape + values.shape[-1:])
+def _layer_kt(material, samples: ViewSamples):
+    """[N, K, 3] transmittance of the kept pixels' layers (0 for a material without kt)."""
+    shape = samples.layers.shape + (3,)
+    if material.kt is None:
+        return jnp.zeros(shape, samples.points.dtype)
+    kt = material.kt
+    if samples.layer_objects is not None:
+        kt = jnp.take(kt, samples.layer_objects, axis=0)
+    return jnp.broadcast_to(kt, shape)
+
+
+def _to_pixels(values, samples: ViewSamples, material):
+    """Sample values [S, C] -> kept-pixel values [N, C], as render combines them: read by
+    the fragments, then their layers composited with `material`'s kt (in XLA: the arrays
+    are small, and a gather beats a host callback per view and step)."""
+    layers = read(values, samples.reader, host=False).reshape(
+        samples.pixels.shape + (-1, values.shape[-1]))
+    if samples.layers is None:
+        return layers[:, 0]
+    weights, _ = layer_weights(_layer_kt(material, samples), samples.layers)
+    return jnp.sum(weights * layers, -2)
 
 
 def _shade_samples(material, lights: LightGroups, global_ambient, samples, settings):
     if samples.objects is not None:
         material = take_material(material, samples.objects)
     return shade(material, lights, global_ambient, samples.points, samples.normals,
-                 samples.view_dirs, settings)
+                 samples.view_dirs, settings, samples.shadows)
 
 
 def pixel_parts(material, lights, global_ambient, samples: ViewSamples,
                 settings) -> ShadingParts:
     """Unclamped ambient, diffuse, specular and emission at the kept pixels: [N, 3] each
-    (the parts are interpolated like colours, without clamping)."""
+    (the parts are interpolated, and layers composited, like colours, without clamping)."""
     parts = _shade_samples(material, lights, global_ambient, samples, settings)
-    return parts.map(lambda a: _to_pixels(a, samples))
+    return parts.map(lambda a: _to_pixels(a, samples, material))
 
 
 def predict(material, lights, global_ambient, samples: ViewSamples, settings):
     """Rendered colours at the kept pixels: [N, 3], clamped as the renderer clamps."""
     total = _shade_samples(material, lights, global_ambient, samples, settings).total
-    return _to_pixels(clamp01(total) if settings.clamp else total, samples)
+    colour = _to_pixels(clamp01(total) if settings.clamp else total, samples, material)
+    # composited clamped colours can exceed 1 by a rounding error, as in render
+    return clamp01(colour) if settings.clamp and samples.layers is not None else colour

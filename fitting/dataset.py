@@ -54,13 +54,13 @@ _SHARED = ("model", "global_ambient", "local_viewer", "two_sided")
 
 # ---- materials ----
 
-MATERIAL_KEYS = ("ka", "kd", "ks", "shininess", "emission")
+MATERIAL_KEYS = ("ka", "kd", "ks", "shininess", "emission", "kt")
 
 
 def _check_material_value(key, value, where):
     """JSON material values: numbers ([r, g, b] for a coefficient; null for ks and
-    emission, which may be absent). material() checks the ranges and lengths."""
-    if value is None and key in ("ks", "emission"):
+    emission and kt, which may be absent). material() checks the ranges and lengths."""
+    if value is None and key in ("ks", "emission", "kt"):
         return
     items = value if isinstance(value, list) and key != "shininess" else [value]
     if not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in items):
@@ -87,11 +87,13 @@ def material_from_dict(data, where):
 
 
 def material_dict(mat) -> dict:
-    """{'ka', 'kd', 'ks', 'shininess', 'emission'} as JSON-ready lists (None when absent)."""
+    """{'ka', 'kd', 'ks', 'shininess', 'emission', 'kt'} as JSON-ready lists (None when
+    absent)."""
     def rgb(value):
         return None if value is None else np.asarray(value, np.float64).tolist()
     return {"ka": rgb(mat.ka), "kd": rgb(mat.kd), "ks": rgb(mat.ks),
-            "shininess": float(mat.shininess), "emission": rgb(mat.emission)}
+            "shininess": float(mat.shininess), "emission": rgb(mat.emission),
+            "kt": rgb(mat.kt)}
 
 
 def _write_view(out_dir, dataset, i):

@@ -149,12 +149,22 @@ def _chunk(views, lights, index, n, s):
                                              np.int32), lights)
 
 
+def _stackable_effects(view) -> bool:
+    """Whether the view's samples are free of what the chunks do not carry yet: shadow
+    visibility and transparency layers (fitting.cache.ViewSamples)."""
+    return view.shadows is None and view.layers is None
+
+
 def _check_stackable(data: FitData):
     """Every view must have view 0's sample layout (one shading mode: always true)."""
     def layout(tree):
         return jax.tree.structure(tree), tuple(np.ndim(x) for x in jax.tree.leaves(tree))
 
     for i, view in enumerate(data.views):
+        if not _stackable_effects(view):
+            raise ValueError(f"views[{i}]: has shadows or transparency layers, which sharded "
+                             "or chunked fits do not carry yet (fit with devices=1 and "
+                             "chunk=None)")
         if layout(view) != layout(data.views[0]):
             raise ValueError(f"views[{i}]: its sample layout differs from views[0]'s; "
                              "sharded or chunked fits stack the views and need one layout "
@@ -439,6 +449,9 @@ def for_options(data: FitData, options):
     """The data a fit with `options` runs on: ShardedViews when it asks for several
     devices or a chunk size (fitting.options: devices, chunk), else `data` itself. A
     sharded `data` is consumed (shard_views): use fit_data(result) from then on."""
+    default = options.devices == "all" and options.chunk is None
+    if default and not all(_stackable_effects(v) for v in data.views):
+        return data  # shadows or layers: one device, as documented
     if wants_sharding(options.devices, options.chunk):
         return shard_views(data, options.devices, options.chunk, consume=True)
     return data

@@ -35,11 +35,12 @@ from fitting.distribute import device_list, fit_data, for_options
 from fitting.misfit import Misfit, misfit
 from fitting.options import FitOptions
 from fitting.params import (
-    COEFFICIENTS,
     DEFAULT_INIT,
+    MODED,
     FitSpec,
     at_bound,
     material_values,
+    start_material,
     to_values,
     value_names,
     values_to_lights,
@@ -121,7 +122,7 @@ def relative_errors(values: dict, truth, spec: FitSpec) -> dict:
     """|fitted - true| / |true| per fitted material quantity and channel (the absolute
     error where the truth is 0): {'ka': [3], ..., 'shininess': []} as numpy; with several
     objects (a stacked truth), {'objects': (one such dict per object)}."""
-    rgb_spec = FitSpec(**{n: "rgb" if getattr(spec, n) else None for n in COEFFICIENTS},
+    rgb_spec = FitSpec(**{n: "rgb" if getattr(spec, n) else None for n in MODED},
                        shininess=spec.shininess)
     true = material_values(truth, rgb_spec)
     if "objects" in true:
@@ -213,7 +214,7 @@ def fit(dataset: Dataset, spec: FitSpec | None = None, init=None, *, options=Non
         truth=None, with_uncertainty=True, callback=None, **settings) -> FitResult:
     """Fit `spec`'s quantities (default FitSpec(): ka, kd, ks in RGB and shininess) to
     `dataset`, starting from (and holding fixed the rest of) `init` (a Material; default
-    DEFAULT_INIT).
+    DEFAULT_INIT; kt, when fitted and `init` has none, starts at KT_START).
 
     options: a FitOptions; settings: any of its fields as keywords (method='linear' |
     'adam' | 'lbfgs', steps, loss, tol, atol, patience, gtol, lr, lr_shininess,
@@ -227,7 +228,7 @@ def fit(dataset: Dataset, spec: FitSpec | None = None, init=None, *, options=Non
     _check_fit_args(dataset, spec, init, truth, options, settings)
     options = dataclasses.replace(options or FitOptions(), **settings)
     device_list(options.devices)  # more devices than there are: an error before any work
-    init = DEFAULT_INIT if init is None else init
+    init = start_material(DEFAULT_INIT if init is None else init, spec)
     start = time.perf_counter()
     data = build_cache(dataset, init, edge_margin=options.edge_margin)
     views = for_options(data, options)  # sharded and chunked, or data itself

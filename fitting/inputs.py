@@ -16,7 +16,7 @@ import numpy as np
 from diffshade.material import material
 from diffshade.scenefile import read_json
 from fitting.dataset import fingerprint, load_dataset, material_from_dict
-from fitting.params import COEFFICIENTS, FIT_NAMES, FitSpec
+from fitting.params import FIT_NAMES, MODED, FitSpec
 
 DEFAULT_FIT = tuple(name for name, value in FitSpec().fitted.items() if value)
 
@@ -92,7 +92,7 @@ def fit_spec(fit_text=None, grey_text=None) -> FitSpec:
     exposure and white_balance included; default: ka, kd, ks, shininess) and --grey (fitted
     coefficients that get one value for all channels)."""
     fitted = _names(fit_text, "--fit", FIT_NAMES) if fit_text is not None else DEFAULT_FIT
-    grey = _names(grey_text, "--grey", COEFFICIENTS) if grey_text is not None else []
+    grey = _names(grey_text, "--grey", MODED) if grey_text is not None else []
     for name in grey:
         if name not in fitted:
             raise ValueError(f"--grey: {name!r} is not fitted (--fit {','.join(fitted)})")

@@ -1,18 +1,18 @@
 """What is fitted, and the map between optimizer variables and physical values.
 
 A `FitSpec` (frozen, hashable, static under `jit`) names the fitted quantities: each of
-ka, kd, ks as 'rgb' (3 values), 'grey' (1 value for all channels) or None (held fixed),
-shininess (bool), optionally every light's colour and position, and each view's exposure
-and white-balance gain relative to view 0 (fitting.gains). Held-fixed values come from a
-base `Material` (and the dataset's lights).
+ka, kd, ks and the transparency kt as 'rgb' (3 values), 'grey' (1 value for all channels)
+or None (held fixed), shininess (bool), optionally every light's colour and position, and
+each view's exposure and white-balance gain relative to view 0 (fitting.gains).
+Held-fixed values come from a base `Material` (and the dataset's lights).
 
 Three representations of the same quantities, each a dict pytree with the same keys:
 - params (unconstrained, what the optimizer moves): coefficient = upper * sigmoid(u);
-  shininess = exp(u); light colour = exp(u) (diffuse = specular); light position = u;
-  exposure, white balance = exp(u).
-- values (physical): the coefficients, shininess, colours and positions themselves.
+  kt = sigmoid(u) (in [0, 1] whatever `upper`); shininess = exp(u); light colour =
+  exp(u) (diffuse = specular); light position = u; exposure, white balance = exp(u).
+- values (physical): the coefficients, kt, shininess, colours and positions themselves.
 - Material / LightGroups: what `diffshade.shade` consumes.
-Keys: 'ka', 'kd', 'ks' ([3] or []), 'shininess' ([]), 'lights' (a tuple over views of
+Keys: 'ka', 'kd', 'ks', 'kt' ([3] or []), 'shininess' ([]), 'lights' (a tuple over views of
 {group: {'color': [L, 3], 'position': [L, 3]}} for the 'directional', 'point', 'spot'
 groups present), 'exposure' ([V - 1]), 'white_balance' ([V - 1, 2]: red, blue).
 
@@ -43,13 +43,18 @@ from fitting.gains import GAIN_NAMES, fitted_gains, gain_values
 
 COEFFICIENTS = ("ka", "kd", "ks")
 MODES = ("rgb", "grey")
+# the quantities fitted per channel or grey
+MODED = (*COEFFICIENTS, "kt")
 LIGHT_GROUPS = ("directional", "point", "spot")
 POSITIONED_GROUPS = ("point", "spot")
 # Logits are kept finite: a coefficient exactly at a bound maps to +-13.8.
 _EDGE = 1e-6
 
 DEFAULT_INIT = material(ka=0.3, kd=0.5, ks=0.3, shininess=20.0)
-FIT_NAMES = (*COEFFICIENTS, "shininess", "light_colors", "light_positions", *GAIN_NAMES)
+FIT_NAMES = (*COEFFICIENTS, "shininess", "kt", "light_colors", "light_positions", *GAIN_NAMES)
+# kt's start when the initial material has none: mid-range (a logit of 0 would start it
+# at its bound, where its gradient vanishes)
+KT_START = 0.5
 # A value within this fraction of its bound (of 1 for a bound at 0 with no upper one) is
 # at the bound: its standard error is not defined (the Gaussian approximation fails).
 BOUND_TOL = 1e-3
@@ -73,6 +78,8 @@ class Transform:
 TRANSFORMS = {
     "bounded": Transform(lambda u, upper: upper * jax.nn.sigmoid(u),
                          lambda x, upper: _logit(x / upper), lambda upper: (0.0, upper)),
+    "unit": Transform(lambda u, _: jax.nn.sigmoid(u), lambda x, _: _logit(x),
+                      lambda _: (0.0, 1.0)),
     "log": Transform(lambda u, _: jnp.exp(u), lambda x, _: jnp.log(jnp.maximum(x, 1e-6)),
                      lambda _: (0.0, np.inf)),
     "identity": Transform(lambda u, _: u, lambda x, _: x, lambda _: (-np.inf, np.inf)),
@@ -93,6 +100,7 @@ KINDS = {
     "kd": Kind("bounded", "colour"),
     "ks": Kind("bounded", "colour"),
     "shininess": Kind("log", "shininess"),
+    "kt": Kind("unit", "colour"),  # transparency, in [0, 1]
     "color": Kind("log", "colour"),  # a light's colour (diffuse = specular)
     "position": Kind("identity", "position"),
     "exposure": Kind("log", "colour"),  # per-view gains (fitting.gains)
@@ -102,7 +110,8 @@ KINDS = {
 
 @dataclasses.dataclass(frozen=True)
 class FitSpec:
-    """ka, kd, ks: 'rgb' | 'grey' | None; shininess: fitted or not; light_colors,
+    """ka, kd, ks, kt: 'rgb' | 'grey' | None (kt: transparency, held fixed by default);
+    shininess: fitted or not; light_colors,
     light_positions: fit every light's colour (diffuse = specular) / position (point and spot
     lights); exposure, white_balance: fit a gain per view relative to view 0
     (fitting.gains); upper: the coefficients' upper bound (they live in [0, upper])."""
@@ -116,9 +125,10 @@ class FitSpec:
     upper: float = 1.0
     exposure: bool = False
     white_balance: bool = False
+    kt: str | None = None
 
     def __post_init__(self):
-        for name in COEFFICIENTS:
+        for name in MODED:
             mode = getattr(self, name)
             if mode is not None and mode not in MODES:
                 raise ValueError(f"{name}: got {mode!r}; expected one of {MODES} or None")
@@ -136,7 +146,7 @@ class FitSpec:
 
     @property
     def fits_material(self):
-        return bool(self.coefficients) or self.shininess
+        return bool(self.coefficients) or self.shininess or self.kt is not None
 
     @property
     def fitted(self) -> dict:
@@ -151,8 +161,8 @@ class FitSpec:
         if unknown:
             raise ValueError(f"fitted: got {unknown}; expected names among {FIT_NAMES}")
         return cls(**{n: None if n not in fitted else "grey" if n in grey else "rgb"
-                      for n in COEFFICIENTS},
-                   **{n: n in fitted for n in FIT_NAMES if n not in COEFFICIENTS}, upper=upper)
+                      for n in MODED},
+                   **{n: n in fitted for n in FIT_NAMES if n not in MODED}, upper=upper)
 
 
 def _coefficient_value(name, material_, spec):
@@ -190,7 +200,17 @@ def _one_material_values(material_, spec):
     values = {name: _coefficient_value(name, material_, spec) for name in spec.coefficients}
     if spec.shininess:
         values["shininess"] = jnp.asarray(material_.shininess, float_dtype())
+    if spec.kt is not None:
+        values["kt"] = _coefficient_value("kt", material_, spec)
     return values
+
+
+def start_material(init: Material, spec: FitSpec) -> Material:
+    """`init`, with kt = KT_START where the spec fits kt and `init` has none: a material
+    with a kt also makes the fitting cache keep every fragment layer (fitting.cache)."""
+    if spec.kt is None or init.kt is not None:
+        return init
+    return dataclasses.replace(init, kt=jnp.full(jnp.shape(init.kd), KT_START, float_dtype()))
 
 
 def material_values(material_: Material, spec: FitSpec, lights=None, n_views=None) -> dict:
@@ -264,7 +284,8 @@ def to_unconstrained(material_: Material, spec: FitSpec, lights=None) -> dict:
 
 
 def _one_material(values, spec, base):
-    changes = {name: jnp.broadcast_to(values[name], (3,)) for name in spec.coefficients}
+    changes = {name: jnp.broadcast_to(values[name], (3,)) for name in spec.coefficients
+               + (("kt",) if spec.kt is not None else ())}
     if spec.shininess:
         changes["shininess"] = values["shininess"]
     return dataclasses.replace(base, **changes)

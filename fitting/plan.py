@@ -20,7 +20,7 @@ from fitting.inputs import (
     parse_material,
 )
 from fitting.options import PLACEMENT, FitOptions
-from fitting.params import DEFAULT_INIT, FitSpec
+from fitting.params import DEFAULT_INIT, FitSpec, start_material
 
 CHECKPOINT = "checkpoint.json"
 
@@ -104,6 +104,7 @@ def prepare(args):
     else:
         spec, options = fit_spec(args.fit, args.grey), _new_options(args)
         init = DEFAULT_INIT if args.init is None else parse_material(args.init, "--init")
+        init = start_material(init, spec)
     try:
         device_list(options.devices)
     except ValueError as err:

@@ -175,6 +175,11 @@ def _material_rows(result, truth, se):
     yield from _value_rows(result.values, truth, errors, se, result.at_bound)
 
 
+def _or_zero(value):
+    """An absent optional term (ks, kt: None) is 0."""
+    return 0.0 if value is None else value
+
+
 def _value_rows(values, truth, errors, se, at_bound, prefix=""):
     for name, value in values.items():
         if name in ("lights", "objects"):
@@ -184,8 +189,8 @@ def _value_rows(values, truth, errors, se, at_bound, prefix=""):
             for label, v in zip(value_names({name: value}), fitted.ravel(), strict=True):
                 yield label, None, v, se.get(label), label in at_bound, None
             continue
-        true = None if truth is None else np.atleast_1d(np.asarray(getattr(truth, name),
-                                                                   np.float64))
+        true = None if truth is None else np.atleast_1d(np.asarray(
+            _or_zero(getattr(truth, name)), np.float64))
         error = np.atleast_1d(errors[name]) if name in errors else None
         count = max(fitted.size, 1 if true is None else true.size)
         for c in range(count):

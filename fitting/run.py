@@ -131,8 +131,9 @@ def start_run(data, spec: FitSpec, init: Material, options: FitOptions | None = 
     data = fit_data(data)
     params = start_params(spec, init, data.lights)
     # several objects: Levenberg-Marquardt starts from `init` (the closed-form start
-    # solves one material)
-    if options.method == "linear" and spec.fits_material and "objects" not in params:
+    # solves one material); kt, not linear, starts from `init` too
+    linear = bool(spec.coefficients) or spec.shininess
+    if options.method == "linear" and linear and "objects" not in params:
         solved = solve_linear(data, spec, shininess_range=options.shininess_range)
         params = {**params, **from_values(solved, spec)}
     return RunState(spec, init, options, params, initial_opt_state(spec, options, params),

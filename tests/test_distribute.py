@@ -32,7 +32,7 @@ from fitting import (
     start_run,
     to_unconstrained,
 )
-from fitting.distribute import common_lights, shard_views
+from fitting.distribute import common_lights, for_options, shard_views
 from fitting.gauss_newton import _linearize
 
 TRUTH = dict(ka=0.15, kd=(0.55, 0.35, 0.25), ks=0.35, shininess=25.0)
@@ -85,6 +85,18 @@ def test_lbfgs_on_sharded_views_takes_the_plain_steps():
         np.testing.assert_allclose(runs[1].history, runs[0].history, rtol=1e-10)
         jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12),
                      runs[1].params, runs[0].params)
+
+
+def test_views_with_shadows_or_layers_run_on_one_device_or_are_refused():
+    data = cache64(1)
+    view = data.views[1]
+    for effect in (dict(shadows={("point", 0): view.points[:, :1]}),
+                   dict(layers=view.pixels[:, None] >= 0)):
+        odd = dataclasses.replace(data, views=[data.views[0],
+                                               dataclasses.replace(view, **effect)])
+        assert for_options(odd, FitOptions()) is odd
+        with pytest.raises(ValueError, match=r"views\[1\]: has shadows or transparency"):
+            for_options(odd, FitOptions(chunk=1))
 
 
 def test_dark_lights_pad_views_to_one_light_layout():

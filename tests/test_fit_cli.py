@@ -235,7 +235,7 @@ def test_fit_subset_holds_the_rest_at_init(data_root, tmp_path, capsys):
     assert run_cli(argv, capsys)[0] == 0
     result = strict_json(out / "result.json")
     assert result["fit"] == {"ka": None, "kd": "grey", "ks": None, "shininess": True,
-                             "light_colors": False, "light_positions": False,
+                             "kt": None, "light_colors": False, "light_positions": False,
                              "exposure": False, "white_balance": False}
     assert set(result["values"]) == {"kd", "shininess"} and set(result["errors"]) == {
         "kd", "shininess"}

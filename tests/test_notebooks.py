@@ -11,7 +11,8 @@ import pytest
 from nbclient import NotebookClient
 
 NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
-NAMES = ["01_quickstart.ipynb", "02_fit_material.ipynb", "03_accuracy_vs_time.ipynb"]
+NAMES = ["01_quickstart.ipynb", "02_fit_material.ipynb", "03_accuracy_vs_time.ipynb",
+         "04_objects_shadows.ipynb"]
 
 
 @pytest.mark.parametrize("name", NAMES)
