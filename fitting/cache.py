@@ -290,7 +290,7 @@ def _to_pixels(values, samples: ViewSamples, material):
     the fragments, then their layers composited with `material`'s kt (in XLA: the arrays
     are small, and a gather beats a host callback per view and step)."""
     layers = read(values, samples.reader, host=False).reshape(
-        samples.pixels.shape + (-1, values.shape[-1]))
+        samples.pixels.shape + (samples.reader.ids.shape[-1], values.shape[-1]))
     if samples.layers is None:
         return layers[:, 0]
     weights, _ = layer_weights(_layer_kt(material, samples), samples.layers)
