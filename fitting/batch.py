@@ -2,19 +2,23 @@
 
 The fitting cache (fitting.cache) keeps each view's samples at their own size. A program
 that shaded them one by one would hold one copy of the shading per view (six target
-images: six copies, six times the compilation). `view_map(fn, views, lights, rows)`
-instead pads every view's arrays to the largest view's (padded rows repeat the view's
-last real row, so nothing in the padding is NaN; a view without pixels borrows another
-view's first row) and stacks them along a leading views axis, pads the views' lights to
-one layout with lights of colour 0 (`common_lights`), and runs `fn` once under
-`jax.vmap`. Its per-pixel results come back as [V, N, ...] with a weight [V, N]: 1 at a
-kept pixel, 0 in the padding.
+images: six copies, six times the compilation). `view_map(fn, data, lights, rows)`
+instead groups the views by light layout (`layout_groups`: the kinds and counts of their
+lights and static settings such as shadow flags), pads each group's arrays to its
+largest view's (padded rows repeat the view's last real row, so nothing in the padding
+is NaN; a view without pixels borrows another view's first row), stacks them along a
+leading views axis, and runs `fn` once per group under `jax.vmap`: a program holds one
+copy of the shading per light layout, and no view shades a light it does not have.
+Its per-pixel results come back in view order as [V, N, ...] with a weight [V, N]: 1 at
+a kept pixel, 0 in the padding.
 
 Works inside a trace (the views and lights may be tracers; their shapes and static
-settings decide the padding), so jitted programs take the FitData as it is. Views that
-cannot be stacked (lights that differ in a static setting, such as shadow flags, or
-different shadow-casting lights) are shaded one by one and their results padded alike:
-the same answer, with one copy of the shading per view.
+settings decide the grouping and the padding), so a jitted program can take the FitData
+as it is; the fit's programs take it `batched`, stacked once on the host. Views whose
+samples differ in structure are shaded one by one and their results padded alike: the
+same answer, with one copy of the shading per view. `common_lights` pads lights of
+different layouts to one with lights of colour 0 (they add exactly 0): the result
+panels (fitting.report) and the sharded fits (fitting.distribute) stack views that way.
 """
 
 import dataclasses
@@ -135,18 +139,29 @@ def stack_lights(lights):
     return jax.tree.map(lambda *x: _module(*x).stack(x), *common_lights(lights))
 
 
+def layout_groups(lights) -> tuple:
+    """The view indices grouped by light layout (kinds, counts and static settings such
+    as shadow flags), in order of first appearance: tuple of tuples."""
+    groups = {}
+    for i, g in enumerate(lights):
+        groups.setdefault(light_layout(_as_arrays(g)), []).append(i)
+    return tuple(tuple(index) for index in groups.values())
+
+
 @partial(jax.tree_util.register_dataclass, data_fields=["samples", "lights", "weight"],
-         meta_fields=["counts"])
+         meta_fields=["index", "counts"])
 @dataclasses.dataclass(frozen=True)
 class ViewBatch:
-    """A FitData's views stacked once, on the host (`batched`): samples: ViewSamples with
-    a leading [V] axis, padded to N pixels; lights: the views' LightGroups padded to one
-    layout, with a leading [V] axis; weight: [V, N] 1 at the kept pixels; counts: kept
-    pixels per view (static)."""
+    """A FitData's views stacked once, on the host (`batched`), one stack per light
+    layout: samples: tuple of ViewSamples with a leading [V_g] axis (padded to the group's
+    largest counts); lights: tuple of LightGroups with a leading [V_g] axis; weight:
+    [V, N] 1 at the kept pixels, in view order; index: the views of each group (static);
+    counts: kept pixels per view (static)."""
 
-    samples: object
-    lights: object
+    samples: tuple
+    lights: tuple
     weight: jax.Array
+    index: tuple
     counts: tuple
 
     def __len__(self):
@@ -167,24 +182,39 @@ def pixel_weight(counts, dtype):
     return (np.arange(n)[None, :] < counts[:, None]).astype(dtype)
 
 
+def _grouped(views, lights, index):
+    """[(samples, lights)] stacked per group of `index`, or None when one does not stack."""
+    stacks = [stack_views([views[i] for i in group], [lights[i] for i in group])
+              for group in index]
+    return None if any(s is None for s in stacks) else stacks
+
+
 def batched(data):
     """`data` (a FitData) with its views stacked into a ViewBatch, built once on the host
-    and kept with `data` (a replaced FitData builds its own); `data` itself when its views
-    do not stack. The fit's programs take it: stacking inside them would add a padding
-    and a concatenation per view and array to every one."""
+    and kept on the device with `data` (a second copy of the cache's arrays; a replaced
+    FitData builds its own); `data` itself when its views do not stack. The fit's
+    programs take it: stacking inside them would add a padding and a concatenation per
+    view and array to every one. Views held as NumPy arrays (the plain FitData of
+    sharded views, fitting.distribute) are stacked in host memory for each call and not
+    kept, so that a chunked fit's device memory stays one chunk's."""
     if isinstance(data.views, ViewBatch):
         return data
-    if "_batched" not in data.__dict__:
-        host = lambda tree: jax.tree.map(np.asarray, tree)
-        stacked = stack_views([host(v) for v in data.views], [host(g) for g in data.lights])
-        found = data
-        if stacked is not None:
-            counts = view_counts(data.views)
-            weight = pixel_weight(counts, np.asarray(data.views[0].target).dtype)
-            found = dataclasses.replace(data, views=jax.device_put(
-                ViewBatch(*stacked, weight, counts)))
-        object.__setattr__(data, "_batched", found)
-    return data.__dict__["_batched"]
+    if "_batched" in data.__dict__:
+        return data.__dict__["_batched"]
+    host = lambda tree: jax.tree.map(np.asarray, tree)
+    index = layout_groups(data.lights)
+    stacks = _grouped([host(v) for v in data.views], [host(g) for g in data.lights], index)
+    if stacks is None:
+        return data
+    counts = view_counts(data.views)
+    weight = pixel_weight(counts, np.asarray(data.views[0].target).dtype)
+    found = dataclasses.replace(data, views=ViewBatch(
+        tuple(s for s, _ in stacks), tuple(g for _, g in stacks), weight, index, counts))
+    if all(isinstance(x, np.ndarray) for x in jax.tree.leaves(data.views[0])):
+        return found
+    found = jax.device_put(found)
+    object.__setattr__(data, "_batched", found)
+    return found
 
 
 def view_map(fn, data, lights=None, rows=None):
@@ -192,24 +222,41 @@ def view_map(fn, data, lights=None, rows=None):
     of `data` (a FitData, its views as given or `batched`): samples a ViewSamples, lights
     its LightGroups (of `lights`, one per view, default the data's), row its row of `rows`
     (a pytree of [V, ...] arrays, or None). Returns (the results with leaves [V, N, ...],
-    0 in the padding; weight [V, N]); one vmapped `fn` when the views stack, else one
-    call per view (module docstring)."""
+    0 in the padding; weight [V, N]): one vmapped `fn` per light layout when the views
+    stack, else one call per view (module docstring)."""
     views = data.views
     if isinstance(views, ViewBatch):
-        stacked = views.samples, views.lights if lights is None else stack_lights(lights)
-        weight = views.weight
+        index, weight = views.index, views.weight
+        stacks = list(zip(views.samples, views.lights if lights is None else [
+            stack_lights([lights[i] for i in group]) for group in index], strict=True))
     else:
         lights = data.lights if lights is None else lights
+        index = layout_groups(lights)
         weight = jnp.asarray(pixel_weight(view_counts(views), views[0].target.dtype))
-        stacked = stack_views(views, lights)
-    if stacked is not None:
-        out = jax.vmap(fn)(*stacked, rows)
-        return jax.tree.map(lambda a: jnp.where(_expand(weight, a) > 0, a, 0), out), weight
+        stacks = _grouped(views, lights, index)
     n = weight.shape[1]
-    per_view = [fn(view, light, jax.tree.map(lambda r, i=i: r[i], rows))
-                for i, (view, light) in enumerate(zip(views, lights, strict=True))]
-    pad = lambda a: jnp.pad(a, [(0, n - a.shape[0])] + [(0, 0)] * (a.ndim - 1))
-    return jax.tree.map(lambda *x: jnp.stack([pad(a) for a in x]), *per_view), weight
+    if stacks is None:
+        out = [fn(view, light, jax.tree.map(lambda r, i=i: r[i], rows))
+               for i, (view, light) in enumerate(zip(views, lights, strict=True))]
+        return jax.tree.map(lambda *x: jnp.stack([_pad_to(a, n, 0) for a in x]), *out), weight
+    outs = [jax.vmap(fn)(samples, light, jax.tree.map(lambda r, g=group: r[np.asarray(g)],
+                                                       rows))
+            for (samples, light), group in zip(stacks, index, strict=True)]
+    order = np.argsort(np.concatenate(index))
+    out = jax.tree.map(lambda *x: _in_order(jnp.concatenate([_pad_to(a, n, 1) for a in x]),
+                                            order), *outs)
+    return jax.tree.map(lambda a: jnp.where(_expand(weight, a) > 0, a, 0), out), weight
+
+
+def _pad_to(a, n, axis):
+    """a padded with zeros to n along `axis`."""
+    widths = [(0, 0)] * a.ndim
+    widths[axis] = (0, n - a.shape[axis])
+    return jnp.pad(a, widths)
+
+
+def _in_order(a, order):
+    return a if np.array_equal(order, np.arange(len(order))) else a[order]
 
 
 def _expand(weight, a):

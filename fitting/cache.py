@@ -92,8 +92,9 @@ class ViewSamples:
          meta_fields=[])
 @dataclasses.dataclass(frozen=True)
 class FitData:
-    """Everything a cached fit step reads: views: tuple of ViewSamples; lights: tuple of
-    LightGroups (one per view); material: the base Material (held-fixed quantities);
+    """Everything a cached fit step reads: views: tuple of ViewSamples (the fit's programs
+    take them stacked once, a fitting.batch.ViewBatch: fitting.batch.batched); lights:
+    tuple of LightGroups (one per view); material: the base Material (held-fixed quantities);
     global_ambient: [3]; settings: RenderSettings (a pytree: its structure is static)."""
 
     views: tuple

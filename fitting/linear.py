@@ -8,8 +8,10 @@ linear in the coefficients:
 where A, D, S are the ambient, diffuse and specular parts that `diffshade.shade` returns
 for unit coefficients (ka = kd = ks = 1). For a given shininess the best coefficients are
 a bound-constrained linear least-squares problem, solved exactly: normal equations
-(p x p, p <= 9) accumulated on the device, and a small primal active-set method for the
-box [0, upper] on the host (float64). Coefficients held fixed move to the right-hand side.
+(p x p, p <= 9) summed on the host in float64 from the parts of every view (one vmapped
+program, `view_parts`, that the identifiability check shares), and a small primal
+active-set method for the box [0, upper] on the host (float64). Coefficients held fixed
+move to the right-hand side.
 
 Clamping makes a saturated pixel non-linear: a target at 1 (or at 0) only says the
 unclamped colour is >= 1 (<= 0). Such pixel-channels (target >= 1 - 1e-6 or <= 1e-6 when
@@ -19,7 +21,8 @@ likewise only exact after the polish).
 
 The outer problem in log-shininess is 1-D: evaluated on a log grid (so that a flat or
 multi-modal profile cannot trap it), then refined by Brent's bounded method around the
-best grid point. This removes the ks-shininess ridge that slows plain gradient descent.
+best grid point (to 1e-6 in log-shininess, which the float64 sums resolve). This removes
+the ks-shininess ridge that slows plain gradient descent.
 
 Per-view gains (fitting.gains) multiply a view's parts, so with the gains fixed the
 coefficients are still a linear problem, and with the coefficients fixed each view's gain
@@ -189,7 +192,7 @@ def _search_shininess(data, spec, shininess_range, grid_size, gains=None):
     best = int(np.argmin(profile))
     lo, hi = grid[max(best - 1, 0)], grid[min(best + 1, grid_size - 1)]
     refined = minimize_scalar(lambda g: _solve(g, data, spec, gains)[1], bounds=(lo, hi),
-                              method="bounded", options={"xatol": 1e-3})
+                              method="bounded", options={"xatol": 1e-6})
     return float(refined.x) if refined.fun <= profile[best] else float(grid[best])
 
 

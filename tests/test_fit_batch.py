@@ -1,10 +1,10 @@
-"""The fit's views as one batch (fitting.batch): every program shades one view under
-jax.vmap over the views padded and stacked, and gives what shading the views one by one
-gives.
+"""The fit's views as one batch (fitting.batch): every program shades one view per light
+layout under jax.vmap over the views padded and stacked, and gives what shading the
+views one by one gives.
 
 References, float64, 3 views x 2 lights of a 16 px icosphere (the views lit by a
-directional or a point light: two light layouts, padded to one with lights of colour
-0), one view masked out entirely (0 kept pixels: padded from another view): the
+directional or a point light: two light layouts, two vmapped groups), one view masked
+out entirely (0 kept pixels: padded from another view): the
 residuals of `fitting.cache.predict` called view by view in a Python loop, their
 Jacobian by jax.jacfwd of that loop, the linear solve's normal equations summed from
 `pixel_parts` view by view; and a whole 'linear' fit with stacking switched off (every
@@ -62,8 +62,8 @@ def _loop_residuals(values, spec, data):
 
 
 def test_the_scene_needs_padding():
-    """The references below exercise what batching pads: two light layouts, views of
-    different pixel counts, a view without pixels."""
+    """The references below exercise what batching groups and pads: two light layouts,
+    views of different pixel counts, a view without pixels."""
     data = cache64()
     assert len({light_layout(g) for g in data.lights}) == 2
     counts = [v.pixels.shape[0] for v in data.views]
