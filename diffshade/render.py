@@ -191,14 +191,17 @@ def blend(scene, colours, frags: Fragments, settings, weights=None, kt=None):
     return jnp.concatenate([clamp01(image[..., :3]), image[..., 3:]], -1)
 
 
-def render_fragments(scene, frags: Fragments, settings=DEFAULT_SETTINGS, axis_name=None):
+def render_fragments(scene, frags: Fragments, settings=DEFAULT_SETTINGS, axis_name=None,
+                     proj: Projected | None = None):
     """Shade and blend cached fragments: [H, W, 4] RGBA. In soft mode only the fragments
     with a non-zero blend weight need a colour (shade_fragments' `active`); transparent
-    layers behind them may show, so a transparent scene shades every fragment."""
+    layers behind them may show, so a transparent scene shades every fragment. proj: the
+    scene's Projected when the caller has it (fixed geometry), else projected here."""
     kt = fragment_kt(scene, frags)
     weights = None if kt is not None else blend_weights(scene, frags, settings)
     active = None if weights is None else weights[..., :-1] > 0.0
-    _, colours = shade_fragments(scene, project(scene), frags, settings, active, axis_name)
+    proj = project(scene) if proj is None else proj
+    _, colours = shade_fragments(scene, proj, frags, settings, active, axis_name)
     return blend(scene, colours, frags, settings, weights, kt)
 
 

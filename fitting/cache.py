@@ -92,8 +92,9 @@ class ViewSamples:
          meta_fields=[])
 @dataclasses.dataclass(frozen=True)
 class FitData:
-    """Everything a cached fit step reads: views: tuple of ViewSamples; lights: tuple of
-    LightGroups (one per view); material: the base Material (held-fixed quantities);
+    """Everything a cached fit step reads: views: tuple of ViewSamples (the fit's programs
+    take them stacked once, a fitting.batch.ViewBatch: fitting.batch.batched); lights:
+    tuple of LightGroups (one per view); material: the base Material (held-fixed quantities);
     global_ambient: [3]; settings: RenderSettings (a pytree: its structure is static)."""
 
     views: tuple
@@ -290,7 +291,7 @@ def _to_pixels(values, samples: ViewSamples, material):
     the fragments, then their layers composited with `material`'s kt (in XLA: the arrays
     are small, and a gather beats a host callback per view and step)."""
     layers = read(values, samples.reader, host=False).reshape(
-        samples.pixels.shape + (-1, values.shape[-1]))
+        samples.pixels.shape + (samples.reader.ids.shape[-1], values.shape[-1]))
     if samples.layers is None:
         return layers[:, 0]
     weights, _ = layer_weights(_layer_kt(material, samples), samples.layers)

@@ -49,6 +49,7 @@ from jax.flatten_util import ravel_pytree
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from fitting.batch import common_lights, light_layout
 from fitting.cache import FitData, ViewSamples, predict
 from fitting.gains import scaled_material, view_gains
 from fitting.loss import check_kind, irls_weight, rho
@@ -171,65 +172,6 @@ def _check_stackable(data: FitData):
                              "(fit with devices=1 and chunk=None)")
 
 
-def _light_layout(lights):
-    return jax.tree.structure(lights), tuple(np.shape(x) for x in jax.tree.leaves(lights))
-
-
-def _dark(light):
-    """A copy of a light group's lights that emit nothing (colours 0), one light."""
-    first = jax.tree.map(lambda x: np.asarray(x)[:1], light)
-    colours = {f: np.zeros_like(getattr(first, f)) for f in ("ambient", "diffuse", "specular")
-               if hasattr(first, f)}
-    if hasattr(first, "shadows"):
-        colours["shadows"] = (False,)
-    return dataclasses.replace(first, **colours)
-
-
-def common_lights(lights):
-    """The views' LightGroups given one structure, for stacking: every kind that some view
-    has, with the largest count, padded with lights of colour 0 (copies of a real light
-    of that kind, so that their geometry is finite). A light of colour 0 adds exactly 0
-    to a colour and to its gradient. Raises ValueError when the padded groups still
-    differ (static settings such as shadow flags or area-light sample counts)."""
-    lights = [jax.tree.map(np.asarray, g) for g in lights]
-    kinds = [f.name for f in dataclasses.fields(lights[0])]
-    padded = [{} for _ in lights]
-    for kind in kinds:
-        groups = [getattr(g, kind) for g in lights]
-        present = [g for g in groups if g is not None]
-        if not present:
-            continue
-        most = max(np.shape(jax.tree.leaves(g)[0])[0] for g in present)
-        dark = _dark(present[0])
-        for entry, group in zip(padded, groups, strict=True):
-            have = 0 if group is None else np.shape(jax.tree.leaves(group)[0])[0]
-            parts = ([] if group is None else [group]) + [dark] * (most - have)
-            entry[kind] = _concat(parts)
-    out = [dataclasses.replace(g, **entry) for g, entry in zip(lights, padded, strict=True)]
-    for i, g in enumerate(out):
-        if _light_layout(g) != _light_layout(out[0]):
-            raise ValueError(f"views[{i}].lights: differ from views[0]'s in a static setting "
-                             "(shadow flags or area-light samples); sharded or chunked fits "
-                             "stack the views' lights (fit with devices=1 and chunk=None)")
-    return out
-
-
-def _concat(groups):
-    """Light groups of one kind, concatenated along the light axis (shadow flags as one
-    tuple per group, so that equal groups have equal static structure)."""
-    if not hasattr(groups[0], "shadows"):
-        return jax.tree.map(lambda *x: np.concatenate(x), *groups)
-    flags = sum((_flags(g) for g in groups), ())
-    plain = [dataclasses.replace(g, shadows=False) for g in groups]
-    return dataclasses.replace(jax.tree.map(lambda *x: np.concatenate(x), *plain),
-                               shadows=flags)
-
-
-def _flags(group):
-    n = np.shape(jax.tree.leaves(group)[0])[0]
-    return group.shadows if isinstance(group.shadows, tuple) else (bool(group.shadows),) * n
-
-
 @dataclasses.dataclass
 class ShardedViews:
     """A FitData's views stacked, chunked and placed on a device mesh (module docstring).
@@ -295,7 +237,7 @@ class ShardedViews:
         data = self.fit_data
         if spec.fits_lights:
             for i, g in enumerate(data.lights):
-                if _light_layout(g) != _light_layout(data.lights[0]):
+                if light_layout(g) != light_layout(data.lights[0]):
                     raise ValueError(f"views[{i}].lights: other kinds or counts than "
                                      "views[0]'s; a sharded or chunked fit of the lights "
                                      "needs one light layout (fit with devices=1 and "
@@ -407,7 +349,7 @@ def shard_views(data: FitData, devices="all", chunk=None, *,
     n_chunks = math.ceil(n_views / size)
     n = max(max(v.pixels.shape[0] for v in views), 1)
     s = max(max(v.points.shape[0] for v in views), 1)
-    lights = common_lights(data.lights)
+    lights = common_lights([jax.tree.map(np.asarray, g) for g in data.lights])
     extra = n_chunks * size - n_views  # views of weight 0 (copies of view 0)
     slots = [(v, light, i) for i, (v, light) in enumerate(zip(views, lights, strict=True))]
     slots += [(None, lights[0], None)] * extra

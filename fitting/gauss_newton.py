@@ -10,6 +10,7 @@ decreasing step for damping up to 1e10. `lm_step` is one iteration, whose state 
 params and the damping (fitting.run drives it; `levenberg_marquardt` is the plain loop).
 """
 
+import weakref
 from functools import partial
 from typing import NamedTuple
 
@@ -18,24 +19,43 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
+from fitting.batch import batched
 from fitting.distribute import ShardedViews
-from fitting.loss import irls_weight, make_loss, mean_rho, residuals
+from fitting.loss import irls_weight, mean_rho, stacked_residuals
+from fitting.params import to_values
 
 _MAX_DAMPING = 1e10
 
 
-def flat_residuals(params, spec, data):
-    """All views' residuals as one vector [M] (M = 3 * kept pixels)."""
-    return jnp.concatenate([r.reshape(-1) for r in residuals(params, spec, data)])
+@partial(jax.jit, static_argnames=("spec", "kind"))
+def normal_system(values, slopes, data, spec, kind="mse"):
+    """The one Jacobian program of a fit, at the physical `values`: (loss, J^T W J [p, p],
+    J^T W r [p], r [M], d r / d values [M, p], weight [M]), with J = (d r / d values) *
+    slopes (slopes [p]: d values / d params, value_slopes; ones: J with respect to the
+    values), W the IRLS weights of `kind`, and r every view's residuals, padded to one
+    pixel count (fitting.batch; weight 0 in the padding, where r and its rows are 0).
+    Levenberg-Marquardt (linearize) and the standard errors (fitting.uncertainty) share
+    it."""
+    def flat(v):
+        r, weight = stacked_residuals(v, spec, data)
+        r = r.reshape(-1)
+        return r, (r, jnp.repeat(weight.reshape(-1), 3))
+
+    columns, (r, weight) = jax.jacfwd(flat, has_aux=True)(values)
+    jac_values = jnp.concatenate([c.reshape(r.shape[0], -1) for c in jax.tree.leaves(columns)],
+                                 axis=1)
+    jac = jac_values * slopes
+    irls = weight * irls_weight(kind, r)
+    loss = mean_rho(kind, [r[:, None]], [weight])
+    return loss, jac.T @ (irls[:, None] * jac), jac.T @ (irls * r), r, jac_values, weight
 
 
-def jacobian_matrix(fn, tree):
-    """fn(tree) -> [M]; returns (fn(tree) [M], d fn / d tree as [M, p]) with the columns in
-    `ravel_pytree(tree)` order."""
-    value = fn(tree)
-    jac = jax.jacfwd(fn)(tree)
-    cols = [leaf.reshape(value.shape[0], -1) for leaf in jax.tree.leaves(jac)]
-    return value, jnp.concatenate(cols, axis=1)
+@partial(jax.jit, static_argnames=("spec",))
+def value_slopes(params, spec):
+    """d values / d params of every scalar, [p] in ravel_pytree order (each value is a
+    function of its own param: fitting.params.TRANSFORMS)."""
+    ones = jax.tree.map(jnp.ones_like, params)
+    return ravel_pytree(jax.jvp(lambda p: to_values(p, spec), (params,), (ones,))[1])[0]
 
 
 def linearize(params, data, spec, kind="mse"):
@@ -46,24 +66,19 @@ def linearize(params, data, spec, kind="mse"):
     return _linearize(params, data, spec, kind)
 
 
-@partial(jax.jit, static_argnames=("spec", "kind"))
 def _linearize(params, data, spec, kind="mse"):
-    r, jac = jacobian_matrix(lambda p: flat_residuals(p, spec, data), params)
-    w = irls_weight(kind, r)
-    loss = mean_rho(kind, [r[:, None]])
-    return loss, jac.T @ (w[:, None] * jac), jac.T @ (w * r)
+    return normal_system(to_values(params, spec), value_slopes(params, spec), batched(data),
+                         spec, kind)[:3]
 
 
 def loss_at(params, data, spec, kind="mse"):
-    """The loss of `kind` at params on the cached data (jitted), or on sharded views."""
+    """The loss of `kind` at params: on the cached data from the Jacobian program itself
+    (normal_system; so a fit compiles no second program for it, and the linearization at
+    a step Levenberg-Marquardt accepts is already there for the next step), or on sharded
+    views."""
     if isinstance(data, ShardedViews):
         return data.loss(params, spec, kind)
-    return _loss_at(params, data, spec, kind)
-
-
-@partial(jax.jit, static_argnames=("spec", "kind"))
-def _loss_at(params, data, spec, kind="mse"):
-    return make_loss(spec, kind)(params, data)
+    return _linearize64(params, data, spec, kind)[0]
 
 
 def _damped_step(hess, grad, damping):
@@ -85,8 +100,19 @@ def _decreasing_step(flat, unravel, dtype, linear, data, spec, kind, damping):
     return None
 
 
+_LAST = []  # [(key, weak reference to the data, linearization)]: the latest one
+
+
 def _linearize64(params, data, spec, kind):
-    return tuple(np.asarray(x, np.float64) for x in linearize(params, data, spec, kind))
+    """linearize in float64 on the host, remembered for the latest params (the line
+    search's accepted candidate is the next step's start)."""
+    key = (spec, kind, *((np.asarray(x).dtype.str, np.asarray(x).tobytes())
+                         for x in jax.tree.leaves(params)))
+    if _LAST and _LAST[0][0] == key and _LAST[0][1]() is data:
+        return _LAST[0][2]
+    linear = tuple(np.asarray(x, np.float64) for x in linearize(params, data, spec, kind))
+    _LAST[:] = [(key, weakref.ref(data), linear)]
+    return linear
 
 
 class LMStep(NamedTuple):

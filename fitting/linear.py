@@ -8,8 +8,10 @@ linear in the coefficients:
 where A, D, S are the ambient, diffuse and specular parts that `diffshade.shade` returns
 for unit coefficients (ka = kd = ks = 1). For a given shininess the best coefficients are
 a bound-constrained linear least-squares problem, solved exactly: normal equations
-(p x p, p <= 9) accumulated on the device, and a small primal active-set method for the
-box [0, upper] on the host (float64). Coefficients held fixed move to the right-hand side.
+(p x p, p <= 9) summed on the host in float64 from the parts of every view (one vmapped
+program, `view_parts`, that the identifiability check shares), and a small primal
+active-set method for the box [0, upper] on the host (float64). Coefficients held fixed
+move to the right-hand side.
 
 Clamping makes a saturated pixel non-linear: a target at 1 (or at 0) only says the
 unclamped colour is >= 1 (<= 0). Such pixel-channels (target >= 1 - 1e-6 or <= 1e-6 when
@@ -19,7 +21,8 @@ likewise only exact after the polish).
 
 The outer problem in log-shininess is 1-D: evaluated on a log grid (so that a flat or
 multi-modal profile cannot trap it), then refined by Brent's bounded method around the
-best grid point. This removes the ks-shininess ridge that slows plain gradient descent.
+best grid point (to 1e-6 in log-shininess, which the float64 sums resolve). This removes
+the ks-shininess ridge that slows plain gradient descent.
 
 Per-view gains (fitting.gains) multiply a view's parts, so with the gains fixed the
 coefficients are still a linear problem, and with the coefficients fixed each view's gain
@@ -29,13 +32,13 @@ gains found): a start close enough for Levenberg-Marquardt to polish everything 
 """
 
 import dataclasses
-from functools import partial
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy.optimize import minimize_scalar
 
+from fitting.batch import batched, view_map
 from fitting.cache import FitData, pixel_parts
 from fitting.gains import fitted_gains
 from fitting.params import COEFFICIENTS, FitSpec, values_to_material
@@ -45,9 +48,14 @@ GAIN_ROUNDS = 6
 
 
 def _unit_material(base, spec, log_shininess):
-    ones = jnp.ones(3, base.ka.dtype)
+    """The base material with unit coefficients (shininess exp(log_shininess) when
+    fitted), built on the host: its leaves keep the base's dtype, so every call shares
+    view_parts' one compilation."""
+    dtype = base.ka.dtype
+    ones = np.ones(3, dtype)
     has_specular = spec.ks is not None or base.ks is not None
-    shininess = jnp.exp(log_shininess) if spec.shininess else base.shininess
+    shininess = (np.asarray(np.exp(log_shininess), dtype) if spec.shininess
+                 else base.shininess)
     return dataclasses.replace(base, ka=ones, kd=ones, ks=ones if has_specular else None,
                                shininess=shininess, emission=base.emission)
 
@@ -67,43 +75,63 @@ def _selection(spec: FitSpec):
 
 
 def _offset(parts, spec, base):
-    """[N, 3]: emission plus the parts of the coefficients held fixed."""
+    """[V, N, 3]: emission plus the parts of the coefficients held fixed."""
     offset = parts.emission
     for name, part in (("ka", parts.ambient), ("kd", parts.diffuse), ("ks", parts.specular)):
         if getattr(spec, name) is None and getattr(base, name) is not None:
-            offset = offset + getattr(base, name) * part
+            offset = offset + np.asarray(getattr(base, name), np.float64) * part
     return offset
 
 
-def _usable(target, settings):
-    """[N, 3] float: 1 where the pixel-channel is linear in the coefficients."""
-    if not settings.clamp:
-        return jnp.ones_like(target)
-    return ((target > SATURATION_EPS) & (target < 1.0 - SATURATION_EPS)).astype(target.dtype)
+def _usable(target, weight, settings):
+    """[V, N, 3] float: 1 where the pixel-channel is kept and linear in the coefficients."""
+    usable = np.broadcast_to(weight[..., None], target.shape)
+    if settings.clamp:
+        usable = usable * ((target > SATURATION_EPS) & (target < 1.0 - SATURATION_EPS))
+    return usable.astype(np.float64)
 
 
-@partial(jax.jit, static_argnames=("spec",))
+@jax.jit
+def view_parts(material, lights, data: FitData):
+    """Every view's unclamped parts (fitting.cache.pixel_parts) of `material` under
+    `lights` (one LightGroups per view; None: the data's) at the kept pixels, in one vmapped program
+    (fitting.batch): (ShadingParts of [V, N, 3], targets [V, N, 3], weight [V, N]);
+    the padding is 0. The linear solve, the gains and the identifiability check
+    (fitting.uncertainty) all read it."""
+    def one(samples, light, _):
+        return (pixel_parts(material, light, data.global_ambient, samples, data.settings),
+                samples.target)
+
+    (parts, target), weight = view_map(one, data, lights)
+    return parts, target, weight
+
+
+def host_parts(material, lights, data: FitData):
+    """view_parts on the host in float64, on `data`'s views stacked once
+    (fitting.batch.batched)."""
+    return jax.tree.map(lambda a: np.asarray(a, np.float64),
+                        view_parts(material, lights, batched(data)))
+
+
 def normal_equations(log_shininess, data: FitData, spec: FitSpec, gains=None):
     """At shininess exp(log_shininess): G = X^T X [p, p], b = X^T y [p], c = y^T y and n
     (the number of usable pixel-channels), for the design X whose columns are the parts
     scaled by each fitted coefficient, and y = target - emission - fixed parts. gains:
-    [V, 3] per-view gains that multiply the parts (None: 1)."""
+    [V, 3] per-view gains that multiply the parts (None: 1). The parts come from
+    view_parts; the sums are taken on the host in float64."""
     material = _unit_material(data.material, spec, log_shininess)
-    gram, rhs, sq, count = 0.0, 0.0, 0.0, 0.0
-    for v, (samples, lights) in enumerate(zip(data.views, data.lights, strict=True)):
-        parts = pixel_parts(material, lights, data.global_ambient, samples, data.settings)
-        if gains is not None:
-            parts = parts.map(lambda a, g=gains[v]: a * g)
-        w = _usable(samples.target, data.settings)
-        y = samples.target - _offset(parts, spec, data.material)
-        stacked = jnp.stack([parts.ambient, parts.diffuse, parts.specular])
-        # per channel, the 3 x 3 Gram of the parts: 9x less work than the design matrix
-        gram = gram + jnp.einsum("knc,lnc->ckl", stacked * w, stacked)
-        rhs = rhs + jnp.einsum("knc,nc->ck", stacked, w * y)
-        sq, count = sq + jnp.sum(w * y * y), count + jnp.sum(w)
-    select = jnp.asarray(_selection(spec), y.dtype)
-    return (jnp.einsum("ick,jcl,ckl->ij", select, select, gram),
-            jnp.einsum("ick,ck->i", select, rhs), sq, count)
+    parts, target, weight = host_parts(material, None, data)
+    if gains is not None:
+        parts = parts.map(lambda a: a * np.asarray(gains, np.float64)[:, None, :])
+    w = _usable(target, weight, data.settings)
+    y = target - _offset(parts, spec, data.material)
+    stacked = np.stack([parts.ambient, parts.diffuse, parts.specular])
+    # per channel, the 3 x 3 Gram of the parts: 9x less work than the design matrix
+    gram = np.einsum("kvnc,lvnc->ckl", stacked * w, stacked)
+    rhs = np.einsum("kvnc,vnc->ck", stacked, w * y)
+    select = _selection(spec)
+    return (np.einsum("ick,jcl,ckl->ij", select, select, gram),
+            np.einsum("ick,ck->i", select, rhs), float(np.sum(w * y * y)), float(np.sum(w)))
 
 
 def box_least_squares(gram, rhs, lower, upper, max_iter=100):
@@ -151,11 +179,8 @@ def _advance(x, step, state, lower, upper):
 
 def _solve(log_shininess, data, spec, gains=None):
     """(coefficients [p], mean squared residual) at shininess exp(log_shininess)."""
-    # one argument type whoever calls (a Python float would be weakly typed: a second
-    # compilation of normal_equations)
-    log_shininess = np.asarray(log_shininess, np.float64)
-    gram, rhs, sq, count = (np.asarray(a, np.float64)
-                            for a in normal_equations(log_shininess, data, spec, gains))
+    gram, rhs, sq, count = normal_equations(np.asarray(log_shininess, np.float64), data,
+                                            spec, gains)
     coef = box_least_squares(gram, rhs, 0.0, spec.upper)
     return coef, float(coef @ gram @ coef - 2 * coef @ rhs + sq) / max(float(count), 1.0)
 
@@ -167,7 +192,7 @@ def _search_shininess(data, spec, shininess_range, grid_size, gains=None):
     best = int(np.argmin(profile))
     lo, hi = grid[max(best - 1, 0)], grid[min(best + 1, grid_size - 1)]
     refined = minimize_scalar(lambda g: _solve(g, data, spec, gains)[1], bounds=(lo, hi),
-                              method="bounded", options={"xatol": 1e-3})
+                              method="bounded", options={"xatol": 1e-6})
     return float(refined.x) if refined.fun <= profile[best] else float(grid[best])
 
 
@@ -181,18 +206,13 @@ def _split(coef, spec, dtype):
     return values
 
 
-@partial(jax.jit, static_argnames=("spec",))
 def gain_moments(values, data: FitData, spec: FitSpec):
     """([V, 3] sum of w p t, [V, 3] sum of w p p) per view and channel: p the unclamped
     colour of the values' material at unit gain, t the target, w 1 at usable pixels."""
     material = values_to_material(values, spec, data.material)
-    num, den = [], []
-    for samples, lights in zip(data.views, data.lights, strict=True):
-        p = pixel_parts(material, lights, data.global_ambient, samples, data.settings).total
-        w = _usable(samples.target, data.settings)
-        num.append(jnp.sum(w * p * samples.target, 0))
-        den.append(jnp.sum(w * p * p, 0))
-    return jnp.stack(num), jnp.stack(den)
+    parts, target, weight = host_parts(material, None, data)
+    p, w = parts.total, _usable(target, weight, data.settings)
+    return np.sum(w * p * target, 1), np.sum(w * p * p, 1)
 
 
 def _best_gains(values, data, spec):
@@ -236,7 +256,7 @@ def solve_linear(data: FitData, spec: FitSpec, *, shininess_range=(1.0, 2000.0),
                  if spec.shininess else jnp.log(jnp.maximum(data.material.shininess, 1e-6)))
         values = _split(_solve(log_s, data, spec, gains)[0], spec, dtype)
         if spec.shininess:
-            values["shininess"] = jnp.exp(jnp.asarray(log_s, dtype))
+            values["shininess"] = jnp.asarray(np.exp(log_s), dtype)
         return values, log_s
 
     values, log_s = solve(gains)

@@ -22,9 +22,10 @@ import numpy as np
 
 from diffshade.render import render
 from diffshade.scene import replace
+from fitting.batch import unpadded, view_map
 from fitting.cache import FitData, predict
 from fitting.data import view_scene
-from fitting.gains import scaled_material, view_gains, view_materials
+from fitting.gains import scaled_material, view_gains
 from fitting.params import FitSpec, to_values, values_to_lights, values_to_material
 
 LOSSES = ("mse", "l1", "charbonnier", "huber")
@@ -62,14 +63,24 @@ def irls_weight(kind, r):
     return 0.5 * jnp.where(abs_r <= HUBER_DELTA, 1.0, HUBER_DELTA / jnp.maximum(abs_r, 1e-30))
 
 
+def stacked_residuals(values, spec: FitSpec, data: FitData):
+    """Physical values -> (residuals [V, N, 3]: rendered - target, 0 in the padding;
+    weight [V, N]: 1 at the kept pixels), every view shaded by one vmapped program
+    (fitting.batch; `data` as built or batched). Each view is rendered with its own gain
+    (fitting.gains) when the spec fits gains."""
+    material = values_to_material(values, spec, data.material)
+    lights = values_to_lights(values, spec, data.lights) if "lights" in values else None
+
+    def one(samples, light, gain):
+        m = material if gain is None else scaled_material(material, gain)
+        return predict(m, light, data.global_ambient, samples, data.settings) - samples.target
+
+    return view_map(one, data, lights, view_gains(values, len(data.views)))
+
+
 def values_residuals(values, spec: FitSpec, data: FitData):
-    """Physical values -> residuals (rendered - target) per view: tuple of [N_v, 3]. Each
-    view is rendered with its own gain (fitting.gains) when the spec fits gains."""
-    materials = view_materials(values_to_material(values, spec, data.material), values,
-                               len(data.views))
-    lights = values_to_lights(values, spec, data.lights)
-    return tuple(predict(material, light, data.global_ambient, view, data.settings) - view.target
-                 for view, light, material in zip(data.views, lights, materials, strict=True))
+    """Physical values -> residuals (rendered - target) per view: tuple of [N_v, 3]."""
+    return unpadded(stacked_residuals(values, spec, data)[0], data.views)
 
 
 def residuals(params, spec: FitSpec, data: FitData):
@@ -94,7 +105,8 @@ def make_loss(spec: FitSpec, kind: str = "mse"):
     check_kind(kind)
 
     def loss_fn(params, data):
-        return mean_rho(kind, residuals(params, spec, data))
+        r, weight = stacked_residuals(to_values(params, spec), spec, data)
+        return mean_rho(kind, [r], [weight])
     return loss_fn
 
 

@@ -20,13 +20,10 @@ would otherwise have a floor of ~0).
 """
 
 import dataclasses
-from functools import partial
 
-import jax
 import numpy as np
 
-from fitting.loss import values_residuals
-from fitting.uncertainty import rounding_steps
+from fitting.uncertainty import rounding_steps, view_residuals
 
 MAX_RATIO = 3.0
 MIN_RMS = 0.5 / 255.0
@@ -66,11 +63,6 @@ class Misfit:
         return dataclasses.asdict(self)
 
 
-@partial(jax.jit, static_argnames=("spec",))
-def _residuals(values, data, spec):
-    return values_residuals(values, spec, data)
-
-
 def _neighbour_squares(r, pixels, width):
     """Sum of (r_i - r_j)^2 over right and lower neighbours that are both kept, and the
     number of such differences (pairs times channels)."""
@@ -89,7 +81,7 @@ def _neighbour_squares(r, pixels, width):
 def misfit(values, data, spec, widths) -> Misfit:
     """The Misfit of the physical `values` on the cached `data` (fitting.build_cache);
     widths: the image width of each view."""
-    residuals = [np.asarray(r, np.float64) for r in _residuals(values, data, spec)]
+    residuals = view_residuals(values, data, spec)
     flat = np.concatenate([r.ravel() for r in residuals])
     rms = float(np.sqrt(np.mean(flat**2))) if flat.size else 0.0
     total, count = 0.0, 0

@@ -35,6 +35,7 @@ from diffshade.objects import unstack_material
 from diffshade.render import render_fragments
 from diffshade.shadows import shadow_maps
 from diffshade.transparency import layers_needed
+from fitting.batch import common_lights
 from fitting.cache import fixed_fragments, geometry_scene
 from fitting.data import view_scene
 from fitting.dataset import material_dict
@@ -253,11 +254,23 @@ def _render_rgb(dataset, index, material, lights=None):
     are then rasterized as the settings say)."""
     scene = view_scene(dataset, index, material, lights)
     settings = dataset.settings
-    _, frags = fixed_fragments(geometry_scene(dataset, index), settings,
-                               layers_needed(scene, settings))
+    proj, frags = fixed_fragments(geometry_scene(dataset, index), settings,
+                                  layers_needed(scene, settings))
     if jax.eval_shape(lambda s: shadow_maps(s, settings), scene) is None:
         settings = dataclasses.replace(settings, kernels="jax")
-    return np.asarray(_render_fragments(scene, frags, settings))[..., :3].astype(np.float64)
+    return np.asarray(_render_fragments(scene, frags, settings, proj=proj))[..., :3].astype(
+        np.float64)
+
+
+def panel_lights(lights) -> list:
+    """The views' lights (one LightGroups each) padded to one layout with lights of
+    colour 0 (fitting.batch.common_lights: the same images), so that every view's panel
+    render shares one compiled program; as given when they differ in a static setting."""
+    host = [jax.tree.map(np.asarray, g) for g in lights]
+    try:
+        return common_lights(host)
+    except ValueError:
+        return list(lights)
 
 
 def residual_scale(residuals, kept) -> float:
@@ -279,7 +292,8 @@ def write_result(out_dir, dataset, result, init, extra=None, title="", kept=None
     out_dir = os.fspath(out_dir)
     count = len(dataset.views)
     materials = view_materials(result.material, result.values, count)  # per-view gains
-    fitted = [_render_rgb(dataset, i, materials[i], result.lights[i]) for i in range(count)]
+    lights = panel_lights(result.lights)
+    fitted = [_render_rgb(dataset, i, materials[i], lights[i]) for i in range(count)]
     residuals = [f - v.target for f, v in zip(fitted, dataset.views, strict=True)]
     kept = kept or [np.arange(v.target.shape[0] * v.target.shape[1]) for v in dataset.views]
     scale = residual_scale(residuals, kept)
@@ -295,8 +309,10 @@ def write_result(out_dir, dataset, result, init, extra=None, title="", kept=None
                         result_dict(result, init, dataset.truth, extra)),
              write_png(os.path.join(out_dir, files["loss_curve"]),
                        loss_curve(result.loss_history, title))]
+    given = panel_lights([v.lights for v in dataset.views])
     for i in range(count):
-        image = panel(dataset.views[i].target, _render_rgb(dataset, i, init), fitted[i])
+        image = panel(dataset.views[i].target, _render_rgb(dataset, i, init, given[i]),
+                      fitted[i])
         paths.append(write_png(os.path.join(out_dir, files["views"][i]), image))
     for i, r in enumerate(residuals):
         paths.append(write_npy(os.path.join(out_dir, files["residuals"][i]),

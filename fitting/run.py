@@ -33,6 +33,7 @@ import numpy as np
 import optax
 
 from diffshade.material import Material
+from fitting.batch import batched
 from fitting.distribute import ShardedViews, fit_data
 from fitting.gauss_newton import lm_step, loss_at
 from fitting.linear import solve_linear
@@ -148,10 +149,16 @@ def gradients(params, data, spec, kind):
     return jax.grad(make_loss(spec, kind))(params, data)
 
 
+def _stacked(data):
+    """The data a compiled step reads: sharded views as they are, a FitData with its views
+    stacked once (fitting.batch.batched), not in every step."""
+    return data if isinstance(data, ShardedViews) else batched(data)
+
+
 def _gradients_at(state, data):
     if isinstance(data, ShardedViews):  # fitting.distribute
         return data.value_and_grad(state.params, state.spec, state.kind)[1]
-    return gradients(state.params, data, state.spec, state.kind)
+    return gradients(state.params, _stacked(data), state.spec, state.kind)
 
 
 def nonfinite_gradients(state: RunState, data) -> list:
@@ -207,7 +214,7 @@ def _loss_known(state):
 
 def _optax_take(state, data):
     step_fn = _optax_step_of(state.spec, state.options, data)[0]
-    params, opt_state, loss = step_fn(state.params, state.opt_state, data)
+    params, opt_state, loss = step_fn(state.params, state.opt_state, _stacked(data))
     loss = float(loss)
     state.opt_state = opt_state  # rejected: only apply_if_finite's counters changed
     if not bool(opt_state.last_finite):

@@ -25,17 +25,15 @@ Warnings are listed in the report and raised with `warnings.warn` (Identifiabili
 
 import dataclasses
 import warnings
-from functools import partial
 
 import jax
-import jax.numpy as jnp
 import numpy as np
-from jax.flatten_util import ravel_pytree
 
 from diffshade.color import decode, encode
-from fitting.cache import FitData, pixel_parts
-from fitting.gauss_newton import jacobian_matrix
-from fitting.loss import values_residuals
+from fitting.batch import batched, unpadded
+from fitting.cache import FitData
+from fitting.gauss_newton import normal_system
+from fitting.linear import host_parts
 from fitting.params import (
     FitSpec,
     at_bound,
@@ -101,28 +99,42 @@ class UncertaintyReport:
                          + [f"note: {n}" for n in self.notes])
 
 
-def _residual_vector(values, data, spec):
-    return jnp.concatenate([r.reshape(-1) for r in values_residuals(values, spec, data)])
+def _system_at(values, data, spec):
+    """Levenberg-Marquardt's program (gauss_newton.normal_system) at the physical values,
+    with respect to them (slopes 1): one compiled program serves the fit, the standard
+    errors and the misfit check."""
+    leaves = jax.tree.leaves(values)
+    ones = np.ones(sum(np.size(x) for x in leaves), np.asarray(leaves[0]).dtype)
+    return normal_system(values, ones, batched(data), spec, "mse")
 
 
-@partial(jax.jit, static_argnames=("spec",))
 def values_jacobian(values, data: FitData, spec: FitSpec):
-    """Residuals [M] and their Jacobian [M, p] with respect to the physical values."""
-    return jacobian_matrix(lambda v: _residual_vector(v, data, spec), values)
+    """Residuals [M] and their Jacobian [M, p] with respect to the physical values, on
+    the host (the kept pixels' rows of _system_at)."""
+    *_, r, jac, weight = _system_at(values, data, spec)
+    keep = np.asarray(weight) > 0
+    return np.asarray(r)[keep], np.asarray(jac)[keep]
 
 
-@partial(jax.jit, static_argnames=("spec",))
+def view_residuals(values, data: FitData, spec: FitSpec) -> tuple:
+    """Residuals (rendered - target) of every view at the physical values, on the host in
+    float64: tuple of [N_v, 3] (the rows of _system_at)."""
+    r = np.asarray(_system_at(values, data, spec)[3], np.float64)
+    return unpadded(r.reshape(len(data.views), -1, 3), data.views)
+
+
 def _pixel_counts(values, data: FitData, spec: FitSpec, highlight_threshold):
     """(kept pixels unlit by every light of their view, kept pixels whose specular part at
-    the values exceeds highlight_threshold in some channel)."""
+    the values exceeds highlight_threshold in some channel), from the linear solve's
+    program (fitting.linear.view_parts)."""
     material = values_to_material(values, spec, data.material)
-    unit_kd = dataclasses.replace(material, kd=jnp.ones_like(material.kd))
-    lights = values_to_lights(values, spec, data.lights)
-    unlit = bright = 0
-    for samples, light in zip(data.views, lights, strict=True):
-        parts = pixel_parts(unit_kd, light, data.global_ambient, samples, data.settings)
-        unlit = unlit + jnp.sum(jnp.max(parts.diffuse, -1) <= 1e-9)
-        bright = bright + jnp.sum(jnp.max(parts.specular, -1) > highlight_threshold)
+    unit_kd = dataclasses.replace(material, kd=np.ones(np.shape(material.kd),
+                                                       np.asarray(material.kd).dtype))
+    lights = values_to_lights(values, spec, data.lights) if "lights" in values else None
+    parts, _, weight = host_parts(unit_kd, lights, data)
+    kept = weight > 0
+    unlit = np.sum(kept & (np.max(parts.diffuse, -1) <= 1e-9))
+    bright = np.sum(kept & (np.max(parts.specular, -1) > highlight_threshold))
     return unlit, bright
 
 
@@ -190,7 +202,8 @@ def uncertainty(values: dict, data: FitData, spec: FitSpec, *, highlight_thresho
     if warn:
         for message in found:
             warnings.warn(message, IdentifiabilityWarning, stacklevel=2)
-    flat = np.asarray(ravel_pytree(values)[0], np.float64)
+    flat = np.concatenate([np.ravel(np.asarray(x, np.float64))
+                           for x in jax.tree.leaves(values)])
     bound, notes = _rounding(data, jac[:, free], inverse)
     if bound is not None:
         bound = _scatter(bound, free)

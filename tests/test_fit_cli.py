@@ -446,9 +446,10 @@ def test_transient_non_finite_losses_are_skipped(data_root, tmp_path, capsys, mo
 
         def step_fn(params, state, data):
             calls.append(1)
-            if len(calls) in (4, 5):
-                data = dataclasses.replace(data, views=tuple(
-                    dataclasses.replace(v, target=v.target * jnp.nan) for v in data.views))
+            if len(calls) in (4, 5):  # the steps read the views stacked (fitting.batch)
+                views = data.views
+                data = dataclasses.replace(data, views=dataclasses.replace(views, samples=tuple(
+                    dataclasses.replace(v, target=v.target * jnp.nan) for v in views.samples)))
             return step(params, state, data)
         return step_fn, optimizer
     monkeypatch.setattr(run_module, "optax_step", flaky)
