@@ -235,3 +235,16 @@ def test_dataset_truth_and_views_must_agree_on_the_objects(dataset_dir, tmp_path
         status, _, err = run(["fit", folder, "-o", tmp_path / "out"], capsys)
         assert status == 2 and message in err, err
         assert not (tmp_path / "out").exists()
+
+
+def test_synth_scene_of_one_mesh_makes_a_one_object_dataset(root, tmp_path, capsys):
+    one = {"mesh": {"builtin": {"icosphere": {"subdivisions": 1}}},
+           "material": TRUTH["ball"], "global_ambient": 0.3,
+           "camera": {"eye": [0, 0, 3], "target": [0, 0, 0], "width": SIZE, "height": SIZE}}
+    scene = write_json(root / "one.json", one)
+    assert run(["synth", "--scene", scene, "--views", "1", "--lights", "1", "--size", SIZE,
+                "-o", tmp_path / "data"], capsys)[0] == 0
+    dataset = load_dataset(tmp_path / "data")
+    assert dataset.objects is None and len(dataset.views) == 1
+    np.testing.assert_allclose(dataset.truth.kd, TRUTH["ball"]["kd"], rtol=1e-6)
+    np.testing.assert_allclose(dataset.global_ambient, 0.3, rtol=1e-6)
