@@ -11,7 +11,10 @@ reaches shows ka * GLOBAL_AMBIENT exactly, the same value in every view, so roun
 shifts it by the same amount everywhere; that shift divided by the value is a bias of ka
 that no number of views averages out. The 'dither' rows add uniform noise of one code
 step (1/255) before the rounding: the rounding error is then independent from pixel to
-pixel and falls with the number of views. Errors are deterministic (fixed seeds).
+pixel and falls with the number of views. 'pixels unlike camera 0's': the fraction of
+the later cameras' pixels whose target differs from the first camera's image under the
+same light (the sphere is symmetric and the layout's lights turn with the camera, so the
+views are nearly copies). Errors are deterministic (fixed seeds).
 """
 
 import argparse
@@ -46,6 +49,15 @@ def dithered(dataset, seed):
     return dataset.__class__(**{**dataset.__dict__, "views": views})
 
 
+def differing(dataset, n_lights=2):
+    """The fraction of pixels of the views after the first camera's whose target differs
+    from the first camera's image under the same light (0 when all views are copies)."""
+    targets = [np.asarray(v.target) for v in dataset.views]
+    later = [np.any(t != targets[k % n_lights], axis=-1)
+             for k, t in enumerate(targets) if k >= n_lights]
+    return float(np.mean(later)) if later else None
+
+
 def rows_for(size, n_views, seed, mode):
     clean = make_dataset(n_views=n_views, size=size, seed=seed,
                          quantize_8bit=(mode == "8-bit"))
@@ -55,14 +67,16 @@ def rows_for(size, n_views, seed, mode):
     worst = max(errors, key=errors.get)
     return {"mode": mode, "views": n_views, "seed": seed, "worst": worst,
             "max_rel_error": errors[worst], **{f"{k}_err": v for k, v in errors.items()},
-            "ka_bias_predicted": ka_rounding_bias(dataset.truth.ka)}
+            "ka_bias_predicted": ka_rounding_bias(dataset.truth.ka),
+            "differing": differing(dataset)}
 
 
 COLUMNS = [("mode", "targets", "{}"), ("views", "views", "{}"), ("seed", "seed", "{}"),
            ("max_rel_error", "max rel err", "{:.1e}"), ("worst", "worst", "{}"),
            ("ka_err", "ka err", "{:.1e}"), ("ka_bias_predicted", "ka rounding bias", "{:.1e}"),
            ("kd_err", "kd err", "{:.1e}"), ("ks_err", "ks err", "{:.1e}"),
-           ("shininess_err", "n err", "{:.1e}")]
+           ("shininess_err", "n err", "{:.1e}"),
+           ("differing", "pixels unlike camera 0's", "{:.2%}")]
 
 
 def main(argv=None):
