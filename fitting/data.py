@@ -11,9 +11,9 @@ forward model renders the targets (data_synth) and the fit's full-image path.
 
 Several objects: `objects` (diffshade.objects.ObjectIds) says which object each face and
 vertex of the (joined) mesh belongs to; materials (truth, the fit's) then have a leading
-object axis. `dataset_of_scene` takes mesh, model and ids from a Scene; `object_total` counts a
-dataset's objects and `material_for` gives a material the shape a dataset needs (one
-material for every object, or one per object).
+object axis. `dataset_of_scene` takes mesh, model and ids from a Scene; `object_total`
+counts a dataset's objects and `material_for` gives a material the shape a dataset needs
+(one material for every object, or one per object, in order or by name).
 """
 
 import dataclasses
@@ -137,7 +137,6 @@ def dataset_of_scene(scene: Scene, views, **kwargs) -> Dataset:
     return Dataset(scene.mesh, views, model=scene.model, global_ambient=scene.global_ambient,
                    local_viewer=scene.local_viewer, two_sided=scene.two_sided,
                    objects=scene.objects, **kwargs)
-
 
 
 def object_total(dataset: Dataset) -> int | None:
