@@ -14,14 +14,14 @@ per field of fitting.options.FitOptions. A dataset of several objects (scene fil
 (KA,KD,KS,N) or one per object (a file {"objects": ...}, fitting.data.material_for), and
 the table, material.mtl and result.json have each object's part (fitting.report).
 
-Everything that can be wrong with the input
-(options, the dataset folder, its targets, the output path, the checkpoint to resume;
-fitting.plan, fitting.inputs) is checked before anything is written; such an error is raised as
-ValueError or OSError, which diffshade.cli prints as one line (exit 2). Then the fit runs
-with a progress bar on a terminal, writing RESULT/checkpoint.json every
---checkpoint-every steps, and at its end the result files (fitting.report) and the
-true-versus-recovered table. On --resume every option left out comes from the
-checkpoint, so the run continues with the settings it started with.
+Everything that can be wrong with the input (options, the dataset folder, its targets,
+the output path, the checkpoint to resume; fitting.plan, fitting.inputs) is checked
+before anything is written; such an error is raised as ValueError or OSError, which
+diffshade.cli prints as one line (exit 2). Then the fit runs with a progress bar on a
+terminal, writing RESULT/checkpoint.json every --checkpoint-every steps, and at its end
+the result files (fitting.report) and the true-versus-recovered table. On --resume every
+option left out comes from the checkpoint, so the run continues with the settings it
+started with.
 
 Exit status: 0 done (also when the model does not explain the images: a
 `diffshade: warning:` line on stderr and `misfit` in result.json say so); 2 bad input
