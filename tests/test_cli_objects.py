@@ -248,3 +248,16 @@ def test_synth_scene_of_one_mesh_makes_a_one_object_dataset(root, tmp_path, caps
     assert dataset.objects is None and len(dataset.views) == 1
     np.testing.assert_allclose(dataset.truth.kd, TRUTH["ball"]["kd"], rtol=1e-6)
     np.testing.assert_allclose(dataset.global_ambient, 0.3, rtol=1e-6)
+
+
+def test_init_from_a_result_json_starts_every_object_there(dataset_dir, fitted_dir, tmp_path,
+                                                           capsys):
+    status, _, err = run(["fit", dataset_dir, "-o", tmp_path / "again", "--quiet", "--method",
+                          "adam", "--steps", "1", "--init", fitted_dir / "result.json"], capsys)
+    assert status == 0, err
+    before = json.loads((fitted_dir / "result.json").read_text())["material"]
+    after = json.loads((tmp_path / "again" / "result.json").read_text())["initial"]
+    assert list(after["objects"]) == ["table", "ball"]
+    for name in TRUTH:
+        np.testing.assert_allclose(after["objects"][name]["kd"], before["objects"][name]["kd"],
+                                   rtol=1e-6)
