@@ -33,8 +33,10 @@ def machine_info():
 
 
 def print_table(rows, columns):
-    """Print rows (dicts) as an aligned text table with the given (key, header, fmt) columns."""
-    cells = [[fmt.format(row[key]) for key, _, fmt in columns] for row in rows]
+    """Print rows (dicts) as an aligned text table with the given (key, header, fmt) columns;
+    a cell whose value is None (the column does not apply to the row) prints as an em dash."""
+    cells = [["\u2014" if row[key] is None else fmt.format(row[key]) for key, _, fmt in columns]
+             for row in rows]
     widths = [max(len(h), *(len(c[i]) for c in cells)) for i, (_, h, _) in enumerate(columns)]
     print("  ".join(h.rjust(w) for (_, h, _), w in zip(columns, widths, strict=True)))
     for c in cells:

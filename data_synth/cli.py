@@ -3,6 +3,11 @@
     diffshade synth [--shape icosphere|torus|box|MESH_FILE] [--material random|KA,KD,KS,N|
         FILE.json] [--views 3] [--lights 2] [--size 128] [--seed 0] [--quantize-8bit]
         [--noise STD] [--shading phong] -o DATASET
+    diffshade synth --scene SCENE.json [--views ...] -o DATASET
+
+--scene takes the objects (or the mesh), their materials (the truth), the model
+transform, global ambient, lighting switches and settings from a scene file; the cameras
+and lights are synth's layout, as for --shape (the file's own are not used).
 
 The dataset (data_synth.make_dataset: views x lights images, the true material) is built
 in memory, saved by `save_dataset` into a new hidden folder beside DATASET, and renamed to
@@ -11,11 +16,13 @@ An existing DATASET is replaced when it is a dataset folder (it has a dataset.js
 empty; any other existing path is an error, checked before rendering.
 """
 
+import dataclasses
 import os
 import shutil
 import uuid
 
 from data_synth.scenes import make_dataset
+from diffshade.scenefile import load_scenes
 from diffshade.settings import SHADING_MODES
 from fitting.dataset import save_dataset
 from fitting.inputs import non_negative_float, parse_material, positive_int
@@ -28,9 +35,13 @@ def register(subparsers):
                     "material from several cameras, each with several lights (one image per "
                     "camera and light), and write the dataset folder: targets as float .npy "
                     "and 8-bit PNG, scene files (with the mesh) and truth.json.")
-    parser.add_argument("--shape", default="icosphere", metavar="icosphere|torus|box|PATH",
+    parser.add_argument("--shape", metavar="icosphere|torus|box|PATH",
                         help="built-in shape or mesh file (default icosphere)")
-    parser.add_argument("--material", default="random", metavar="random|KA,KD,KS,N|FILE",
+    parser.add_argument("--scene", metavar="SCENE.json",
+                        help="a scene file whose objects (or mesh) and materials are "
+                             "rendered instead of --shape (its cameras and lights are not "
+                             "used; see docs/objects.md)")
+    parser.add_argument("--material", metavar="random|KA,KD,KS,N|FILE",
                         help="'random' (from --seed), 4 numbers (grey ka, kd, ks and "
                              "shininess) or a JSON file with ka, kd, ks, shininess")
     parser.add_argument("--views", type=positive_int, default=3, help="cameras (default 3)")
@@ -44,8 +55,9 @@ def register(subparsers):
                         help="round the targets to 8 bits")
     parser.add_argument("--noise", type=non_negative_float, default=0.0, metavar="STD",
                         help="Gaussian noise standard deviation (default 0)")
-    parser.add_argument("--shading", choices=SHADING_MODES, default="phong",
-                        help="shading mode of the targets (default phong)")
+    parser.add_argument("--shading", choices=SHADING_MODES,
+                        help="shading mode of the targets (default phong; with --scene, the "
+                             "file's settings.shading)")
     parser.add_argument("-o", "--output", required=True, metavar="DATASET",
                         help="dataset folder to write")
     parser.set_defaults(run=run_synth)
@@ -94,16 +106,34 @@ def save_dataset_atomically(dataset, out_dir) -> str:
     return out_dir
 
 
+def _what(args):
+    """(shape, material or None, RenderSettings or None) for make_dataset: --shape and
+    --material, or the Scene of --scene with its settings (--shading overriding)."""
+    if args.scene is None:
+        material = (None if args.material in (None, "random")
+                    else parse_material(args.material, "--material"))
+        return args.shape or "icosphere", material, None
+    for option, value in (("--shape", args.shape), ("--material", args.material)):
+        if value is not None:
+            raise ValueError(f"{option}: got {value!r} with --scene; expected the shape and "
+                             "materials inside the scene file")
+    scenes, settings = load_scenes(args.scene)  # any camera: the layout replaces them
+    scene = scenes[0]
+    if args.shading:
+        settings = dataclasses.replace(settings, shading=args.shading)
+    return scene, None, settings
+
+
 def run_synth(args) -> int:
     """The `synth` command: prints the dataset folder's path."""
     _check_output(args.output)
     if args.seed < 0:
         raise ValueError(f"--seed: got {args.seed}; expected an integer >= 0")
-    material = None if args.material == "random" else parse_material(args.material,
-                                                                      "--material")
-    dataset = make_dataset(args.shape, material, n_views=args.views, n_lights=args.lights,
+    shape, material, settings = _what(args)
+    dataset = make_dataset(shape, material, n_views=args.views, n_lights=args.lights,
                            size=args.size, seed=args.seed, quantize_8bit=args.quantize_8bit,
-                           noise_std=args.noise, shading=args.shading)
+                           noise_std=args.noise, shading=args.shading or "phong",
+                           settings=settings)
     save_dataset_atomically(dataset, args.output)
     print(args.output)
     return 0

@@ -27,6 +27,7 @@ import numpy as np
 import diffshade as ds
 from data_synth.materials import random_material
 from diffshade.numerics import float_dtype
+from diffshade.project import transform_points
 from fitting.data import Dataset, View, view_scene
 
 SHAPES = ("icosphere", "torus", "box")
@@ -153,6 +154,34 @@ def _render_target(scene, settings, gain):
     return np.asarray(ds.render(scene, unclamped))[..., :3] * gain
 
 
+def _scene_geometry(scene, material):
+    """Dataset keywords of a Scene: its mesh (joined objects and their ids), its model
+    followed by the normalizing one, its global ambient, lighting switches and materials
+    (the truth)."""
+    if material is not None:
+        raise ValueError(f"material: got {material!r:.60}; expected None with a Scene, whose "
+                         "materials (one per object) are the truth")
+    world = transform_points(scene.model, scene.mesh.vertices)
+    model = np.asarray(_normalizing_model(world), np.float64) @ np.asarray(scene.model)
+    return {"mesh": scene.mesh, "model": model.astype(float_dtype()),
+            "objects": scene.objects, "global_ambient": scene.global_ambient,
+            "local_viewer": scene.local_viewer, "two_sided": scene.two_sided,
+            "truth": scene.material}, {"shape": "scene", "mesh_ref": None}
+
+
+def _geometry(shape, material, rng):
+    """(Dataset keywords, info) of a shape (see make_dataset)."""
+    if isinstance(shape, ds.Scene):
+        return _scene_geometry(shape, material)
+    if material is not None and (not isinstance(material, ds.Material)
+                                 or np.ndim(material.kd) > 1):
+        raise ValueError("material: got materials for several objects; expected one Material "
+                         "for a shape (a Scene holds several objects)")
+    mesh, model, info = shape_mesh(shape)
+    return {"mesh": mesh, "model": model, "global_ambient": GLOBAL_AMBIENT,
+            "truth": random_material(rng) if material is None else material}, info
+
+
 def make_dataset(shape="icosphere", material=None, *, n_views=3, n_lights=2, size=128,
                  seed=0, quantize_8bit=False, noise_std=0.0, shading="phong",
                  settings=None, gains=None) -> Dataset:
@@ -160,21 +189,24 @@ def make_dataset(shape="icosphere", material=None, *, n_views=3, n_lights=2, siz
     'torus', 'box', a mesh file path or a Mesh) with `material` (random from `seed` when None),
     laid out as in the module docstring. settings: RenderSettings (default: `shading`
     with clamping). gains: per image a camera gain (a number, or RGB), applied before the
-    clip; None: 1. The true material is the dataset's `truth`."""
+    clip; None: 1. The true material is the dataset's `truth`.
+
+    `shape` may also be a Scene (a scene file's, of one object or several): its mesh or
+    objects, model (then normalized), materials (the truth; `material` must be None),
+    global ambient and lighting switches are kept; its camera and lights are replaced by
+    the layout's."""
     _check_counts(n_views, n_lights, size, noise_std)
     gains = _check_gains(gains, n_views * n_lights)
     rng = np.random.default_rng(seed)
-    material = random_material(rng) if material is None else material
     settings = ds.RenderSettings(shading=shading) if settings is None else settings
-    mesh, model, info = shape_mesh(shape)
+    geometry, info = _geometry(shape, material, rng)
     blank = np.zeros((size, size, 3), np.float32)
     views = []
     for eye in camera_eyes(n_views):
         camera = ds.look_at(eye, (0.0, 0.0, 0.0), width=size, height=size, fov_y=40.0)
         views += [View(camera, [light], blank) for light in view_lights(eye, n_lights)]
-    dataset = Dataset(mesh, views, model=model, global_ambient=GLOBAL_AMBIENT,
-                      settings=settings, truth=material)
-    images = [_render_target(view_scene(dataset, i, material), settings,
+    dataset = Dataset(views=views, settings=settings, **geometry)
+    images = [_render_target(view_scene(dataset, i, dataset.truth), settings,
                              None if gains is None else gains[i]) for i in range(len(views))]
     views = [View(v.camera, v.lights, degrade(img, rng, noise_std, quantize_8bit,
                                               settings.clamp))
@@ -183,5 +215,4 @@ def make_dataset(shape="icosphere", material=None, *, n_views=3, n_lights=2, siz
                 n_views=n_views, n_lights=n_lights)
     if gains is not None:
         info["gains"] = gains.tolist()
-    return Dataset(mesh, views, model=model, global_ambient=GLOBAL_AMBIENT, settings=settings,
-                   truth=material, info=info)
+    return dataclasses.replace(dataset, views=views, info=info)

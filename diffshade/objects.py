@@ -1,11 +1,12 @@
 """Several objects in one scene, each with its own mesh, transform and material.
 
-`diffshade.scene_object(mesh, material, transform=..., back_material=...)` describes one
-object; `make_scene(objects=[...])` joins several (`join_objects`):
+`diffshade.scene_object(mesh, material, transform=..., back_material=..., name=...)`
+describes one object; `make_scene(objects=[...])` joins several (`join_objects`):
 - the meshes are concatenated into one Mesh, each object's vertices moved by its
   transform and its normals by the inverse transpose (`diffshade.project`'s helpers),
   so that projection and rasterization see one mesh;
-- `ObjectIds` says which object each face and each vertex belongs to;
+- `ObjectIds` says which object each face and each vertex belongs to, and holds the
+  objects' names (static; None when no object is named);
 - the materials are stacked along a leading object axis ([O, 3], shininess [O]); an
   optional field absent from some materials (ks, emission, or any other) is zeros there.
 Shading takes each sample's material by its object id (`take_material`). A scene of one
@@ -28,21 +29,25 @@ from diffshade.project import transform_normals, transform_points
 class SceneObject:
     """One object: mesh; material and back_material (Material, back_material None: the
     front one serves back faces under two-sided lighting); transform: [4, 4] object-to-
-    model matrix. Built, validated, by `scene_object`."""
+    model matrix; name: a label (str) or None. Built, validated, by `scene_object`."""
 
     mesh: Mesh
     material: Material
     transform: jax.Array
     back_material: Material | None = None
+    name: str | None = None
 
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class ObjectIds:
-    """faces: [F] int32, the object of each face; vertices: [V] int32, of each vertex."""
+    """faces: [F] int32, the object of each face; vertices: [V] int32, of each vertex;
+    names: a tuple of one str per object (an unnamed one is 'object_<i>'), or None when
+    no object is named (static: hashable, not traced)."""
 
     faces: jax.Array
     vertices: jax.Array
+    names: tuple | None = dataclasses.field(default=None, metadata={"static": True})
 
 
 def _filled(materials):
@@ -82,6 +87,19 @@ def _placed(obj: SceneObject):
                 transform_normals(obj.transform, mesh.normals).astype(mesh.normals.dtype))
 
 
+def object_names(objects):
+    """The names of SceneObjects (an unnamed one's 'object_<i>'), or None when none is
+    named; ValueError when two are the same."""
+    if all(o.name is None for o in objects):
+        return None
+    names = tuple(f"object_{i}" if o.name is None else o.name for i, o in enumerate(objects))
+    for i, name in enumerate(names):
+        if name in names[:i]:
+            raise ValueError(f"objects[{i}].name: got {name!r} again; expected a name unique "
+                             "among the objects (an unnamed object i is 'object_<i>')")
+    return names
+
+
 def join_objects(objects):
     """(mesh, ObjectIds, material, back_material) of several SceneObjects: one mesh, the
     objects' ids, the stacked front materials and the stacked back materials (each
@@ -94,7 +112,7 @@ def join_objects(objects):
     def repeated(counts):
         return jnp.asarray(np.repeat(np.arange(len(meshes)), counts), jnp.int32)
     ids = ObjectIds(repeated([m.faces.shape[0] for m in meshes]),
-                    repeated([m.vertices.shape[0] for m in meshes]))
+                    repeated([m.vertices.shape[0] for m in meshes]), object_names(objects))
     fronts = [o.material for o in objects]
     if all(o.back_material is None for o in objects):
         return mesh, ids, stack_materials(fronts), None

@@ -99,15 +99,19 @@ def _optional_material(name, value):
 
 
 def scene_object(mesh: Mesh, material: Material | None = None, *, transform=None,
-                 back_material: Material | None = None) -> SceneObject:
+                 back_material: Material | None = None, name: str | None = None
+                 ) -> SceneObject:
     """One object of a scene (make_scene's `objects`): its mesh, its material (default
     OpenGL's), its transform (object to model space: a 4x4 matrix with an invertible
-    upper 3x3 block, default identity) and its back material (default: none, the front
-    material serves back faces under two-sided lighting)."""
+    upper 3x3 block, default identity), its back material (default: none, the front
+    material serves back faces under two-sided lighting) and its name (a non-empty
+    string, unique among the scene's objects; it labels the object's fitted material)."""
     _check_types(("mesh", mesh, Mesh), _optional_material("material", material),
                  _optional_material("back_material", back_material))
+    if name is not None and (not isinstance(name, str) or not name.strip()):
+        raise ValueError(f"name: got {name!r}; expected a non-empty string or None")
     return SceneObject(mesh, make_material() if material is None else material,
-                       _model_matrix(transform, "transform"), back_material)
+                       _model_matrix(transform, "transform"), back_material, name)
 
 
 def _check_objects(objects, mesh, material, back_material):

@@ -57,7 +57,7 @@ from diffshade.mesh import (
     model_matrix,
     torus,
 )
-from diffshade.objects import split_mesh, unstack_material
+from diffshade.objects import object_names, split_mesh, unstack_material
 from diffshade.scene import Scene, make_scene, object_count, scene_object
 from diffshade.settings import DATA_FIELDS, RenderSettings
 
@@ -362,6 +362,7 @@ def _settings(value, path):
 
 _OBJECT_KEYS = {"mesh": _Required(_OBJECT), "transform": _OBJECT, "material": _OBJECT,
                 "back_material": _nullable(_OBJECT)}
+_ENTRY_KEYS = {**_OBJECT_KEYS, "name": _STRING}  # an entry of "objects"
 _SCENE = {
     "version": _VERSION, **_OBJECT_KEYS, "objects": _ARRAY, "camera": _OBJECT,
     "cameras": _ARRAY, "lights": _ARRAY, "global_ambient": _RGB, "background": _RGB,
@@ -384,10 +385,10 @@ def _cameras(top):
     return [_camera(v, f"cameras[{i}]") for i, v in enumerate(top["cameras"])]
 
 
-def _object(value, path, base_dir):
+def _object(value, path, base_dir, table=_OBJECT_KEYS):
     """(mesh, material, back_material, model matrix or None) of an object's keys (the
     top level's, or an entry of "objects")."""
-    fields = _read_object(value, path, _OBJECT_KEYS)
+    fields = _read_object(value, path, table)
     mesh = _mesh(fields["mesh"], _join(path, "mesh"), base_dir)
     model = (_model(fields["transform"], _join(path, "transform")) if "transform" in fields
              else None)
@@ -405,9 +406,14 @@ def _objects(value, base_dir):
     objects = []
     for i, entry in enumerate(value):
         path = f"objects[{i}]"
-        mesh, front, back, model = _object(entry, path, base_dir)
+        mesh, front, back, model = _object(entry, path, base_dir, _ENTRY_KEYS)
         with _at(path):
-            objects.append(scene_object(mesh, front, transform=model, back_material=back))
+            objects.append(scene_object(mesh, front, transform=model, back_material=back,
+                                        name=entry.get("name")))
+    try:
+        object_names(objects)  # unique
+    except ValueError as err:
+        raise SceneFileError(str(err)) from None
     return objects
 
 
@@ -611,6 +617,8 @@ def _objects_to_list(scene):
                  "material": _material_to_dict(unstack_material(scene.material, i))}
         if scene.back_material is not None:
             entry["back_material"] = _material_to_dict(unstack_material(scene.back_material, i))
+        if scene.objects.names is not None:
+            entry = {"name": scene.objects.names[i], **entry}
         objects.append(entry)
     return objects
 

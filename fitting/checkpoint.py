@@ -21,8 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffshade.io import write_json
-from diffshade.material import material
-from fitting.dataset import material_dict
+from fitting.dataset import material_dict, material_from_dict
 from fitting.gains import GAIN_NAMES
 from fitting.options import FitOptions
 from fitting.params import FitSpec
@@ -101,7 +100,8 @@ def read_checkpoint(path) -> dict:
 
 def checkpoint_run(data: dict):
     """(spec, init, options) of a checkpoint's JSON."""
-    return FitSpec(**data["spec"]), material(**data["init"]), FitOptions(**data["options"])
+    return (FitSpec(**data["spec"]), material_from_dict(data["init"], "init"),
+            FitOptions(**data["options"]))
 
 
 def load_checkpoint(path, lights=None) -> RunState:

@@ -9,14 +9,19 @@
         [--quiet]
 
 The fit is fitting.run's, the driver `fitting.fit` uses, with the same options: one flag
-per field of fitting.options.FitOptions. Everything that can be wrong with the input
-(options, the dataset folder, its targets, the output path, the checkpoint to resume;
-fitting.plan, fitting.inputs) is checked before anything is written; such an error is raised as
-ValueError or OSError, which diffshade.cli prints as one line (exit 2). Then the fit runs
-with a progress bar on a terminal, writing RESULT/checkpoint.json every
---checkpoint-every steps, and at its end the result files (fitting.report) and the
-true-versus-recovered table. On --resume every option left out comes from the
-checkpoint, so the run continues with the settings it started with.
+per field of fitting.options.FitOptions. A dataset of several objects (scene files with
+"objects") has every object's material fitted at once: --init is every object's start
+(KA,KD,KS,N) or one per object (a file {"objects": ...}, fitting.data.material_for), and
+the table, material.mtl and result.json have each object's part (fitting.report).
+
+Everything that can be wrong with the input (options, the dataset folder, its targets,
+the output path, the checkpoint to resume; fitting.plan, fitting.inputs) is checked
+before anything is written; such an error is raised as ValueError or OSError, which
+diffshade.cli prints as one line (exit 2). Then the fit runs with a progress bar on a
+terminal, writing RESULT/checkpoint.json every --checkpoint-every steps, and at its end
+the result files (fitting.report) and the true-versus-recovered table. On --resume every
+option left out comes from the checkpoint, so the run continues with the settings it
+started with.
 
 Exit status: 0 done (also when the model does not explain the images: a
 `diffshade: warning:` line on stderr and `misfit` in result.json say so); 2 bad input
@@ -124,7 +129,9 @@ def register(subparsers):
     parser.add_argument("--grey", metavar="NAMES",
                         help="coefficients fitted as one grey value (default: none, RGB)")
     parser.add_argument("--init", metavar="KA,KD,KS,N|FILE",
-                        help="start and held-fixed values (default 0.3,0.5,0.3,20)")
+                        help="start and held-fixed values (default 0.3,0.5,0.3,20; with "
+                             "several objects, for each, or a file {\"objects\": ...} "
+                             "with one per object)")
     parser.add_argument("--color-space", choices=COLOR_SPACES,
                         help="decode every PNG/JPEG target as this, overriding the dataset's "
                              "'color_space' keys and the files' own tags (default: as they "

@@ -11,7 +11,9 @@ forward model renders the targets (data_synth) and the fit's full-image path.
 
 Several objects: `objects` (diffshade.objects.ObjectIds) says which object each face and
 vertex of the (joined) mesh belongs to; materials (truth, the fit's) then have a leading
-object axis. `dataset_of_scene` takes mesh, model and ids from a Scene.
+object axis. `dataset_of_scene` takes mesh, model and ids from a Scene; `object_total`
+counts a dataset's objects and `material_for` gives a material the shape a dataset needs
+(one material for every object, or one per object, in order or by name).
 """
 
 import dataclasses
@@ -22,7 +24,7 @@ from diffshade.camera import Camera
 from diffshade.lights import LightGroups, group_lights
 from diffshade.material import Material
 from diffshade.mesh import Mesh, check_mesh
-from diffshade.objects import ObjectIds
+from diffshade.objects import ObjectIds, stack_materials
 from diffshade.scene import Scene, make_scene, replace
 from diffshade.settings import RenderSettings
 
@@ -136,3 +138,50 @@ def dataset_of_scene(scene: Scene, views, **kwargs) -> Dataset:
                    local_viewer=scene.local_viewer, two_sided=scene.two_sided,
                    objects=scene.objects, **kwargs)
 
+
+def object_total(dataset: Dataset) -> int | None:
+    """The number of objects of a dataset of several objects, or None (one object)."""
+    return None if dataset.objects is None else int(np.max(dataset.objects.faces)) + 1
+
+
+def object_names(dataset: Dataset) -> tuple | None:
+    """The names of a dataset's objects (the scene files' "name"s, an unnamed object i
+    'object_<i>'), or None for a dataset of one object."""
+    count = object_total(dataset)
+    if count is None:
+        return None
+    return dataset.objects.names or tuple(f"object_{i}" for i in range(count))
+
+
+def _in_order(named, names, where):
+    """{name: Material} -> the materials in the objects' order (every object named)."""
+    unknown = [n for n in named if n not in names]
+    if unknown:
+        raise ValueError(f"{where}: objects: {unknown[0]!r}: unknown object name; expected "
+                         f"names among {', '.join(map(repr, names))}")
+    missing = [n for n in names if n not in named]
+    if missing:
+        raise ValueError(f"{where}: objects: no material for {missing[0]!r}; expected one "
+                         f"for every object ({', '.join(map(repr, names))})")
+    return stack_materials([named[n] for n in names])
+
+
+def material_for(dataset: Dataset, material, name="material") -> Material:
+    """`material` as the dataset's materials are: with several objects, a single material
+    is repeated for every object, a stacked one ([O, 3] leaves) must have one row per
+    object, and a dict {object name: Material} must name every object (`object_names`);
+    with one object it must be a single material. ValueError naming `name` otherwise."""
+    count, names = object_total(dataset), object_names(dataset)
+    if isinstance(material, dict):
+        if names is None:
+            raise ValueError(f"{name}: got materials for the objects {sorted(material)}; "
+                             "expected one material, as the dataset has one object")
+        return _in_order(material, names, name)
+    given = None if np.ndim(material.kd) < 2 else int(np.shape(material.kd)[0])
+    if given == count:
+        return material
+    if given is None:
+        return stack_materials([material] * count)
+    expected = "one material" if count is None else f"one material, or {count} (one per object)"
+    raise ValueError(f"{name}: got materials for {given} objects; expected {expected}, as the "
+                     f"dataset has {count or 1} object{'s' if count else ''}")

@@ -11,13 +11,16 @@ A dataset is a folder of target images and diffshade scene files (docs/scene-for
                    serves several views
     images         the targets: PNG or JPEG (decoded to linear), or .npy (linear floats)
     masks          optional, per view: white where the pixel counts
-    truth.json     optional: the true material
+    truth.json     optional: the true material; of several objects, {"objects": {name:
+                   material}} or {"objects": [one material per object]} (or one
+                   material, which every object has)
 
 A view entry is {"scene": file, "image": file} with optional "camera" (index into the
 scene file's cameras, default 0), "target" (a .npy read instead of "image" when it
-exists), "mask" (file) and "color_space". Every view must show the same mesh, model,
-global ambient, lighting switches and settings (the Dataset has one of each); each view
-has its own camera and lights.
+exists), "mask" (file) and "color_space". Every view must show the same mesh (or the
+same "objects", in the same order), model, global ambient, lighting switches and
+settings (the Dataset has one of each); each view has its own camera and lights. A
+dataset of several objects (scene files with "objects") has one material per object.
 
 Which pixels count: inside the view's mask file, where an RGBA target's alpha is above
 0.5, and not saturated: a pixel is left out when any channel of its decoded target
@@ -31,6 +34,7 @@ Image targets are decoded with, first found: load_dataset's `color_space`, the v
 OSError for a missing file) naming the file or key, the value and what was expected.
 """
 
+import dataclasses
 import hashlib
 import math
 import os
@@ -40,9 +44,10 @@ import numpy as np
 import diffshade as ds
 from diffshade.color import COLOR_SPACES
 from diffshade.io import write_json
+from diffshade.objects import stack_materials, unstack_material
 from diffshade.scenefile import read_json, scene_to_dict
-from fitting.data import Dataset, View, view_scene
-from fitting.params import DEFAULT_INIT
+from fitting.data import Dataset, View, material_for, view_scene
+from fitting.params import DEFAULT_INIT, object_count
 
 FORMAT = "diffshade-dataset"
 VERSION = 1
@@ -67,9 +72,7 @@ def _check_material_value(key, value, where):
         _fail(where, value, "a number" if key == "shininess" else "a number or [r, g, b]")
 
 
-def material_from_dict(data, where):
-    """Material from a parsed JSON object with keys among MATERIAL_KEYS (truth.json, an
-    --init file); ValueError naming `where` and the key otherwise."""
+def _one_material_from_dict(data, where):
     if not isinstance(data, dict) or set(data) - set(MATERIAL_KEYS):
         extra = sorted(set(data) - set(MATERIAL_KEYS)) if isinstance(data, dict) else \
             type(data).__name__
@@ -83,12 +86,42 @@ def material_from_dict(data, where):
         raise ValueError(f"{where}: {err}") from err
 
 
+def material_from_dict(data, where):
+    """Material from a parsed JSON object with keys among MATERIAL_KEYS (truth.json, an
+    --init file); for several objects (diffshade.objects) {"objects": [one such object
+    per object]} gives a stacked Material and {"objects": {name: one such object}} a dict
+    {name: Material} (fitting.data.material_for puts it in the objects' order).
+    ValueError naming `where` and the key otherwise."""
+    if not (isinstance(data, dict) and "objects" in data):
+        return _one_material_from_dict(data, where)
+    entries = data["objects"]
+    if set(data) != {"objects"}:
+        raise ValueError(f"{where} has {sorted(set(data) - {'objects'})} beside "
+                         "\"objects\"; expected only \"objects\" (one material per "
+                         "object) or the keys of one material")
+    if not isinstance(entries, (list, dict)) or not entries:
+        _fail(f"{where}: objects", entries, "a non-empty list of materials, one per object, "
+              "or an object {name: material}")
+    if isinstance(entries, dict):
+        return {name: _one_material_from_dict(e, f"{where}: objects.{name}")
+                for name, e in entries.items()}
+    return stack_materials([_one_material_from_dict(e, f"{where}: objects[{i}]")
+                            for i, e in enumerate(entries)])
+
+
 # ---- writing ----
 
 
-def material_dict(mat) -> dict:
+def material_dict(mat, names=None) -> dict:
     """{'ka', 'kd', 'ks', 'shininess', 'emission', 'kt'} as JSON-ready lists (None when
-    absent)."""
+    absent); of a stacked Material (several objects), {'objects': [one such dict per
+    object]}, or {'objects': {name: one such dict}} given the objects' `names`
+    (material_from_dict reads them all)."""
+    count = object_count(mat)
+    if count is not None:
+        dicts = [material_dict(unstack_material(mat, i)) for i in range(count)]
+        return {"objects": dicts if names is None else dict(zip(names, dicts, strict=True))}
+
     def rgb(value):
         return None if value is None else np.asarray(value, np.float64).tolist()
     return {"ka": rgb(mat.ka), "kd": rgb(mat.kd), "ks": rgb(mat.ks),
@@ -99,7 +132,7 @@ def material_dict(mat) -> dict:
 def _write_view(out_dir, dataset, i):
     """view_NNN.json (mesh inline, or the built-in shape's reference), .png, .npy, mask."""
     view, name = dataset.views[i], f"view_{i:03d}"
-    scene = view_scene(dataset, i, dataset.truth or DEFAULT_INIT)
+    scene = view_scene(dataset, i, material_for(dataset, dataset.truth or DEFAULT_INIT))
     write_json(os.path.join(out_dir, f"{name}.json"),
                scene_to_dict(scene, dataset.settings, dataset.info.get("mesh_ref")))
     ds.write_png(os.path.join(out_dir, f"{name}.png"), view.target)
@@ -113,17 +146,20 @@ def _write_view(out_dir, dataset, i):
     return entry
 
 
+def _names(dataset):
+    """The names of a dataset's named objects, else None."""
+    return None if dataset.objects is None else dataset.objects.names
+
+
 def save_dataset(dataset: Dataset, out_dir) -> str:
     """Write `dataset` to the folder out_dir (created if missing), every file atomically;
     returns its path. The float targets (.npy) are what load_dataset reads back."""
-    if dataset.objects is not None:
-        raise ValueError("dataset: a dataset of several objects; save_dataset writes "
-                         "datasets of one object (one mesh and one material) only")
     out_dir = os.fspath(out_dir)
     os.makedirs(out_dir, exist_ok=True)
     entries = [_write_view(out_dir, dataset, i) for i in range(len(dataset.views))]
     if dataset.truth is not None:
-        write_json(os.path.join(out_dir, "truth.json"), material_dict(dataset.truth))
+        write_json(os.path.join(out_dir, "truth.json"),
+                   material_dict(dataset.truth, _names(dataset)))
     write_json(os.path.join(out_dir, "dataset.json"),
                {"format": FORMAT, "version": VERSION, "views": entries, "info": dataset.info})
     return out_dir
@@ -271,6 +307,14 @@ def _scenes(path, name, cache):
     return cache[name]
 
 
+def _same_objects(ids, ids0):
+    """Whether two scenes split their (equal) meshes into the same objects."""
+    if ids is None or ids0 is None:
+        return ids is ids0
+    arrays = zip((ids.faces, ids.vertices), (ids0.faces, ids0.vertices), strict=True)
+    return ids.names == ids0.names and all(np.array_equal(a, b) for a, b in arrays)
+
+
 def _check_same(first, scene, settings, where):
     """Every view must share view 0's mesh, model, ambient, switches and settings."""
     scene0, settings0 = first
@@ -280,6 +324,9 @@ def _check_same(first, scene, settings, where):
                             (scene0.mesh.vertices, scene0.mesh.faces), strict=True)):
         raise ValueError(f"{where}: its mesh differs from views[0]'s; expected one mesh for "
                          "the whole dataset")
+    if not _same_objects(scene.objects, scene0.objects):
+        raise ValueError(f"{where}: its objects differ from views[0]'s; expected the same "
+                         "objects, in the same order, in every view")
     for key in _SHARED:
         if not np.array_equal(getattr(scene, key), getattr(scene0, key)):
             raise ValueError(f"{where}: its {key} differs from views[0]'s; expected one "
@@ -325,14 +372,16 @@ def load_dataset(path, color_space=None, saturation=None) -> Dataset:
         if i:
             _check_same(loaded[0][:2], *loaded[i][:2], f"views[{i}] ({entry['scene']})")
     scene, settings, _ = loaded[0]
+    dataset = Dataset(scene.mesh, [view for _, _, view in loaded],
+                      model=np.asarray(scene.model),
+                      global_ambient=np.asarray(scene.global_ambient), settings=settings,
+                      local_viewer=scene.local_viewer, two_sided=scene.two_sided,
+                      info=meta.get("info", {}), objects=scene.objects)
     truth_path = os.path.join(path, "truth.json")
-    truth = None
-    if os.path.isfile(truth_path):
-        truth = material_from_dict(read_json(truth_path, "truth.json"), truth_path)
-    return Dataset(scene.mesh, [view for _, _, view in loaded], model=np.asarray(scene.model),
-                   global_ambient=np.asarray(scene.global_ambient), settings=settings,
-                   truth=truth, local_viewer=scene.local_viewer, two_sided=scene.two_sided,
-                   info=meta.get("info", {}))
+    if not os.path.isfile(truth_path):
+        return dataset
+    truth = material_from_dict(read_json(truth_path, "truth.json"), truth_path)
+    return dataclasses.replace(dataset, truth=material_for(dataset, truth, truth_path))
 
 
 def fingerprint(dataset: Dataset) -> str:

@@ -30,7 +30,7 @@ import numpy as np
 
 from diffshade.material import Material
 from fitting.cache import build_cache
-from fitting.data import Dataset
+from fitting.data import Dataset, material_for
 from fitting.distribute import device_list, fit_data, for_options
 from fitting.misfit import Misfit, misfit
 from fitting.options import FitOptions
@@ -61,7 +61,8 @@ class FitResult:
     warnings: tuple of messages; truth: the true Material, or None; status: 'converged',
     'budget', 'stopped' or 'non-finite' (fitting.run); stop_message: why it stopped on
     non-finite values; at_bound: names of the values at a bound; misfit: fitting.misfit
-    .Misfit or None."""
+    .Misfit or None; object_names: the names of the dataset's objects when they are named
+    (scene files' "name", diffshade.scene_object's name), else None."""
 
     material: object
     lights: tuple
@@ -81,6 +82,7 @@ class FitResult:
     stop_message: str = ""
     at_bound: tuple = ()
     misfit: Misfit | None = None
+    object_names: tuple | None = None
 
     def summary(self, truth=None) -> str:
         """A table: parameter, true value (when `truth` or self.truth is known), fitted
@@ -178,7 +180,8 @@ def fit_result(state, dataset, data, *, with_uncertainty=True, warn=False, truth
         loss_history=np.asarray(state.history), converged=state.converged,
         n_steps=state.step, wall_time=state.wall_time, method=state.method, errors=errors,
         uncertainty=report, warnings=found, truth=truth, status=status,
-        stop_message=stop_message, at_bound=bound, misfit=check)
+        stop_message=stop_message, at_bound=bound, misfit=check,
+        object_names=None if dataset.objects is None else dataset.objects.names)
 
 
 def _check_fit_args(dataset, spec, init, truth, options, settings):
@@ -187,7 +190,8 @@ def _check_fit_args(dataset, spec, init, truth, options, settings):
     if not isinstance(spec, FitSpec):
         raise TypeError(f"spec: got {type(spec).__name__}; expected FitSpec")
     for name, value in (("init", init), ("truth", truth)):
-        if value is not None and not isinstance(value, Material):
+        named = name == "init" and isinstance(value, dict)  # {object name: Material}
+        if value is not None and not isinstance(value, Material) and not named:
             raise TypeError(f"{name}: got {type(value).__name__}; expected a Material "
                             "(diffshade.material(...)) or None")
     if options is not None and not isinstance(options, FitOptions):
@@ -214,7 +218,9 @@ def fit(dataset: Dataset, spec: FitSpec | None = None, init=None, *, options=Non
         truth=None, with_uncertainty=True, callback=None, **settings) -> FitResult:
     """Fit `spec`'s quantities (default FitSpec(): ka, kd, ks in RGB and shininess) to
     `dataset`, starting from (and holding fixed the rest of) `init` (a Material; default
-    DEFAULT_INIT; kt, when fitted and `init` has none, starts at KT_START).
+    DEFAULT_INIT; kt, when fitted and `init` has none, starts at KT_START; with several
+    objects one Material for all, a stacked one or {object name: Material},
+    fitting.data.material_for).
 
     options: a FitOptions; settings: any of its fields as keywords (method='linear' |
     'adam' | 'lbfgs', steps, loss, tol, atol, patience, gtol, lr, lr_shininess,
@@ -228,7 +234,8 @@ def fit(dataset: Dataset, spec: FitSpec | None = None, init=None, *, options=Non
     _check_fit_args(dataset, spec, init, truth, options, settings)
     options = dataclasses.replace(options or FitOptions(), **settings)
     device_list(options.devices)  # more devices than there are: an error before any work
-    init = start_material(DEFAULT_INIT if init is None else init, spec)
+    init = start_material(material_for(dataset, DEFAULT_INIT if init is None else init,
+                                       "init"), spec)
     start = time.perf_counter()
     data = build_cache(dataset, init, edge_margin=options.edge_margin)
     views = for_options(data, options)  # sharded and chunked, or data itself

@@ -62,7 +62,9 @@ def _material_file(path, option):
 def parse_material(text, option):
     """'KA,KD,KS,N' (grey coefficients and the shininess) or a JSON file with keys ka, kd,
     ks, shininess, emission (a dataset's truth.json; a result.json's 'material') ->
-    Material. Raises ValueError (or FileNotFoundError) naming `option`."""
+    Material; a file of several objects' materials ({"objects": [...]} or {"objects":
+    {name: ...}}, fitting.dataset.material_from_dict) gives a stacked Material or a dict
+    {name: Material}. Raises ValueError (or FileNotFoundError) naming `option`."""
     if "," in text:
         parts = text.split(",")
         try:

@@ -11,6 +11,7 @@ import os
 from typing import NamedTuple
 
 from fitting.checkpoint import checkpoint_run, load_checkpoint, material_dict, read_checkpoint
+from fitting.data import material_for
 from fitting.distribute import device_list
 from fitting.inputs import (
     check_output,
@@ -56,7 +57,7 @@ def _resumed_options(args, saved, checkpoint):
     return dataclasses.replace(saved, **{k: v for k, v in given.items() if k in free})
 
 
-def _check_agrees(args, spec, init, meta, checkpoint):
+def _check_agrees(args, spec, meta, checkpoint):
     """On --resume, the data options given must describe the checkpoint's run."""
     if args.color_space is not None and args.color_space != meta.get("color_space"):
         raise ValueError(f"--color-space: got {args.color_space!r}; the checkpoint "
@@ -65,8 +66,13 @@ def _check_agrees(args, spec, init, meta, checkpoint):
                                                                    args.grey) != spec:
         raise ValueError(f"--fit/--grey: describe another fit than the checkpoint "
                          f"{checkpoint!r} ({spec})")
+
+
+def _check_init(args, init, dataset, checkpoint):
+    """On --resume, an --init given must be the checkpoint's (for every object)."""
     if args.init is not None:
-        given = material_dict(parse_material(args.init, "--init"))
+        given = material_dict(material_for(dataset, parse_material(args.init, "--init"),
+                                           "--init"))
         if given != material_dict(init):
             raise ValueError(f"--init: got {args.init!r}; the checkpoint {checkpoint!r} was "
                              f"made from {material_dict(init)}")
@@ -97,19 +103,22 @@ def prepare(args):
         except (KeyError, TypeError, ValueError) as err:
             raise ValueError(f"checkpoint {checkpoint!r}: {err}") from err
         meta = saved.get("meta", {})
-        _check_agrees(args, spec, init, meta, checkpoint)
+        _check_agrees(args, spec, meta, checkpoint)
         options = _resumed_options(args, options, checkpoint)
         if args.color_space is None:
             args.color_space = meta.get("color_space")
     else:
         spec, options = fit_spec(args.fit, args.grey), _new_options(args)
         init = DEFAULT_INIT if args.init is None else parse_material(args.init, "--init")
-        init = start_material(init, spec)
     try:
         device_list(options.devices)
     except ValueError as err:
         raise ValueError(f"--{err}") from None
     dataset = load_checked_dataset(args.dataset, args.color_space)
+    if saved is None:  # one start for every object, or one per object
+        init = start_material(material_for(dataset, init, "--init"), spec)
+    else:
+        _check_init(args, init, dataset, checkpoint)
     fingerprint = dataset_fingerprint(dataset)
     state = None
     if saved is not None:

@@ -3,11 +3,14 @@
 `write_result(out_dir, dataset, result, init, extra)` writes, each file atomically
 (diffshade.io), in this order so that the parameters are on disk first:
 
-    material.mtl   the fitted material as a Wavefront MTL (Ka, Kd, Ks, Ns, Ke)
+    material.mtl   the fitted material as a Wavefront MTL (Ka, Kd, Ks, Ns, Ke); one
+                   `newmtl` per object for several objects
     result.json    `result_dict`: the FitResult's values, standard errors, warnings and
                    loss history, the full fitted and initial materials, the truth and the
                    relative errors when the dataset has a truth (absent otherwise), and
-                   the caller's `extra` keys
+                   the caller's `extra` keys; with several objects the materials are
+                   {"objects": [one per object]} and "objects" holds one report per
+                   object (`object_reports`)
     loss.png       the loss history (matplotlib, Agg canvas, log y)
     view_000.png   per view: target | initial | fitted | ERROR_GAIN x |fitted - target|,
                    as diffshade.render renders them (`_render_rgb`), separated by grey
@@ -101,16 +104,17 @@ def _newmtl(material, name):
     return lines + [f"illum {2 if specular else 1}"]
 
 
-def mtl_text(material, name="diffshade_fit", comment=""):
+def mtl_text(material, name="diffshade_fit", comment="", names=None):
     """Wavefront MTL text of a Material: Ka, Kd, Ks (0 without specular), Ns (the Blinn-
     Phong exponent, written as fitted), Ke when it emits, Tr (the mean of kt) and Tf (kt
     per channel) when it is transparent, illum 2 (1 without specular). A stacked Material
-    (several objects, [O, 3] leaves) gives one `newmtl` per object, named `{name}_0`,
-    `{name}_1`, ... in object order."""
+    (several objects, [O, 3] leaves) gives one `newmtl` per object, in object order,
+    named by `names` (the objects' names) or else `{name}_0`, `{name}_1`, ..."""
     count = object_count(material)
     materials = ([material] if count is None
                  else [unstack_material(material, i) for i in range(count)])
-    names = [name] if count is None else [f"{name}_{i}" for i in range(count)]
+    names = ([name] if count is None else list(names) if names is not None
+             else [f"{name}_{i}" for i in range(count)])
     lines = ["# diffshade: Blinn-Phong material, linear RGB, OpenGL 1.x lighting",
              f"# Ns is the specular exponent as fitted; many OBJ viewers clamp Ns to "
              f"[0, {MTL_NS_LIMIT:g}] (OpenGL's fixed pipeline to 128)"]
@@ -140,16 +144,42 @@ def _finite_only(obj, path, replaced):
     return obj
 
 
+def object_reports(result, truth) -> list:
+    """Per object of a fit of several objects: its name, fitted material, truth (when
+    known), its relative errors and its uncertainty report ({name: standard error, or
+    None at a bound}, named without the 'objects[i].' prefix, and its warnings)."""
+    reports = []
+    names = result.object_names or [None] * len(result.values["objects"])
+    for i, report in enumerate(result.object_reports()):
+        prefix = f"objects[{i}]."
+        entry = {"name": names[i],
+                 "material": material_dict(unstack_material(result.material, i))}
+        if truth is not None:
+            entry["truth"] = material_dict(unstack_material(truth, i))
+        if result.errors is not None:
+            entry["errors"] = jax.tree.map(lambda x: np.asarray(x).tolist(),
+                                           result.errors["objects"][i])
+        if report is not None:
+            entry["std_errors"] = {n.removeprefix(prefix): s
+                                   for n, (_, s) in report.as_dict().items()}
+            entry["warnings"] = list(report.warnings)
+        reports.append(entry)
+    return reports
+
+
 def result_dict(result, init, truth, extra=None) -> dict:
     """result.json's content: FitResult.as_dict() (without 'errors' when there is no truth),
     'material' (the full fitted material), 'initial', 'truth' (when known) and `extra`.
     Non-finite numbers become null and are listed in 'notes'."""
     out = dict(extra or {})
     out |= {k: v for k, v in result.as_dict().items() if not (k == "errors" and v is None)}
-    out["material"] = material_dict(result.material)
-    out["initial"] = material_dict(init)
+    names = result.object_names
+    out["material"] = material_dict(result.material, names)
+    out["initial"] = material_dict(init, names)
     if truth is not None:
-        out["truth"] = material_dict(truth)
+        out["truth"] = material_dict(truth, names)
+    if "objects" in result.values:
+        out["objects"] = object_reports(result, truth)
     replaced = []
     out = _finite_only(out, "", replaced)
     if replaced:
@@ -166,13 +196,18 @@ def _std_errors(result):
 
 def _material_rows(result, truth, se):
     """The rows of the material values (one object's, or each object's in turn, labelled
-    'objects[i].kd[r]') and the per-view gains."""
+    'objects[i].kd[r]', or 'NAME.kd[r]' for named objects) and the per-view gains."""
     errors = result.errors or {}
     if "objects" in result.values:
         for i, one in enumerate(result.values["objects"]):
             true = None if truth is None else unstack_material(truth, i)
             errs = errors["objects"][i] if "objects" in errors else {}
-            yield from _value_rows(one, true, errs, se, result.at_bound, f"objects[{i}].")
+            rows = _value_rows(one, true, errs, se, result.at_bound, f"objects[{i}].")
+            if result.object_names is None:
+                yield from rows
+                continue
+            for label, *rest in rows:  # a named object's rows say its name
+                yield (label.replace(f"objects[{i}]", result.object_names[i], 1), *rest)
     yield from _value_rows(result.values, truth, errors, se, result.at_bound)
 
 
@@ -285,10 +320,6 @@ def write_result(out_dir, dataset, result, init, extra=None, title="", kept=None
     """Write the result files (module docstring) into out_dir; returns their paths.
     kept: per view, the flat indices of the pixels the fit counted (fitting.cache; default
     every pixel), for residual_scale."""
-    if dataset.objects is not None:
-        raise ValueError("dataset: a dataset of several objects; write_result writes the "
-                         "files of a one-object fit only (write mtl_text(result.material) "
-                         "for the materials)")
     out_dir = os.fspath(out_dir)
     count = len(dataset.views)
     materials = view_materials(result.material, result.values, count)  # per-view gains
@@ -304,7 +335,7 @@ def write_result(out_dir, dataset, result, init, extra=None, title="", kept=None
     extra = dict(extra or {}) | {"files": files, "error_gain": ERROR_GAIN,
                                  "residual_scale": scale}
     paths = [write_text(os.path.join(out_dir, files["material"]),
-                        mtl_text(result.material, comment=title)),
+                        mtl_text(result.material, comment=title, names=result.object_names)),
              write_json(os.path.join(out_dir, "result.json"),
                         result_dict(result, init, dataset.truth, extra)),
              write_png(os.path.join(out_dir, files["loss_curve"]),

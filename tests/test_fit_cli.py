@@ -479,6 +479,7 @@ def test_a_fit_without_any_finite_loss_writes_nothing(data_root, tmp_path, capsy
 def test_result_dict_never_holds_nan():
     class Stub:
         material = truth_material()
+        values, object_names = {}, None
 
         def as_dict(self):
             return {"loss": float("nan"), "std_errors": {"ka[r]": float("inf")},

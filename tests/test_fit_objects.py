@@ -94,11 +94,16 @@ def test_fit_recovers_both_materials_with_a_report_and_a_newmtl_each(dataset):
         np.testing.assert_allclose([float(x) for x in kd.split()[1:]], TRUTH[i].kd, atol=2e-3)
 
 
-def test_files_of_one_object_refuse_several(dataset, tmp_path):
-    from fitting.dataset import save_dataset
-    from fitting.report import write_result
-    with pytest.raises(ValueError, match="^dataset: a dataset of several objects; save_"):
-        save_dataset(dataset, tmp_path / "data")
-    with pytest.raises(ValueError, match="^dataset: a dataset of several objects; write_"):
-        write_result(tmp_path / "fit", dataset, None, None)
-    assert not any(tmp_path.iterdir())  # nothing half-written
+def test_dataset_folder_of_several_objects_round_trips(dataset, tmp_path):
+    from fitting.dataset import load_dataset, save_dataset
+    loaded = load_dataset(save_dataset(dataset, tmp_path / "data"))
+    np.testing.assert_array_equal(loaded.mesh.vertices, dataset.mesh.vertices)
+    for field in ("faces", "vertices"):
+        np.testing.assert_array_equal(getattr(loaded.objects, field),
+                                      getattr(dataset.objects, field))
+    for i, truth in enumerate(TRUTH):
+        for name in ("ka", "kd", "ks", "shininess"):
+            np.testing.assert_array_equal(np.asarray(getattr(loaded.truth, name))[i],
+                                          getattr(truth, name))
+    for mine, theirs in zip(loaded.views, dataset.views, strict=True):
+        np.testing.assert_array_equal(mine.target, theirs.target)

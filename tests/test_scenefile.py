@@ -470,7 +470,9 @@ def edited_objects(keys, value):
     (("objects", 0, "mesh"), {"path": "missing.obj"},
      "objects[0].mesh.path: mesh file 'missing.obj' not found"),
     (("objects", 0, "colour"), 1, 'objects[0].colour: unknown key; expected one of: '
-                                  "back_material, material, mesh, transform"),
+                                  "back_material, material, mesh, name, transform"),
+    (("objects", 1, "name"), 3, "objects[1].name: got 3; expected a string"),
+    (("objects", 1, "name"), "", "objects[1].name: got ''; expected a non-empty string"),
     (("objects", 1), "box", 'objects[1]: got "box"; expected an object'),
     (("objects",), [], "objects: got []; expected a non-empty array of objects"),
     (("objects",), {"mesh": {}}, 'objects: got {"mesh": {}}; expected an array'),
