@@ -10,7 +10,6 @@ decreasing step for damping up to 1e10. `lm_step` is one iteration, whose state 
 params and the damping (fitting.run drives it; `levenberg_marquardt` is the plain loop).
 """
 
-from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -18,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
+from diffshade.compile_cache import stored_jit
 from fitting.distribute import ShardedViews
 from fitting.loss import irls_weight, make_loss, mean_rho, residuals
 
@@ -46,7 +46,7 @@ def linearize(params, data, spec, kind="mse"):
     return _linearize(params, data, spec, kind)
 
 
-@partial(jax.jit, static_argnames=("spec", "kind"))
+@stored_jit(static_argnames=("spec", "kind"))
 def _linearize(params, data, spec, kind="mse"):
     r, jac = jacobian_matrix(lambda p: flat_residuals(p, spec, data), params)
     w = irls_weight(kind, r)
@@ -61,7 +61,7 @@ def loss_at(params, data, spec, kind="mse"):
     return _loss_at(params, data, spec, kind)
 
 
-@partial(jax.jit, static_argnames=("spec", "kind"))
+@stored_jit(static_argnames=("spec", "kind"))
 def _loss_at(params, data, spec, kind="mse"):
     return make_loss(spec, kind)(params, data)
 

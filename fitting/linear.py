@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.optimize import minimize_scalar
 
+from diffshade.compile_cache import stored_jit
 from fitting.cache import FitData, pixel_parts
 from fitting.gains import fitted_gains
 from fitting.params import COEFFICIENTS, FitSpec, values_to_material
@@ -82,7 +83,7 @@ def _usable(target, settings):
     return ((target > SATURATION_EPS) & (target < 1.0 - SATURATION_EPS)).astype(target.dtype)
 
 
-@partial(jax.jit, static_argnames=("spec",))
+@stored_jit(static_argnames=("spec",))
 def normal_equations(log_shininess, data: FitData, spec: FitSpec, gains=None):
     """At shininess exp(log_shininess): G = X^T X [p, p], b = X^T y [p], c = y^T y and n
     (the number of usable pixel-channels), for the design X whose columns are the parts

@@ -20,11 +20,10 @@ would otherwise have a floor of ~0).
 """
 
 import dataclasses
-from functools import partial
 
-import jax
 import numpy as np
 
+from diffshade.compile_cache import stored_jit
 from fitting.loss import values_residuals
 from fitting.uncertainty import rounding_steps
 
@@ -66,7 +65,7 @@ class Misfit:
         return dataclasses.asdict(self)
 
 
-@partial(jax.jit, static_argnames=("spec",))
+@stored_jit(static_argnames=("spec",))
 def _residuals(values, data, spec):
     return values_residuals(values, spec, data)
 

@@ -25,14 +25,13 @@ Warnings are listed in the report and raised with `warnings.warn` (Identifiabili
 
 import dataclasses
 import warnings
-from functools import partial
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from diffshade.color import decode, encode
+from diffshade.compile_cache import stored_jit
 from fitting.cache import FitData, pixel_parts
 from fitting.gauss_newton import jacobian_matrix
 from fitting.loss import values_residuals
@@ -105,13 +104,13 @@ def _residual_vector(values, data, spec):
     return jnp.concatenate([r.reshape(-1) for r in values_residuals(values, spec, data)])
 
 
-@partial(jax.jit, static_argnames=("spec",))
+@stored_jit(static_argnames=("spec",))
 def values_jacobian(values, data: FitData, spec: FitSpec):
     """Residuals [M] and their Jacobian [M, p] with respect to the physical values."""
     return jacobian_matrix(lambda v: _residual_vector(v, data, spec), values)
 
 
-@partial(jax.jit, static_argnames=("spec",))
+@stored_jit(static_argnames=("spec",))
 def _pixel_counts(values, data: FitData, spec: FitSpec, highlight_threshold):
     """(kept pixels unlit by every light of their view, kept pixels whose specular part at
     the values exceeds highlight_threshold in some channel)."""
