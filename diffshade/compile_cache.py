@@ -79,6 +79,7 @@ def enable() -> str | None:
 
 STORE_FOLDER = "programs"
 _MAGIC = b"diffshade-program 1\n"
+_PLAIN = b"plain jit"  # an entry's content for a program that is not stored: call jit
 _store = None  # the store's folder while enable() has it on; None: every call goes to jit
 _environment = None  # (hash of what every stored program depends on, its folder name)
 
@@ -169,6 +170,16 @@ def _has_address(text: str) -> bool:
     return " at 0x" in text
 
 
+def _has_host_callbacks(lowered) -> bool:
+    """Whether a lowered program calls back into Python (jax.pure_callback ...): such an
+    executable holds pointers into this process and must not be stored (JAX's cache
+    refuses it too). Unknown (another JAX's internals): True."""
+    try:
+        return bool(lowered._lowering.compile_args["host_callbacks"])
+    except (AttributeError, KeyError, TypeError):
+        return True
+
+
 def _fresh_compile(lowered):
     """lowered.compile() with JAX's persistent cache bypassed: an executable that JAX's
     cache loaded cannot be serialized again on CPU (its object code is left behind)."""
@@ -199,6 +210,8 @@ def _read_entry(path, in_tree, device):
             blob[len(_MAGIC) + 65:]
         if head != _MAGIC or hashlib.sha256(payload).hexdigest().encode() != digest:
             raise ValueError("damaged entry")
+        if payload == _PLAIN:
+            return _PLAIN
         executable, out_tree = pickle.loads(payload)
         return serialize_executable.deserialize_and_load(
             executable, in_tree, out_tree, execution_devices=[device])
@@ -208,14 +221,29 @@ def _read_entry(path, in_tree, device):
         return None
 
 
+def _storable(compiled) -> bool:
+    """Whether an executable can be loaded in another process: not when XLA's program
+    has custom calls (LAPACK's, for a matrix inverse, and the like): on CPU the
+    serialized executable holds the addresses of their kernels in this process, and
+    calling it in another crashes."""
+    try:
+        return "custom-call" not in compiled.as_text()
+    except Exception:
+        return False
+
+
 def _write_entry(path, compiled):
-    """Serialize `compiled` to path atomically (a temporary file, then os.replace);
-    programs that cannot be serialized, and a full or read-only disk, are skipped."""
+    """Serialize `compiled` (None: write the _PLAIN marker) to path atomically (a
+    temporary file, then os.replace); programs that cannot be serialized, and a full or
+    read-only disk, are skipped."""
     from jax.experimental import serialize_executable
 
     try:
-        executable, _, out_tree = serialize_executable.serialize(compiled)
-        payload = pickle.dumps((executable, out_tree), protocol=pickle.HIGHEST_PROTOCOL)
+        if compiled is None:
+            payload = _PLAIN
+        else:
+            executable, _, out_tree = serialize_executable.serialize(compiled)
+            payload = pickle.dumps((executable, out_tree), protocol=pickle.HIGHEST_PROTOCOL)
     except Exception:
         return
     folder = os.path.dirname(path)
@@ -242,7 +270,8 @@ class StoredProgram:
     program store while the command line has it on (enable()): a later process loads a
     program whole, skipping the tracing and lowering that JAX's persistent cache needs to
     compute its key. Off (library use), or for a call it does not keep (inside another
-    trace, on another device, a leaf it does not know), a call is the jitted function's.
+    trace, on another device, a leaf it does not know, a program with host callbacks or
+    custom calls: their entry only says so), a call is the jitted function's.
 
     The key of a program: environment_key() (the package's source, JAX, the backend, the
     CPU ...), the JAX settings in force (x64 ...), the function's module and name, its
@@ -292,17 +321,15 @@ class StoredProgram:
         signatures = tuple(_leaf_signature(leaf, device) for leaf in leaves)
         if None in signatures:
             return None, None
+        memo = (tree, signatures, static, _jax_settings())
         try:
-            memo = (tree, signatures, static, _jax_settings())
-            compiled = self.loaded.get(memo)
+            known = memo in self.loaded
         except TypeError:  # an unhashable static argument: jit will say so
             return None, None
-        if compiled is None:
-            compiled = self._load_or_compile(memo, bound.arguments, device)
-            if compiled is None:
-                return None, None
-            self.loaded[memo] = compiled
-        return compiled, dynamic
+        if not known:  # None: not kept (jit's own program)
+            self.loaded[memo] = self._load_or_compile(memo, bound.arguments, device)
+        compiled = self.loaded[memo]
+        return (None, None) if compiled is None else (compiled, dynamic)
 
     def _load_or_compile(self, memo, arguments, device):
         tree, signatures, static, settings = memo
@@ -311,10 +338,17 @@ class StoredProgram:
             return None
         key = hashlib.sha256(described.encode()).hexdigest()
         path = os.path.join(_store, environment_key(), f"{key}.bin")
-        compiled = _read_entry(path, tree, device)
-        if compiled is None:
-            compiled = _fresh_compile(self.jitted.lower(**arguments))
-            _write_entry(path, compiled)
+        entry = _read_entry(path, tree, device)
+        if entry is _PLAIN:
+            return None
+        if entry is not None:
+            return entry
+        lowered = self.jitted.lower(**arguments)
+        if _has_host_callbacks(lowered) or "custom_call" in lowered.as_text():
+            _write_entry(path, None)  # this and later processes go straight to jit
+            return None
+        compiled = _fresh_compile(lowered)
+        _write_entry(path, compiled if _storable(compiled) else None)
         return compiled
 
 

@@ -243,15 +243,49 @@ def test_a_fit_program_from_the_store_equals_jit(store, monkeypatch):
     from fitting.params import material_values
 
     dataset = make_dataset(size=16, n_views=2, n_lights=1)
-    data = build_cache(dataset, DEFAULT_INIT)
+    data = build_cache(dataset, DEFAULT_INIT)  # its geometry programs are stored too
     spec = FitSpec()
+    before = len(entries(store))
     values = material_values(DEFAULT_INIT, spec, None, n_views=2)
     want = _residuals.jitted(values, data, spec)
     _residuals.loaded.clear()
     _residuals(values, data, spec)
-    assert len(entries(store)) == 1
+    assert len(entries(store)) == before + 1
     _residuals.loaded.clear()
     no_compiling(monkeypatch)
     got = _residuals(values, data, spec)
     for g, w in zip(got, want, strict=True):
         np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-6, atol=1e-7)
+
+
+def test_a_program_with_a_host_callback_is_not_stored(store):
+    def host_square(x):
+        return np.asarray(x) ** 2
+
+    def squared_plus_one(x):
+        shape = jax.ShapeDtypeStruct(x.shape, x.dtype)
+        return jax.pure_callback(host_square, shape, x) + 1.0
+
+    program = compile_cache.StoredProgram(squared_plus_one)
+    for _ in range(2):
+        np.testing.assert_allclose(program(X), X.astype(np.float64) ** 2 + 1.0, rtol=1e-6)
+        program.loaded.clear()
+    assert_plain(store)
+
+
+def assert_plain(store):
+    """The store holds one entry, which says: call jit (no executable)."""
+    (path,) = entries(store)
+    assert path.read_bytes().endswith(compile_cache._PLAIN)
+
+
+def test_a_program_with_custom_calls_is_not_stored(store, monkeypatch):
+    # on CPU, LAPACK's kernels are custom calls whose addresses a serialized executable
+    # keeps: loaded in another process it would crash
+    program = compile_cache.StoredProgram(lambda a: jnp.linalg.inv(a) @ a)
+    matrix = np.array([[2.0, 1.0], [0.5, 3.0]], np.float32)
+    np.testing.assert_allclose(program(matrix), np.eye(2), atol=1e-6)
+    assert_plain(store)
+    program.loaded.clear()
+    no_compiling(monkeypatch)  # the entry sends it to jit, which compiles on its own
+    np.testing.assert_allclose(program(matrix), np.eye(2), atol=1e-6)
