@@ -185,7 +185,8 @@ def main():
                                            if k.endswith("_s")))
         print(f"  process CPU {row['process_cpu']:.2f} s; {row['programs']} programs "
               f"through JAX, {row['cache_hits']} from its cache; {row['programs_in_store']} "
-              "in the program store (loaded whole on a warm run, not in JAX's log); "
+              "entries in the program store (executables loaded whole on a warm run, not in "
+              "JAX's log, or 'plain jit' marks); "
               f"not cacheable (host callbacks): "
               f"{', '.join(row['not_cacheable_host_callbacks']) or 'none'}")
         print("  per program (name x count: compile, lowering, tracing seconds): " + "; ".join(
