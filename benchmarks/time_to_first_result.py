@@ -23,7 +23,9 @@ XLA compilation (or loading from the cache), and the rest (running the fit, rend
 and writing the result files), read from JAX's compile log (JAX_LOG_COMPILES). Tracing
 of a jitted function nested in another is counted in both, so the tracing figure is an
 upper bound; in the cold run, "rest" includes numba compiling the host kernels. It also
-counts the programs loaded from the cache and those JAX refuses to
+counts the programs loaded from the cache, the programs in diffshade's program store
+(diffshade.compile_cache.stored_jit: a warm run loads them whole, so they are not in
+JAX's log, and their tracing and lowering are gone from the breakdown), and those JAX refuses to
 cache because they contain host callbacks (diffshade.compile_cache explains why), and
 lists the seconds per program (by its name in the log; wall seconds, so they grow with
 the machine's load).
@@ -106,10 +108,12 @@ def run_instrumented(args, cwd, cache_dir, numba_dir):
     """The breakdown of one run of the command line (see the module docstring)."""
     report = os.path.join(cwd, "instrumented.json")
     env = _env(cache_dir, numba_dir) | {"JAX_LOG_COMPILES": "1", "JAX_EXPLAIN_CACHE_MISSES": "1"}
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), _children_cpu()
     subprocess.run([sys.executable, "-c", _INSTRUMENTED, report, *args], cwd=cwd, env=env,
                    check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    wall = time.perf_counter() - start
+    wall, cpu = time.perf_counter() - start, _children_cpu() - cpu
+    store = os.path.join(cache_dir, "programs")
+    stored = sum(name.endswith(".bin") for _, _, names in os.walk(store) for name in names)
     with open(report) as f:
         run = json.load(f)
     log = run["log"]
@@ -125,13 +129,14 @@ def run_instrumented(args, cwd, cache_dir, numba_dir):
                 row["count"] += key == "compile_s"
     no_cache = sorted({m.group(1) for line in log if "because it uses host callbacks" in line
                        and (m := re.search(r"entry for '([^']+)'", line))})
-    return {"wall_s": wall, "interpreter_start_s": wall - run["total_s"],
+    return {"wall_s": wall, "process_cpu": cpu, "interpreter_start_s": wall - run["total_s"],
             "imports_s": run["imports_s"], **phases,
             "rest_s": run["total_s"] - run["imports_s"] - sum(phases.values()),
             "programs": sum("Finished XLA compilation" in line for line in log),
             "by_program": dict(sorted(per_program.items(),
                                       key=lambda item: -item[1]["compile_s"])),
             "cache_hits": sum("Persistent compilation cache hit" in line for line in log),
+            "programs_in_store": stored,
             "not_cacheable_host_callbacks": no_cache}
 
 
@@ -178,7 +183,10 @@ def main():
     for kind, row in results["fit_breakdown"].items():
         print(f"fit {kind}: " + ", ".join(f"{k[:-2]} {v:.2f} s" for k, v in row.items()
                                            if k.endswith("_s")))
-        print(f"  {row['programs']} programs, {row['cache_hits']} from the cache; "
+        print(f"  process CPU {row['process_cpu']:.2f} s; {row['programs']} programs "
+              f"through JAX, {row['cache_hits']} from its cache; {row['programs_in_store']} "
+              "entries in the program store (executables loaded whole on a warm run, not in "
+              "JAX's log, or 'plain jit' marks); "
               f"not cacheable (host callbacks): "
               f"{', '.join(row['not_cacheable_host_callbacks']) or 'none'}")
         print("  per program (name x count: compile, lowering, tracing seconds): " + "; ".join(

@@ -39,6 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from diffshade.compile_cache import stored_jit
 from diffshade.lights import LightGroups, shadow_flags
 from diffshade.material import Material
 from diffshade.material import material as make_material
@@ -113,10 +114,10 @@ def erode(mask, margin: int):
     return mask
 
 
-_project = jax.jit(project)
+_project = stored_jit(project)
 
 
-@partial(jax.jit, static_argnames=("depth",))
+@stored_jit(static_argnames=("depth",))
 def _fragments(proj, faces, camera, settings, found, depth):
     soft = settings.raster == "soft"
     if found is None:  # JAX's tile search (settings.kernels)
@@ -149,7 +150,7 @@ def fixed_fragments(scene, settings, layers=1):
     return proj, _fragments(proj, scene.mesh.faces, scene.camera, settings, found, depth)
 
 
-@jax.jit
+@stored_jit
 def _geometry(scene, settings, proj, frags):
     samples, reader = shading_samples(scene, proj, frags, settings.shading, host=False)
     return {"samples": samples, "reader": reader, "valid": frags.valid[..., 0],

@@ -33,6 +33,7 @@ import jax
 import numpy as np
 
 from diffshade.color import srgb_to_linear
+from diffshade.compile_cache import stored_jit
 from diffshade.io import write_json, write_npy, write_png, write_text
 from diffshade.objects import unstack_material
 from diffshade.render import render_fragments
@@ -61,29 +62,99 @@ def panel(target, initial, fitted, gain=ERROR_GAIN):
     return np.concatenate([np.asarray(p, np.float64)[..., :3] for p in parts], axis=1)
 
 
-def loss_curve(history, title=""):
-    """The loss per step on a log axis, as a linear RGB image [h, w, 3] in [0, 1]."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-    from matplotlib.ticker import MaxNLocator
+CURVE_SIZE = (600, 400)  # loss.png: width, height in pixels
+CURVE_COLOR = (31, 119, 180)  # sRGB codes of the loss line
+_MARGINS = (72, 36, 20, 48)  # left, top, right, bottom
 
-    history = np.asarray(history, np.float64)
-    positive = history[history > 0]
+
+def _tick_step(span, most=8):
+    """The smallest of 1, 2, 5 x 10^k (k >= 0) that cuts [0, span] into at most `most`."""
+    return next(step for k in range(20) for m in (1, 2, 5)
+                if span <= most * (step := m * 10**k))
+
+
+def _decade_label(d):
+    return "1" if d == 0 else f"1e{d}"
+
+
+def _font(size):
+    from PIL import ImageFont
+
+    try:
+        return ImageFont.load_default(size=size)
+    except (TypeError, ImportError, OSError):  # a Pillow without FreeType: its bitmap font
+        return ImageFont.load_default()
+
+
+def _layout(history, size=CURVE_SIZE):
+    """Where loss_curve draws: (x of step 0, x of the last step or step 1, y of the bottom
+    decade, y of the top decade, bottom decade, top decade), in pixels of an image of
+    `size` (width, height); the loss axis is log10, values below the smallest positive
+    loss (or NaN) drawn at it."""
+    history = np.asarray(history, np.float64).reshape(-1)
+    positive = history[np.isfinite(history) & (history > 0)]
     floor = positive.min() if positive.size else 1e-30
-    fig = Figure(figsize=(6.0, 4.0), dpi=100)
-    canvas = FigureCanvasAgg(fig)
-    ax = fig.add_subplot()
-    ax.semilogy(np.arange(history.size), np.maximum(history, floor), marker="." if
-                history.size < 50 else None)
-    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-    ax.set_xlabel("step")
-    ax.set_ylabel("loss")
-    ax.set_title(title)
-    ax.grid(True, which="both", alpha=0.3)
-    fig.tight_layout()
-    canvas.draw()
-    # The canvas holds sRGB codes (what a screen shows); write_png encodes them again.
-    return srgb_to_linear(np.asarray(canvas.buffer_rgba(), np.float64)[..., :3] / 255.0)
+    logs = np.log10(np.clip(np.nan_to_num(history, nan=floor), floor, np.finfo(np.float64).max))
+    low = int(np.floor(logs.min())) if logs.size else -1
+    high = int(np.ceil(logs.max())) if logs.size else 0
+    high = max(high, low + 1)
+    left, top, right, bottom = _MARGINS
+    return left, size[0] - right, size[1] - bottom, top, low, high, logs
+
+
+def loss_curve(history, title=""):
+    """The loss per step on a log axis, as a linear RGB image [h, w, 3] in [0, 1]
+    (CURVE_SIZE; drawn with Pillow: decades and their 2-9 multiples as grid lines, a
+    marker per step below 50 steps)."""
+    from PIL import Image, ImageDraw
+
+    x0, x1, y0, y1, low, high, logs = _layout(history)
+    count = logs.size
+    last = max(count - 1, 1)
+    width, height = CURVE_SIZE
+    image = Image.new("RGB", CURVE_SIZE, (255, 255, 255))
+    draw = ImageDraw.Draw(image)
+    font, small = _font(14), _font(12)
+
+    def x_of(k):
+        return x0 + (x1 - x0) * k / last
+
+    def y_of(log):
+        return y0 + (y1 - y0) * (log - low) / (high - low)
+
+    decades = high - low
+    every = _tick_step(decades)
+    for d in range(low, high + 1):
+        if decades <= 6:  # minor grid: 2 x ... 9 x each decade
+            for m in range(2, 10):
+                if d + np.log10(m) < high:
+                    y = y_of(d + np.log10(m))
+                    draw.line([(x0, y), (x1, y)], fill=(238, 238, 238))
+        y = y_of(d)
+        draw.line([(x0, y), (x1, y)], fill=(210, 210, 210))
+        if (d - low) % every == 0:
+            draw.line([(x0 - 5, y), (x0, y)], fill=(0, 0, 0))
+            draw.text((x0 - 8, y), _decade_label(d), fill=(0, 0, 0), font=small, anchor="rm")
+    step = _tick_step(last)
+    for k in range(0, last + 1, step):
+        x = x_of(k)
+        draw.line([(x, y1), (x, y0)], fill=(210, 210, 210))
+        draw.line([(x, y0), (x, y0 + 5)], fill=(0, 0, 0))
+        draw.text((x, y0 + 8), str(k), fill=(0, 0, 0), font=small, anchor="mt")
+    points = [(x_of(k), y_of(v)) for k, v in enumerate(logs)]
+    if count > 1:
+        draw.line(points, fill=CURVE_COLOR, width=2, joint="curve")
+    if count < 50:
+        for x, y in points:
+            draw.ellipse([x - 3, y - 3, x + 3, y + 3], fill=CURVE_COLOR)
+    draw.rectangle([x0, y1, x1, y0], outline=(0, 0, 0))
+    draw.text(((x0 + x1) / 2, height - 8), "step", fill=(0, 0, 0), font=font, anchor="md")
+    draw.text(((x0 + x1) / 2, y1 / 2), title, fill=(0, 0, 0), font=font, anchor="mm")
+    label = Image.new("RGB", (40, 20), (255, 255, 255))
+    ImageDraw.Draw(label).text((20, 10), "loss", fill=(0, 0, 0), font=font, anchor="mm")
+    image.paste(label.rotate(90, expand=True), (4, int((y0 + y1) / 2) - 20))
+    # sRGB codes (what a screen shows); write_png encodes them again
+    return srgb_to_linear(np.asarray(image, np.float64) / 255.0)
 
 
 def _rgb_line(key, value):
@@ -277,7 +348,7 @@ def comparison_table(result, truth=None, status=None) -> str:
                      + [f"note: {n}" for n in notes])
 
 
-_render_fragments = jax.jit(render_fragments)
+_render_fragments = stored_jit(render_fragments)
 
 
 def _render_rgb(dataset, index, material, lights=None):

@@ -29,7 +29,15 @@ from diffshade.io import image_transfer
 from fitting import FitOptions, FitSpec, fit
 from fitting.cli import _progress
 from fitting.inputs import fit_spec, parse_material
-from fitting.report import ERROR_GAIN, PANEL_GAP, mtl_text, result_dict
+from fitting.report import (
+    CURVE_COLOR,
+    CURVE_SIZE,
+    ERROR_GAIN,
+    PANEL_GAP,
+    loss_curve,
+    mtl_text,
+    result_dict,
+)
 
 TRUTH = dict(ka=(0.35, 0.3, 0.5), kd=(0.6, 0.45, 0.3), ks=(0.4, 0.5, 0.3), shininess=35.0)
 SIZE = 32
@@ -211,6 +219,36 @@ def test_fit_panels_mtl_and_loss_curve(data_root, tmp_path, capsys):
     assert float(mtl["Ns"]) == pytest.approx(result["material"]["shininess"], abs=1e-5)
     curve = ds.read_image(out / "loss.png")
     assert curve.ndim == 3 and curve.shape[2] == 3 and curve.std() > 0.05
+
+
+def curve_pixels(history):
+    """(rows, columns) of the loss line's pixels in loss_curve(history)."""
+    image = loss_curve(history, "title")
+    assert image.shape == (CURVE_SIZE[1], CURVE_SIZE[0], 3)
+    assert image.min() >= 0.0 and image.max() <= 1.0
+    codes = np.round(ds.linear_to_srgb(image) * 255)
+    return np.nonzero(np.all(codes == CURVE_COLOR, axis=-1))
+
+
+@pytest.mark.parametrize("steps", [8, 300])  # with a marker per step, and without
+def test_loss_curve_has_a_log_axis(steps):
+    # a loss that falls by the same factor every step is a straight line on a log axis
+    # (on a linear one it would bend), falling from left to right across the plot
+    rows, cols = curve_pixels(1e-2 * 0.3 ** np.arange(steps))
+    slope, intercept = np.polyfit(cols, rows, 1)
+    assert slope > 0.2  # image rows grow downwards
+    assert np.abs(rows - (slope * cols + intercept)).max() <= 4.5  # marker radius, width
+    assert cols.max() - cols.min() > CURVE_SIZE[0] // 2
+    # a loss that falls and then stays: the line ends level
+    rows, cols = curve_pixels(np.r_[1e-2 * 0.3 ** np.arange(10), np.full(30, 1e-2 * 0.3**9)])
+    right = cols > np.percentile(cols, 60)
+    assert np.ptp(rows[right]) <= 7  # markers of radius 3 on a level line
+
+
+@pytest.mark.parametrize("history", [[0.003], [0.0, 0.0], [1e-3, 0.0, 1e-5], [2.0, 2.0]])
+def test_loss_curve_draws_single_zero_and_flat_histories(history):
+    rows, _ = curve_pixels(history)
+    assert rows.size > 0
 
 
 def test_fit_without_truth_has_no_error_columns(data_root, tmp_path, capsys):
