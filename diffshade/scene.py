@@ -108,8 +108,9 @@ def scene_object(mesh: Mesh, material: Material | None = None, *, transform=None
     string, unique among the scene's objects; it labels the object's fitted material)."""
     _check_types(("mesh", mesh, Mesh), _optional_material("material", material),
                  _optional_material("back_material", back_material))
-    if name is not None and (not isinstance(name, str) or not name.strip()):
-        raise ValueError(f"name: got {name!r}; expected a non-empty string or None")
+    if name is not None and (not isinstance(name, str) or name.split() != [name]):
+        raise ValueError(f"name: got {name!r}; expected a non-empty string without "
+                         "spaces (it names the object's material in .mtl files) or None")
     return SceneObject(mesh, make_material() if material is None else material,
                        _model_matrix(transform, "transform"), back_material, name)
 

@@ -473,6 +473,8 @@ def edited_objects(keys, value):
                                   "back_material, material, mesh, name, transform"),
     (("objects", 1, "name"), 3, "objects[1].name: got 3; expected a string"),
     (("objects", 1, "name"), "", "objects[1].name: got ''; expected a non-empty string"),
+    (("objects", 1, "name"), "my box", "objects[1].name: got 'my box'; expected a non-empty "
+                                        "string without spaces"),
     (("objects", 1), "box", 'objects[1]: got "box"; expected an object'),
     (("objects",), [], "objects: got []; expected a non-empty array of objects"),
     (("objects",), {"mesh": {}}, 'objects: got {"mesh": {}}; expected an array'),
