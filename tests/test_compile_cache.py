@@ -239,7 +239,8 @@ def test_the_key_follows_the_package_source(monkeypatch):
 def test_a_fit_program_from_the_store_equals_jit(store, monkeypatch):
     from data_synth import make_dataset
     from fitting import DEFAULT_INIT, FitSpec, build_cache
-    from fitting.misfit import _residuals
+    from fitting.batch import batched
+    from fitting.gauss_newton import normal_system
     from fitting.params import material_values
 
     dataset = make_dataset(size=16, n_views=2, n_lights=1)
@@ -247,13 +248,15 @@ def test_a_fit_program_from_the_store_equals_jit(store, monkeypatch):
     spec = FitSpec()
     before = len(entries(store))
     values = material_values(DEFAULT_INIT, spec, None, n_views=2)
-    want = _residuals.jitted(values, data, spec)
-    _residuals.loaded.clear()
-    _residuals(values, data, spec)
+    slopes = np.ones(sum(np.size(v) for v in jax.tree.leaves(values)), np.float32)
+    stacked = batched(data)
+    want = normal_system.jitted(values, slopes, stacked, spec, "mse")
+    normal_system.loaded.clear()
+    normal_system(values, slopes, stacked, spec, "mse")
     assert len(entries(store)) == before + 1
-    _residuals.loaded.clear()
+    normal_system.loaded.clear()
     no_compiling(monkeypatch)
-    got = _residuals(values, data, spec)
+    got = normal_system(values, slopes, stacked, spec, "mse")
     for g, w in zip(got, want, strict=True):
         np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-6, atol=1e-7)
 
