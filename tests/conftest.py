@@ -44,6 +44,18 @@ from diffshade.numerics import float_dtype  # noqa: E402
 os.environ["DIFFSHADE_COMPILE_CACHE"] = "0"
 
 
+@pytest.fixture(scope="session")
+def cli_env(tmp_path_factory):
+    """The environment for a `diffshade` command run in a subprocess: the command line's
+    compilation cache on, as for a user, in one folder shared by this test session (all
+    its xdist workers) and deleted with its temporary files, so that a subprocess loads
+    the programs an earlier one compiled (the fits the interrupt tests signal)."""
+    base = tmp_path_factory.getbasetemp()
+    shared = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+    return dict(os.environ, DIFFSHADE_COMPILE_CACHE="1",
+                DIFFSHADE_COMPILE_CACHE_DIR=str(shared / "diffshade-compile-cache"))
+
+
 @pytest.fixture
 def x64():
     with jax.enable_x64(True):
