@@ -23,7 +23,10 @@ check_grads: 3 min 36 s -> 2 min 24 s of CPU) and a quarter off tests that run f
 DIFFSHADE_TEST_FULL_OPT=1 to test the fully optimized programs users run.
 """
 
+import collections
 import os
+import resource
+import time
 
 if os.environ.get("DIFFSHADE_TEST_FULL_OPT") != "1":  # before jax initializes its backend
     os.environ["XLA_FLAGS"] = " ".join([
@@ -42,6 +45,18 @@ from diffshade.numerics import float_dtype  # noqa: E402
 # Tests run it in-process and in subprocesses; they must not write into the user's cache
 # folder, nor switch the cache on for the rest of the session.
 os.environ["DIFFSHADE_COMPILE_CACHE"] = "0"
+
+
+@pytest.fixture(scope="session")
+def cli_env(tmp_path_factory):
+    """The environment for a `diffshade` command run in a subprocess: the command line's
+    compilation cache on, as for a user, in one folder shared by this test session (all
+    its xdist workers) and deleted with its temporary files, so that a subprocess loads
+    the programs an earlier one compiled (the fits the interrupt tests signal)."""
+    base = tmp_path_factory.getbasetemp()
+    shared = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+    return dict(os.environ, DIFFSHADE_COMPILE_CACHE="1",
+                DIFFSHADE_COMPILE_CACHE_DIR=str(shared / "diffshade-compile-cache"))
 
 
 @pytest.fixture
@@ -137,3 +152,54 @@ def pytest_collection_modifyitems(config, items):
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     if workers > 1:
         items[:] = deal(items, workers)
+
+
+# ------------------------------------------------------- CPU time per test (measuring)
+# `--durations` reports wall time, which on a shared machine says little. With
+# DIFFSHADE_TEST_CPU_DURATIONS=N the run ends with the N tests that took the most CPU
+# time (this process's, and that of the subprocesses it waited for), per test its setup,
+# call and teardown together (a module fixture's cost lands on the first test that uses
+# it), and the total per file; under xdist each worker measures its own tests. This is
+# how the cost(seconds) markers are measured (`-n 0`, or scaled to them).
+CPU_DURATIONS = int(os.environ.get("DIFFSHADE_TEST_CPU_DURATIONS", "0") or 0)
+
+
+def _cpu_seconds():
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + children.ru_utime + children.ru_stime
+
+
+if CPU_DURATIONS:
+    _cpu_by_test = collections.defaultdict(float)
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_makereport(item, call):
+        report = (yield).get_result()
+        start = getattr(item, "_cpu_start", None)
+        now = _cpu_seconds()
+        if start is not None:
+            # a new list: a test's reports share the item's
+            report.user_properties = [*report.user_properties, ("cpu_s", now - start)]
+        item._cpu_start = now
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_protocol(item, nextitem):
+        item._cpu_start = _cpu_seconds()
+        yield
+
+    def pytest_runtest_logreport(report):
+        _cpu_by_test[report.nodeid] += sum(v for k, v in report.user_properties if k == "cpu_s")
+
+    def pytest_terminal_summary(terminalreporter):
+        per_file = collections.defaultdict(float)
+        for nodeid, seconds in _cpu_by_test.items():
+            per_file[nodeid.split("::")[0]] += seconds
+        write = terminalreporter.write_line
+        write(f"CPU seconds per test (the {CPU_DURATIONS} costliest of {len(_cpu_by_test)}; "
+              f"total {sum(_cpu_by_test.values()):.1f} s):")
+        for nodeid, seconds in sorted(_cpu_by_test.items(), key=lambda kv: -kv[1])[
+                :CPU_DURATIONS]:
+            write(f"{seconds:8.1f} {nodeid}")
+        write("CPU seconds per file:")
+        for path, seconds in sorted(per_file.items(), key=lambda kv: -kv[1]):
+            write(f"{seconds:8.1f} {path}")

@@ -596,12 +596,13 @@ def test_resume_rejects_other_options_or_data(data_root, tmp_path, capsys):
     assert saved["step"] == 5 and saved["options"]["chunk"] == 1
 
 
-def start_fit(data, out):
-    """`diffshade fit` in a subprocess, with a step budget it will not reach; returns it
-    once its first checkpoint is on disk."""
+def start_fit(data, out, env):
+    """`diffshade fit` in a subprocess (environment `env`: conftest's cli_env), with a step
+    budget it will not reach; returns it once its first checkpoint is on disk."""
     argv = [sys.executable, "-c", MAIN, "fit", str(data), "-o", str(out), "--method", "adam",
             "--steps", "100000", "--tol", "0", "--checkpoint-every", "50"]
-    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=env)
     deadline = time.monotonic() + 240
     while not (out / "checkpoint.json").exists():
         assert proc.poll() is None, proc.communicate()
@@ -630,18 +631,19 @@ def assert_complete_interrupted_result(out, name):
     return result
 
 
-def test_sigint_writes_a_complete_result(data_root, tmp_path):
+def test_sigint_writes_a_complete_result(data_root, tmp_path, cli_env):
     out = tmp_path / "result"
-    code, stdout, stderr = interrupt(start_fit(data_root / "noisy", out), signal.SIGINT)
+    code, stdout, stderr = interrupt(start_fit(data_root / "noisy", out, cli_env),
+                                     signal.SIGINT)
     assert code == 130, stderr
     assert "Traceback" not in stderr and "interrupted by SIGINT" in stderr
     result = assert_complete_interrupted_result(out, "SIGINT")
     assert f"after {result['n_steps']} steps" in stdout
 
 
-def test_sigterm_then_resume_finishes(data_root, tmp_path, capsys):
+def test_sigterm_then_resume_finishes(data_root, tmp_path, capsys, cli_env):
     out = tmp_path / "result"
-    code, _, stderr = interrupt(start_fit(data_root / "noisy", out), signal.SIGTERM)
+    code, _, stderr = interrupt(start_fit(data_root / "noisy", out, cli_env), signal.SIGTERM)
     assert code == 143 and "Traceback" not in stderr
     first = assert_complete_interrupted_result(out, "SIGTERM")
     steps = first["n_steps"]

@@ -238,15 +238,17 @@ def _local_two_sided(scene, back):
 
 VARIANTS = {"plain": _plain, "local_two_sided": _local_two_sided}
 
-# Every shading mode in both raster modes, clamping off, the smooth spot edge, the Phong
-# specular model, back-face culling, sigma and gamma of 1e-8 and 1e2, and a local viewer
-# with two-sided lighting.
+# Every shading mode in soft raster, Phong and Gouraud in hard raster too, clamping off,
+# the smooth spot edge, the Phong specular model, back-face culling, sigma and gamma of
+# 1e-8 and 1e2, and a local viewer with two-sided lighting. Each entry compiles a program
+# of its own (4-12 s of CPU each), so no two entries run the same code on the cases: flat
+# and flat_last light one sample per face (per vertex) whichever raster reads it
+# (diffshade.samples), so they run in soft raster alone, which reads and clamps those
+# samples as hard raster does; hard raster's own code runs under Phong and Gouraud.
 PLAN = (
     ("plain", RenderSettings()),
     ("plain", RenderSettings(raster="soft")),
     ("plain", RenderSettings(shading="gouraud")),
-    ("plain", RenderSettings(shading="flat")),
-    ("plain", RenderSettings(shading="flat_last")),
     ("plain", RenderSettings(shading="gouraud", raster="soft", clamp=False,
                              spot_edge="smooth", sigma=1e-8, gamma=1e-8)),
     ("plain", RenderSettings(shading="flat", raster="soft", specular="phong", sigma=1e2,
@@ -577,7 +579,7 @@ CHECKS = (check_finite, check_central_differences, check_render_agrees,
           check_scale_invariance, check_uncovered, check_saturation)
 
 
-@pytest.mark.cost(170)
+@pytest.mark.cost(150)  # 170 before the plan lost two entries: -12% of CPU measured
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_catalogue(dtype):
     """Every case under every plan entry: finite values and gradients, colours in range,
