@@ -112,10 +112,14 @@ def _pad_rows(a, rows, spare):
     return xp.concatenate([a, xp.broadcast_to(fill, (rows - have, *a.shape[1:]))])
 
 
-def stack_views(views, lights):
+def stack_views(views, lights, rows=None, spare=None):
     """(ViewSamples with a leading [V] axis, LightGroups with a leading [V] axis) of the
     views, padded (module docstring); None when they cannot be stacked. NumPy arrays
-    stay NumPy arrays (built on the host), others become jax arrays."""
+    stay NumPy arrays (built on the host), others become jax arrays. rows: the row count
+    of each leaf (in jax.tree.leaves order) to pad to, at least the views' largest (the
+    sharded fits pad every chunk alike, fitting.distribute); default the largest. spare:
+    a ViewSamples whose first rows pad a leaf that none of `views` has rows in (default:
+    those views' own)."""
     try:
         lights = stack_lights(lights)
     except ValueError:
@@ -125,11 +129,22 @@ def stack_views(views, lights):
     columns = list(zip(*(jax.tree.leaves(v) for v in views), strict=True))
     if any(len({a.shape[1:] for a in column}) > 1 for column in columns):
         return None
+    rows = [max(a.shape[0] for a in column) for column in columns] if rows is None else rows
+    spares = [None] * len(columns) if spare is None else [a[:1] for a in
+                                                           jax.tree.leaves(spare)]
     stacked = []
-    for column in columns:
-        rows = max(a.shape[0] for a in column)
-        spare = next((a[:1] for a in column if a.shape[0]), None)
-        stacked.append(_module(*column).stack([_pad_rows(a, rows, spare) for a in column]))
+    for column, count, extra in zip(columns, rows, spares, strict=True):
+        first = next((a[:1] for a in column if a.shape[0]), extra)
+        if _module(*column) is np:  # in place: a chunk of a sharded fit is not copied twice
+            out = np.empty((len(column), count, *column[0].shape[1:]),
+                           np.result_type(*column))
+            for i, a in enumerate(column):
+                out[i, :a.shape[0]] = a
+                if a.shape[0] < count:
+                    out[i, a.shape[0]:] = a[-1] if a.shape[0] else first
+            stacked.append(out)
+        else:
+            stacked.append(jnp.stack([_pad_rows(a, count, first) for a in column]))
     return jax.tree.unflatten(jax.tree.structure(views[0]), stacked), lights
 
 

@@ -3,9 +3,12 @@
 The cached fit (fitting.cache) keeps, per view, the shading samples of its kept pixels.
 `shard_views(data, devices=..., chunk=...)` lays them out for a sharded, chunked fit:
 
-- stacked: every view's arrays padded to the largest view's pixel and sample counts
-  (padded pixels weigh 0 in the loss; padded samples repeat a real one, so that nothing
-  in the padding is NaN) and stacked along a leading views axis, in host memory (NumPy);
+- stacked: every view's arrays (its samples, how its pixels read them, and where the
+  scene has them the samples' shadow visibility and the pixels' fragment layers) padded
+  to the largest view's row counts (padded pixels weigh 0 in the loss; padded rows repeat
+  a real one, so that nothing in the padding is NaN) and stacked along a leading views
+  axis, in host memory (NumPy), by fitting.batch.stack_views, as the one-device fit
+  stacks them;
 - chunked: the views axis cut into ceil(views / chunk) chunks of equal size, at most
   `chunk` views rounded up to a multiple of the device count (the last chunk padded with
   views of weight 0);
@@ -49,7 +52,7 @@ from jax.flatten_util import ravel_pytree
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from fitting.batch import common_lights, light_layout
+from fitting.batch import common_lights, light_layout, stack_views
 from fitting.cache import FitData, ViewSamples, predict
 from fitting.gains import scaled_material, view_gains
 from fitting.loss import check_kind, irls_weight, rho
@@ -102,74 +105,46 @@ def wants_sharding(devices, chunk) -> bool:
     return chunk is not None or len(device_list(devices)) > 1
 
 
-def _rows(arrays, rows, fill=None):
-    """[C, rows, ...] from C arrays [R_c, ...]: each array's rows, then its last row
-    repeated (`fill` instead: a constant; or when R_c == 0), written in place (one copy)."""
-    first = np.asarray(arrays[0])
-    out = np.empty((len(arrays), rows, *first.shape[1:]), first.dtype)
-    for c, a in enumerate(arrays):
-        a = np.asarray(a)
-        k = a.shape[0]
-        out[c, :k] = a
-        if k < rows:
-            out[c, k:] = a[-1] if fill is None and k else (0 if fill is None else fill)
-    return out
+def _host(tree):
+    return jax.tree.map(np.asarray, tree)
 
 
-def _chunk(views, lights, index, n, s):
-    """The Chunk of `views` (ViewSamples; None: a padding view of weight 0, a copy of
-    index 0's), padded to n pixels and s samples (padded samples repeat a real one, so
-    that nothing is NaN; a view without pixels gets points 0, normals and view
-    directions +z)."""
-    real = [v for v in views if v is not None]
-    views = [real[0] if v is None else v for v in views]
-    up = np.array([0.0, 0.0, 1.0], np.float32)
-    field = lambda get: [get(v) for v in views]
-    reader = views[0].reader
-    c = len(views)
-    weight = np.zeros((c, n), np.asarray(views[0].target).dtype)
+def _chunk(views, lights, index, rows, spare, n):
+    """The Chunk of `views` (ViewSamples in host memory; None: a padding view of weight
+    0, a copy of the chunk's first real view), stacked by fitting.batch.stack_views with
+    each leaf padded to its `rows` (every chunk alike: one compiled program); padded rows
+    repeat a real one (`spare`'s first, for a view without pixels), so that nothing is
+    NaN. n: the padded pixel count."""
+    real = next(v for v in views if v is not None)
+    weight = np.zeros((len(views), n), np.asarray(real.target).dtype)
     for i, (v, pad) in enumerate(zip(views, index, strict=True)):
-        weight[i, :v.pixels.shape[0]] = 0.0 if pad is None else 1.0
-    samples = ViewSamples(
-        points=_rows(field(lambda v: v.points), s),
-        normals=_rows(field(lambda v: v.normals), s, None if all(
-            v.points.shape[0] for v in views) else up),
-        view_dirs=_rows(field(lambda v: v.view_dirs), s, None if all(
-            v.points.shape[0] for v in views) else up),
-        target=_rows(field(lambda v: v.target), n),
-        pixels=_rows(field(lambda v: v.pixels), n),
-        reader=dataclasses.replace(
-            reader, ids=np.broadcast_to(np.arange(n, dtype=np.int32).reshape(n, 1, 1),
-                                        (c, n, 1, 1)).copy(),
-            weights=None if reader.weights is None else _rows(
-                field(lambda v: v.reader.weights), n, 0.0),
-            table=None if reader.table is None else _rows(field(lambda v: v.reader.table), n)),
-        objects=None if views[0].objects is None else _rows(field(lambda v: v.objects), s))
-    lights = jax.tree.map(lambda *x: np.stack(x), *lights)
+        if pad is not None:
+            weight[i, :v.pixels.shape[0]] = 1.0
+    samples, lights = stack_views([real if v is None else v for v in views], lights, rows,
+                                  spare)
     return Chunk(samples, weight, np.asarray([0 if i is None else i for i in index],
                                              np.int32), lights)
 
 
-def _stackable_effects(view) -> bool:
-    """Whether the view's samples are free of what the chunks do not carry yet: shadow
-    visibility and transparency layers (fitting.cache.ViewSamples)."""
-    return view.shadows is None and view.layers is None
+def _layout(view):
+    return jax.tree.structure(view), tuple(np.shape(x)[1:] for x in jax.tree.leaves(view))
 
 
-def _check_stackable(data: FitData):
-    """Every view must have view 0's sample layout (one shading mode: always true)."""
-    def layout(tree):
-        return jax.tree.structure(tree), tuple(np.ndim(x) for x in jax.tree.leaves(tree))
-
+def _stack_problem(data: FitData):
+    """Why `data`'s views cannot be stacked into chunks (a message), or None. Shadow
+    visibility and transparency layers are stacked like the other sample arrays
+    (fitting.batch.stack_views), so views need one sample layout and lights that pad to
+    one layout (common_lights: the same shadow flags)."""
     for i, view in enumerate(data.views):
-        if not _stackable_effects(view):
-            raise ValueError(f"views[{i}]: has shadows or transparency layers, which sharded "
-                             "or chunked fits do not carry yet (fit with devices=1 and "
-                             "chunk=None)")
-        if layout(view) != layout(data.views[0]):
-            raise ValueError(f"views[{i}]: its sample layout differs from views[0]'s; "
-                             "sharded or chunked fits stack the views and need one layout "
-                             "(fit with devices=1 and chunk=None)")
+        if _layout(view) != _layout(data.views[0]):
+            return (f"views[{i}]: its sample layout (shadow visibility, layers, objects) "
+                    "differs from views[0]'s; sharded or chunked fits stack the views and "
+                    "need one layout (fit with devices=1 and chunk=None)")
+    try:
+        common_lights(data.lights)
+    except ValueError as error:
+        return str(error)
+    return None
 
 
 @dataclasses.dataclass
@@ -341,50 +316,47 @@ def shard_views(data: FitData, devices="all", chunk=None, *,
     if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int)
                               or chunk < 1):
         raise ValueError(f"chunk: got {chunk!r}; expected None or an integer >= 1")
-    _check_stackable(data)
+    problem = _stack_problem(data)
+    if problem is not None:
+        raise ValueError(problem)
     views, n_dev = data.views, len(found)
     n_views = len(views)
     n_chunks = 1 if chunk is None else math.ceil(n_views / chunk)
     size = math.ceil(math.ceil(n_views / n_chunks) / n_dev) * n_dev  # balanced chunks
     n_chunks = math.ceil(n_views / size)
+    sizes = [[np.shape(x)[0] for x in jax.tree.leaves(v)] for v in views]
+    rows = [max(column) for column in zip(*sizes, strict=True)]
     n = max(max(v.pixels.shape[0] for v in views), 1)
-    s = max(max(v.points.shape[0] for v in views), 1)
-    lights = common_lights([jax.tree.map(np.asarray, g) for g in data.lights])
-    extra = n_chunks * size - n_views  # views of weight 0 (copies of view 0)
+    spare = _host(next(v for v in views if v.pixels.shape[0]))  # build_cache keeps one
+    lights = common_lights([_host(g) for g in data.lights])
+    extra = n_chunks * size - n_views  # views of weight 0 (copies of a real view)
     slots = [(v, light, i) for i, (v, light) in enumerate(zip(views, lights, strict=True))]
     slots += [(None, lights[0], None)] * extra
-    sizes = [(v.pixels.shape[0], v.points.shape[0]) for v in views]
     chunks = []
     for start in range(0, n_chunks * size, size):
         part = slots[start:start + size]
-        chunks.append(_chunk([v for v, _, _ in part], [light for _, light, _ in part],
-                             [i for _, _, i in part], n, s))
+        chunks.append(_chunk([None if v is None else _host(v) for v, _, _ in part],
+                             [light for _, light, _ in part], [i for _, _, i in part],
+                             rows, spare, n))
         if consume:
-            for v, _, _ in part:
-                for leaf in jax.tree.leaves(v):
+            for i in (i for _, _, i in part if i is not None):
+                for leaf in jax.tree.leaves(data.views[i]):
                     if isinstance(leaf, jax.Array) and not leaf.is_deleted():
                         leaf.delete()
-    count = 3 * sum(k for k, _ in sizes)
+    count = 3 * sum(v.pixels.shape[0] for v in views)
     mesh = Mesh(np.array(found), (AXIS,))
     lean = dataclasses.replace(data, views=tuple(
-        _unpadded(chunks[i // size], i % size, *sizes[i]) for i in range(n_views)))
+        _unpadded(chunks[i // size], i % size, sizes[i]) for i in range(n_views)))
     return ShardedViews(lean, mesh, chunks, count, n_views, size)
 
 
-def _unpadded(chunk, row, n, s):
-    """The ViewSamples of n pixels and s samples in the stacked `chunk`'s row, as NumPy
-    views: the plain FitData of a ShardedViews shares its memory with the chunks (the
-    closed-form start and the report read it, transferred per call)."""
-    cut = lambda a, k: None if a is None else a[row, :k]
-    samples = chunk.samples
-    reader = samples.reader
-    return ViewSamples(cut(samples.points, s), cut(samples.normals, s),
-                       cut(samples.view_dirs, s), cut(samples.target, n),
-                       cut(samples.pixels, n),
-                       dataclasses.replace(reader, ids=cut(reader.ids, n),
-                                           weights=cut(reader.weights, n),
-                                           table=cut(reader.table, n)),
-                       cut(samples.objects, s))
+def _unpadded(chunk, row, sizes):
+    """The ViewSamples in the stacked `chunk`'s row, each leaf cut to its own row count
+    (`sizes`, in jax.tree.leaves order), as NumPy views: the plain FitData of a
+    ShardedViews shares its memory with the chunks (the closed-form start and the report
+    read it, transferred per call)."""
+    leaves, tree = jax.tree.flatten(chunk.samples)
+    return jax.tree.unflatten(tree, [a[row, :k] for a, k in zip(leaves, sizes, strict=True)])
 
 
 def for_options(data: FitData, options):
@@ -392,8 +364,8 @@ def for_options(data: FitData, options):
     devices or a chunk size (fitting.options: devices, chunk), else `data` itself. A
     sharded `data` is consumed (shard_views): use fit_data(result) from then on."""
     default = options.devices == "all" and options.chunk is None
-    if default and not all(_stackable_effects(v) for v in data.views):
-        return data  # shadows or layers: one device, as documented
+    if default and _stack_problem(data) is not None:
+        return data  # views that do not stack: one device, as documented
     if wants_sharding(options.devices, options.chunk):
         return shard_views(data, options.devices, options.chunk, consume=True)
     return data
