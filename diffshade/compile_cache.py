@@ -43,8 +43,8 @@ import tempfile
 import jax
 import numpy as np
 
-__all__ = ["StoredProgram", "cache_dir", "enable", "environment_key", "store_dir",
-           "stored_jit"]
+__all__ = ["FAST_COMPILE", "LIGHT_COMPILE", "StoredProgram", "cache_dir", "enable",
+           "environment_key", "store_dir", "stored_jit"]
 
 ENV_SWITCH = "DIFFSHADE_COMPILE_CACHE"
 ENV_DIR = "DIFFSHADE_COMPILE_CACHE_DIR"
@@ -76,6 +76,18 @@ def enable() -> str | None:
 
 
 # ---- the program store: compiled programs kept whole, skipping tracing and lowering ----
+
+# XLA options for a program that runs once or a few times on small data: without LLVM's
+# optimizations it compiles in about half the CPU time, and runs about as fast where
+# the work is small (rasterizing a view's geometry once, the report's renders); not for
+# programs a fit calls many times (fitting.linear.view_parts, normal_system: there it
+# runs several times slower). XLA's HLO passes still run; no fast-math either way, so
+# values change by float rounding at most. benchmarks/fit_compile.py measures it
+# (docs/performance.md, "Time to first result and compile time").
+FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
+# For the programs a fit calls many times: LLVM's -O1 instead of XLA's default -O2 takes
+# 0.05-0.2 s off their compilation and ran as fast in the README's fit.
+LIGHT_COMPILE = {"xla_backend_optimization_level": 1}
 
 STORE_FOLDER = "programs"
 _MAGIC = b"diffshade-program 1\n"
@@ -275,11 +287,15 @@ class StoredProgram:
 
     The key of a program: environment_key() (the package's source, JAX, the backend, the
     CPU ...), the JAX settings in force (x64 ...), the function's module and name, its
-    static arguments (repr) and the structure, shapes and dtypes of its other arguments.
+    static arguments (repr), the structure, shapes and dtypes of its other arguments, and
+    its XLA compiler_options (jax.jit's: they reach both jit and the store's compile, as
+    the lowered program carries them; FAST_COMPILE and LIGHT_COMPILE are the fit's).
     Every argument must have a name (no *args or **kwargs): calls are made by keyword."""
 
-    def __init__(self, fun, static_argnames=()):
-        self.jitted = jax.jit(fun, static_argnames=static_argnames)
+    def __init__(self, fun, static_argnames=(), compiler_options=None):
+        self.compiler_options = tuple(sorted((compiler_options or {}).items()))
+        self.jitted = jax.jit(fun, static_argnames=static_argnames,
+                              compiler_options=dict(self.compiler_options) or None)
         self.static_argnames = tuple(static_argnames)
         self.signature = inspect.signature(fun)
         if any(p.kind in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
@@ -333,7 +349,8 @@ class StoredProgram:
 
     def _load_or_compile(self, memo, arguments, device):
         tree, signatures, static, settings = memo
-        described = repr((self.name, str(tree), signatures, static, settings))
+        described = repr((self.name, str(tree), signatures, static, settings,
+                          self.compiler_options))
         if _has_address(described):
             return None
         key = hashlib.sha256(described.encode()).hexdigest()
@@ -352,9 +369,10 @@ class StoredProgram:
         return compiled
 
 
-def stored_jit(fun=None, *, static_argnames=()):
-    """Decorator: StoredProgram(fun, static_argnames), like
-    `functools.partial(jax.jit, static_argnames=...)`."""
+def stored_jit(fun=None, *, static_argnames=(), compiler_options=None):
+    """Decorator: StoredProgram(fun, static_argnames, compiler_options), like
+    `functools.partial(jax.jit, static_argnames=..., compiler_options=...)`."""
     if fun is None:
-        return functools.partial(stored_jit, static_argnames=static_argnames)
-    return StoredProgram(fun, static_argnames)
+        return functools.partial(stored_jit, static_argnames=static_argnames,
+                                 compiler_options=compiler_options)
+    return StoredProgram(fun, static_argnames, compiler_options)

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from diffshade.compile_cache import stored_jit
+from diffshade.compile_cache import LIGHT_COMPILE, stored_jit
 from fitting.batch import batched
 from fitting.distribute import ShardedViews
 from fitting.loss import irls_weight, mean_rho, stacked_residuals
@@ -28,7 +28,7 @@ from fitting.params import to_values
 _MAX_DAMPING = 1e10
 
 
-@stored_jit(static_argnames=("spec", "kind"))
+@stored_jit(static_argnames=("spec", "kind"), compiler_options=LIGHT_COMPILE)
 def normal_system(values, slopes, data, spec, kind="mse"):
     """The one Jacobian program of a fit, at the physical `values`: (loss, J^T W J [p, p],
     J^T W r [p], r [M], d r / d values [M, p], weight [M]), with J = (d r / d values) *

@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from diffshade.compile_cache import stored_jit
+from diffshade.compile_cache import LIGHT_COMPILE, stored_jit
 from fitting.batch import batched, view_map
 from fitting.cache import FitData, pixel_parts
 from fitting.gains import fitted_gains
@@ -92,7 +92,7 @@ def _usable(target, weight, settings):
     return usable.astype(np.float64)
 
 
-@stored_jit
+@stored_jit(compiler_options=LIGHT_COMPILE)
 def view_parts(material, lights, data: FitData):
     """Every view's unclamped parts (fitting.cache.pixel_parts) of `material` under
     `lights` (one LightGroups per view; None: the data's) at the kept pixels, in one vmapped program

@@ -209,6 +209,43 @@ def test_a_damaged_entry_is_compiled_afresh_and_replaced(store, monkeypatch, dam
     check(program(X, TABLE, power=2), X, TABLE, power=2)
 
 
+@pytest.mark.parametrize("on", [False, True])
+def test_compiler_options_reach_the_compiled_program(on, tmp_path, monkeypatch):
+    """An option XLA does not know fails the compile: so the options reach it, through
+    jit with the store off and through the store's own compile (on)."""
+    if on:
+        monkeypatch.setattr(compile_cache, "_store", str(tmp_path / "programs"))
+    program = compile_cache.StoredProgram(_affine, ("power",),
+                                          compiler_options={"xla_no_such_option": True})
+    with pytest.raises(Exception, match="xla_no_such_option"):
+        program(X, TABLE, power=2)
+
+
+def test_compiler_options_are_in_the_key(store, monkeypatch):
+    plain = compile_cache.StoredProgram(_affine, ("power",))
+    fast = compile_cache.StoredProgram(_affine, ("power",),
+                                       compiler_options=compile_cache.FAST_COMPILE)
+    check(plain(X, TABLE, power=2), X, TABLE, power=2)
+    check(fast(X, TABLE, power=2), X, TABLE, power=2)  # its own entry, not plain's
+    assert len(entries(store)) == 2
+    fast.loaded.clear()
+    no_compiling(monkeypatch)
+    check(fast(X, TABLE, power=2), X, TABLE, power=2)
+    assert len(entries(store)) == 2
+
+
+def test_the_fit_compiles_its_run_once_programs_fast():
+    from fitting import cache, gauss_newton, linear, report
+
+    fast = tuple(sorted(compile_cache.FAST_COMPILE.items()))
+    for program in (cache._project, cache._fragments, report._render_fragments):
+        assert program.compiler_options == fast, program.name
+    light = tuple(sorted(compile_cache.LIGHT_COMPILE.items()))
+    for program in (gauss_newton.normal_system, linear.view_parts):  # called many times
+        assert program.compiler_options == light, program.name
+    assert cache._geometry.compiler_options == ()  # its rounding, magnified by shininess
+
+
 def test_switched_off_or_inside_a_trace_it_is_plain_jit(tmp_path, monkeypatch):
     program = compile_cache.StoredProgram(_affine, ("power",))
     assert compile_cache.store_dir() is None  # the tests run with the cache off
