@@ -52,6 +52,22 @@ def cache64(n_lights):
         return build_cache(dataset, DEFAULT_INIT)
 
 
+def assert_chunks_equal_plain(views, data, params, spec):
+    """The views cut back out of the chunks equal the plain ones (unpadded), and the loss,
+    its gradient and (loss, J^T W J, J^T W r) summed over the chunks equal the plain
+    path's (jax.value_and_grad of make_loss, gauss_newton's _linearize) to 1e-10."""
+    for lean, plain in zip(views.fit_data.views, data.views, strict=True):
+        jax.tree.map(np.testing.assert_array_equal, lean, plain)
+    loss, grads = views.value_and_grad(params, spec)
+    want_loss, want_grads = jax.jit(jax.value_and_grad(make_loss(spec)))(params, data)
+    assert float(loss) == pytest.approx(float(want_loss), rel=1e-10)
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-13),
+                 grads, want_grads)
+    for got, want in zip(views.linearize(params, spec), _linearize(params, data, spec),
+                         strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-13)
+
+
 def test_chunked_sums_equal_the_all_at_once_values():
     """3 views in chunks of 2 (the last chunk padded with a view of weight 0, every view
     padded to the largest pixel count): the loss and its gradient with respect to the
@@ -63,16 +79,7 @@ def test_chunked_sums_equal_the_all_at_once_values():
         params = to_unconstrained(GUESS, spec, data.lights)
         views = shard_views(data, devices=1, chunk=2)
         assert len(views.chunks) == 2 and views.chunks[1].weight[1].sum() == 0
-        for lean, plain in zip(views.fit_data.views, data.views, strict=True):  # unpadded
-            jax.tree.map(np.testing.assert_array_equal, lean, plain)
-        loss, grads = views.value_and_grad(params, spec)
-        want_loss, want_grads = jax.jit(jax.value_and_grad(make_loss(spec)))(params, data)
-        assert float(loss) == pytest.approx(float(want_loss), rel=1e-11)
-        jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-13),
-                     grads, want_grads)
-        for got, want in zip(views.linearize(params, spec), _linearize(params, data, spec),
-                             strict=True):
-            np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-13)
+        assert_chunks_equal_plain(views, data, params, spec)
 
 
 def test_lbfgs_on_sharded_views_takes_the_plain_steps():
@@ -117,16 +124,7 @@ def test_chunked_sums_with_shadows_and_layers_equal_the_plain_values(glass):
         views = shard_views(data, devices=1, chunk=1)
         assert len(views.chunks) == 2
         assert views.chunks[0].samples.shadows[("point", 0)].shape[0] == 1
-        for lean, plain in zip(views.fit_data.views, data.views, strict=True):
-            jax.tree.map(np.testing.assert_array_equal, lean, plain)
-        loss, grads = views.value_and_grad(params, spec)
-        want_loss, want_grads = jax.jit(jax.value_and_grad(make_loss(spec)))(params, data)
-        assert float(loss) == pytest.approx(float(want_loss), rel=1e-10)
-        jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-13),
-                     grads, want_grads)
-        for got, want in zip(views.linearize(params, spec), _linearize(params, data, spec),
-                             strict=True):
-            np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-13)
+        assert_chunks_equal_plain(views, data, params, spec)
 
 
 def test_views_of_two_sample_layouts_run_on_one_device_or_are_refused():
@@ -203,6 +201,18 @@ print("ok")
 """
 
 
+def run_on_four_devices(script):
+    """Run `script` in a fresh Python process with 4 fake CPU devices (and conftest's
+    compile flags), from the repository root; it must print "ok" last."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    env = dict(os.environ, JAX_PLATFORMS="cpu",
+               XLA_FLAGS=f"{flags} --xla_force_host_platform_device_count=4".strip())
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          env=env, timeout=600, cwd=os.path.dirname(
+                              os.path.dirname(os.path.abspath(__file__))))
+    assert proc.returncode == 0 and proc.stdout.strip().endswith("ok"), proc.stderr[-3000:]
+
+
 @pytest.mark.cost(25)
 def test_four_devices_fit_equals_one_device_fit():
     """Adam, 20 steps on 8 views of 16 px lit by a directional or a point light: sharded
@@ -210,13 +220,7 @@ def test_four_devices_fit_equals_one_device_fit():
     equal to the one-device fit to float32 rounding. (The dataset is rasterized with the
     host kernels, which 'auto' leaves out with several devices, to keep the test short;
     the fit's cached loss is the same code on either path.)"""
-    flags = os.environ.get("XLA_FLAGS", "")  # conftest's compile flags, and 4 devices
-    env = dict(os.environ, JAX_PLATFORMS="cpu",
-               XLA_FLAGS=f"{flags} --xla_force_host_platform_device_count=4".strip())
-    proc = subprocess.run([sys.executable, "-c", FOUR_DEVICES], capture_output=True,
-                          text=True, env=env, timeout=600, cwd=os.path.dirname(
-                              os.path.dirname(os.path.abspath(__file__))))
-    assert proc.returncode == 0 and proc.stdout.strip().endswith("ok"), proc.stderr[-3000:]
+    run_on_four_devices(FOUR_DEVICES)
 
 
 FOUR_DEVICES_EFFECTS = """
@@ -258,10 +262,4 @@ def test_four_devices_fit_with_shadows_or_kt_equals_one_device_fit():
     box (kd, kt fitted, every fragment layer). Sharded over 4 CPU devices (one chunk, two
     views of weight 0) and in 2 chunks of one view on one device, the fits equal the
     plain one-device fit to 1e-10 (measured: 7e-15)."""
-    flags = os.environ.get("XLA_FLAGS", "")
-    env = dict(os.environ, JAX_PLATFORMS="cpu",
-               XLA_FLAGS=f"{flags} --xla_force_host_platform_device_count=4".strip())
-    proc = subprocess.run([sys.executable, "-c", FOUR_DEVICES_EFFECTS], capture_output=True,
-                          text=True, env=env, timeout=600, cwd=os.path.dirname(
-                              os.path.dirname(os.path.abspath(__file__))))
-    assert proc.returncode == 0 and proc.stdout.strip().endswith("ok"), proc.stderr[-3000:]
+    run_on_four_devices(FOUR_DEVICES_EFFECTS)
