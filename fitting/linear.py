@@ -126,10 +126,13 @@ def normal_equations(log_shininess, data: FitData, spec: FitSpec, gains=None):
         parts = parts.map(lambda a: a * np.asarray(gains, np.float64)[:, None, :])
     w = _usable(target, weight, data.settings)
     y = target - _offset(parts, spec, data.material)
-    stacked = np.stack([parts.ambient, parts.diffuse, parts.specular])
-    # per channel, the 3 x 3 Gram of the parts: 9x less work than the design matrix
-    gram = np.einsum("kvnc,lvnc->ckl", stacked * w, stacked)
-    rhs = np.einsum("kvnc,vnc->ck", stacked, w * y)
+    # per channel c, the 3 x 3 Gram of the parts (x [c, part, pixel]): 9x less work than
+    # the design matrix, as matrix products
+    x = np.stack([np.moveaxis(p, -1, 0).reshape(3, -1)
+                  for p in (parts.ambient, parts.diffuse, parts.specular)], 1)
+    xw = x * np.moveaxis(w, -1, 0).reshape(3, 1, -1)
+    gram = xw @ np.swapaxes(x, 1, 2)
+    rhs = (xw @ np.moveaxis(y, -1, 0).reshape(3, -1, 1))[..., 0]
     select = _selection(spec)
     return (np.einsum("ick,jcl,ckl->ij", select, select, gram),
             np.einsum("ick,ck->i", select, rhs), float(np.sum(w * y * y)), float(np.sum(w)))
