@@ -72,12 +72,14 @@ def _concat(groups):
     return dataclasses.replace(jax.tree.map(join, *plain), shadows=flags)
 
 
-def common_lights(lights):
+def common_lights(lights, index=None):
     """The views' LightGroups given one structure, for stacking: every kind that some view
     has, with the largest count, padded with lights of colour 0 (copies of a real light
     of that kind, so that their geometry is finite). A light of colour 0 adds exactly 0
     to a colour and to its gradient. Raises ValueError when the padded groups still
-    differ (static settings such as shadow flags or area-light sample counts)."""
+    differ (static settings such as shadow flags or area-light sample counts), naming
+    the view by its number in `index` (default: its position in `lights`)."""
+    index = range(len(lights)) if index is None else index
     lights = [_as_arrays(g) for g in lights]
     kinds = [f.name for f in dataclasses.fields(lights[0])]
     padded = [{} for _ in lights]
@@ -95,7 +97,8 @@ def common_lights(lights):
     out = [dataclasses.replace(g, **entry) for g, entry in zip(lights, padded, strict=True)]
     for i, g in enumerate(out):
         if light_layout(g) != light_layout(out[0]):
-            raise ValueError(f"views[{i}].lights: differ from views[0]'s in a static setting "
+            raise ValueError(f"views[{index[i]}].lights: differ from views[{index[0]}]'s in "
+                             "a static setting "
                              "(shadow flags or area-light samples); sharded or chunked fits "
                              "stack the views' lights (fit with devices=1 and chunk=None)")
     return out
