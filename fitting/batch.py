@@ -22,6 +22,7 @@ panels (fitting.report) and the sharded fits (fitting.distribute) stack views th
 """
 
 import dataclasses
+import math
 from functools import partial
 
 import jax
@@ -104,6 +105,17 @@ def common_lights(lights, index=None):
     return out
 
 
+def aligned_empty(shape, dtype, alignment=64):
+    """np.empty(shape, dtype) whose data start on a multiple of `alignment` bytes: XLA's
+    CPU client then takes the array without a copy (jax.dlpack.from_dlpack; a sharded
+    fit's chunks, fitting.distribute)."""
+    dtype = np.dtype(dtype)
+    size = math.prod(shape) * dtype.itemsize
+    raw = np.empty(size + alignment, np.uint8)
+    start = -raw.ctypes.data % alignment
+    return raw[start:start + size].view(dtype).reshape(shape)
+
+
 def _pad_rows(a, rows, spare):
     """[R, ...] -> [rows, ...]: a's rows, then its last row repeated (`spare`, one row,
     when R == 0); NumPy for NumPy arrays, else jax.numpy."""
@@ -139,8 +151,8 @@ def stack_views(views, lights, rows=None, spare=None):
     for column, count, extra in zip(columns, rows, spares, strict=True):
         first = next((a[:1] for a in column if a.shape[0]), extra)
         if _module(*column) is np:  # in place: a chunk of a sharded fit is not copied twice
-            out = np.empty((len(column), count, *column[0].shape[1:]),
-                           np.result_type(*column))
+            out = aligned_empty((len(column), count, *column[0].shape[1:]),
+                                np.result_type(*column))
             for i, a in enumerate(column):
                 out[i, :a.shape[0]] = a
                 if a.shape[0] < count:

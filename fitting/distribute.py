@@ -234,6 +234,12 @@ class ShardedViews:
         the rows its devices hold)."""
         return _put(tree, NamedSharding(self.mesh, P(AXIS)))
 
+    def placed(self, chunk):
+        """A Chunk built by host_chunk placed as `sharded` places it; on CPU devices its
+        arrays are taken without a copy where they allow it (_adopt): they are the
+        chunk's own, written by nothing after."""
+        return _put(chunk, NamedSharding(self.mesh, P(AXIS)), adopt=True)
+
     def replicated(self, tree):
         return _put(tree, NamedSharding(self.mesh, P()))
 
@@ -241,7 +247,7 @@ class ShardedViews:
         """Every chunk on the devices (one per sample layout when no chunk size was
         given), built and transferred once and kept."""
         if self._resident is None:
-            self._resident = tuple(self.sharded(self.host_chunk(k))
+            self._resident = tuple(self.placed(self.host_chunk(k))
                                    for k in range(self.n_chunks))
         return self._resident
 
@@ -258,7 +264,7 @@ class ShardedViews:
             return total
         host = self.host_chunk(0)
         for k in range(self.n_chunks):
-            placed = self.sharded(host)
+            placed = self.placed(host)
             host = None
             total = fn(total, placed)
             if k + 1 < self.n_chunks:
@@ -342,11 +348,31 @@ class ShardedViews:
         return adam
 
 
-def _put(tree, sharding):
+def _adoptable(x, sharding) -> bool:
+    return (isinstance(x, np.ndarray) and x.flags.c_contiguous and x.flags.writeable
+            and x.dtype.kind in "biuf" and x.ndim > 0
+            and all(d.platform == "cpu" for d in sharding.device_set))
+
+
+def _adopt(host, sharding):
+    """A NumPy array as a jax.Array with `sharding` on CPU devices, each device's rows
+    handed to XLA through DLPack: without a copy where XLA's CPU client can use the
+    memory as it is (64-byte aligned, on the first device: fitting.batch.aligned_empty),
+    else copied, as jax.device_put would. The array must not be written afterwards."""
+    parts = [jax.dlpack.from_dlpack(host[index], device=device) for device, index in
+             sharding.addressable_devices_indices_map(host.shape).items()]
+    return jax.make_array_from_single_device_arrays(host.shape, sharding, parts)
+
+
+def _put(tree, sharding, adopt=False):
     """tree's leaves placed with `sharding`; across several processes each process
-    supplies, from its own host copy, the slices its devices hold."""
+    supplies, from its own host copy, the slices its devices hold. adopt: NumPy leaves
+    that nothing writes afterwards are handed to CPU devices without a copy (_adopt)."""
     if sharding.is_fully_addressable:  # one process: one call for what is not placed
         leaves, treedef = jax.tree.flatten(tree)
+        if adopt:
+            leaves = [_adopt(x, sharding) if _adoptable(x, sharding) else x
+                      for x in leaves]
         moving = [i for i, x in enumerate(leaves)
                   if not (isinstance(x, jax.Array) and x.sharding == sharding)]
         for i, x in zip(moving, jax.device_put([leaves[i] for i in moving], sharding),

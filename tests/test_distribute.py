@@ -169,7 +169,8 @@ def test_streamed_chunks_are_stacked_one_at_a_time(monkeypatch):
     each pass stacks each view once, and at no time are the stacked arrays of more than
     2 chunks (4 views: the one in use and the next) alive; keeping every chunk, or
     stacking all views and cutting them, would hold 6. Counted with weakrefs on the
-    stacked NumPy arrays, against the chunk size and the number of views."""
+    stacked NumPy arrays, against the chunk size and the number of views. A chunk placed
+    on the CPU device shares the stacked arrays' memory (no second copy)."""
     data = cache64(2)
     assert len(data.views) == 6
     live, most, calls = {}, [0], []
@@ -198,6 +199,12 @@ def test_streamed_chunks_are_stacked_one_at_a_time(monkeypatch):
         assert 2 <= most[0] <= 4, most[0]
         want = jax.jit(make_loss(spec))(params, data)
         assert float(views.loss(params, spec)) == pytest.approx(float(want), rel=1e-10)
+        host = views.host_chunk(0)  # on the CPU device without a copy (64-byte aligned)
+        placed = views.placed(host)
+        for got, own in zip(jax.tree.leaves(placed.samples), jax.tree.leaves(host.samples),
+                            strict=True):
+            assert np.shares_memory(np.asarray(got), own)
+            np.testing.assert_array_equal(np.asarray(got), own)
 
 
 def test_dark_lights_pad_views_to_one_light_layout():
