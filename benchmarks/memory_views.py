@@ -8,8 +8,8 @@ start_run, advance, finish), Adam for --steps steps, float32, on the CPU's one d
   program that grows with the number of views);
 - chunk 'all': the views stacked (fitting.distribute) and taken in one chunk: all at
   once through one batched program;
-- chunk C: the views stacked and streamed through that program C at a time, the
-  gradient summed over chunks, then one update.
+- chunk C: the views streamed through that program C at a time, each chunk stacked
+  from its own views when it is used, the gradient summed over chunks, then one update.
 Measured, from /proc/self/status: VmRSS after the dataset is made (the targets and the
 interpreter: the same for every mode), then the peak (VmHWM, reset with
 /proc/self/clear_refs before each phase) while the cache is built, and while the steps

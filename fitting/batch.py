@@ -22,6 +22,7 @@ panels (fitting.report) and the sharded fits (fitting.distribute) stack views th
 """
 
 import dataclasses
+import math
 from functools import partial
 
 import jax
@@ -72,12 +73,14 @@ def _concat(groups):
     return dataclasses.replace(jax.tree.map(join, *plain), shadows=flags)
 
 
-def common_lights(lights):
+def common_lights(lights, index=None):
     """The views' LightGroups given one structure, for stacking: every kind that some view
     has, with the largest count, padded with lights of colour 0 (copies of a real light
     of that kind, so that their geometry is finite). A light of colour 0 adds exactly 0
     to a colour and to its gradient. Raises ValueError when the padded groups still
-    differ (static settings such as shadow flags or area-light sample counts)."""
+    differ (static settings such as shadow flags or area-light sample counts), naming
+    the view by its number in `index` (default: its position in `lights`)."""
+    index = range(len(lights)) if index is None else index
     lights = [_as_arrays(g) for g in lights]
     kinds = [f.name for f in dataclasses.fields(lights[0])]
     padded = [{} for _ in lights]
@@ -95,10 +98,22 @@ def common_lights(lights):
     out = [dataclasses.replace(g, **entry) for g, entry in zip(lights, padded, strict=True)]
     for i, g in enumerate(out):
         if light_layout(g) != light_layout(out[0]):
-            raise ValueError(f"views[{i}].lights: differ from views[0]'s in a static setting "
+            raise ValueError(f"views[{index[i]}].lights: differ from views[{index[0]}]'s in "
+                             "a static setting "
                              "(shadow flags or area-light samples); sharded or chunked fits "
                              "stack the views' lights (fit with devices=1 and chunk=None)")
     return out
+
+
+def aligned_empty(shape, dtype, alignment=64):
+    """np.empty(shape, dtype) whose data start on a multiple of `alignment` bytes: XLA's
+    CPU client then takes the array without a copy (jax.dlpack.from_dlpack; a sharded
+    fit's chunks, fitting.distribute)."""
+    dtype = np.dtype(dtype)
+    size = math.prod(shape) * dtype.itemsize
+    raw = np.empty(size + alignment, np.uint8)
+    start = -raw.ctypes.data % alignment
+    return raw[start:start + size].view(dtype).reshape(shape)
 
 
 def _pad_rows(a, rows, spare):
@@ -136,8 +151,8 @@ def stack_views(views, lights, rows=None, spare=None):
     for column, count, extra in zip(columns, rows, spares, strict=True):
         first = next((a[:1] for a in column if a.shape[0]), extra)
         if _module(*column) is np:  # in place: a chunk of a sharded fit is not copied twice
-            out = np.empty((len(column), count, *column[0].shape[1:]),
-                           np.result_type(*column))
+            out = aligned_empty((len(column), count, *column[0].shape[1:]),
+                                np.result_type(*column))
             for i, a in enumerate(column):
                 out[i, :a.shape[0]] = a
                 if a.shape[0] < count:

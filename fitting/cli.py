@@ -252,7 +252,7 @@ def run_fit(args) -> int:
         start = time.perf_counter()
         data = build_cache(dataset, plan.init, edge_margin=plan.options.edge_margin)
         views = for_options(data, plan.options)  # sharded and chunked, or data itself
-        data = fit_data(views)  # (sharded: shares the chunks' memory)
+        data = fit_data(views)  # (sharded: its views, in host memory)
         state = plan.state or start_run(views, plan.spec, plan.init, plan.options)
         state.meta |= {"dataset_sha256": plan.fingerprint, "color_space": args.color_space,
                        "checkpoint_every": plan.every}

@@ -3,29 +3,41 @@
 The cached fit (fitting.cache) keeps, per view, the shading samples of its kept pixels.
 `shard_views(data, devices=..., chunk=...)` lays them out for a sharded, chunked fit:
 
-- stacked: every view's arrays (its samples, how its pixels read them, and where the
-  scene has them the samples' shadow visibility and the pixels' fragment layers) padded
-  to the largest view's row counts (padded pixels weigh 0 in the loss; padded rows repeat
-  a real one, so that nothing in the padding is NaN) and stacked along a leading views
-  axis, in host memory (NumPy), by fitting.batch.stack_views, as the one-device fit
-  stacks them;
-- chunked: the views axis cut into ceil(views / chunk) chunks of equal size, at most
+- grouped: the views by sample layout (`layout_index`: which arrays their samples carry,
+  e.g. shadow visibility for a view whose lights cast shadows beside one whose do not,
+  or fragment layers); each group is chunked and compiled apart (one program per
+  layout), its views' lights padded to one layout (fitting.batch.common_lights);
+- chunked: each group's views cut into ceil(views / chunk) chunks of equal size, at most
   `chunk` views rounded up to a multiple of the device count (the last chunk padded with
   views of weight 0);
+- stacked, per chunk and only from that chunk's views: their arrays (the samples, how
+  the pixels read them, and where the scene has them the samples' shadow visibility and
+  the pixels' fragment layers) padded to the group's largest row counts (padded pixels
+  weigh 0 in the loss; padded rows repeat a real one, so that nothing in the padding is
+  NaN) and stacked along a leading views axis, in host memory (NumPy), by
+  fitting.batch.stack_views, as the one-device fit stacks them;
 - sharded: each chunk is placed on a 1-D device mesh with axis name "views"
   (`jax.sharding.NamedSharding(mesh, PartitionSpec("views"))`), so every device holds
   chunk / devices of its views. The params and the accumulators are replicated.
 
 A loss, gradient or Gauss-Newton system is then a sum over chunks of one jitted chunk
-function (the same compiled program for every chunk): the chunk's arrays are transferred,
-its sum of rho(residual) and the gradient of that sum are added to the running totals, and
-the total is divided by the number of kept pixel-channels at the end — the same mean as
-`fitting.loss.make_loss`, summed in another order (equal to float32 rounding; tested).
-Inside a chunk XLA's SPMD partitioner splits the views over the devices and reduces the
-sums across them (an all-reduce), so the gradient every device sees is the whole chunk's.
-A fit's working memory is therefore one chunk's arrays and their intermediates, whatever
-the number of views; the stacked samples stay in host memory. With a single chunk the
-arrays are transferred once and stay on the devices.
+function (the same compiled program for every chunk of a group): the chunk is stacked
+and transferred, its sum of rho(residual) and the gradient of that sum are added to the
+running totals, and the total is divided by the number of kept pixel-channels at the end
+— the same mean as `fitting.loss.make_loss`, summed in another order (equal to float32
+rounding; tested). Inside a chunk XLA's SPMD partitioner splits the views over the
+devices and reduces the sums across them (an all-reduce), so the gradient every device
+sees is the whole chunk's.
+
+Memory. With a chunk size (and more than one chunk) the chunks are streamed: no chunk is
+kept; each is stacked on the host from its own views when it is used (the next one while
+the devices run the current one), transferred, and dropped once its sums are done. What
+a fit holds beyond the per-view cache is then one chunk on the devices and one on the
+host, with the intermediates of one chunk's gradient, whatever the number of views. The
+per-view cache itself (`fit_data`: each view's samples, unpadded, in host memory) grows
+with the views: every step reads all of it. Without a chunk size every group is one
+chunk, stacked and transferred once and kept on the devices (L-BFGS needs this: its line
+search runs inside one compiled step).
 
 Several hosts: after `jax.distributed.initialize()`, `devices="all"` is every process's
 devices, and each process places only the rows of a chunk that its own devices hold
@@ -33,10 +45,11 @@ devices, and each process places only the rows of a chunk that its own devices h
 they agree on the padding and the chunks (docs/performance.md; not tested on real hosts).
 
 `fitting.run` uses a `ShardedViews` where it would use the `FitData`: its optax steps
-(Adam: the gradient accumulated over chunks, then one optimizer update; L-BFGS: one chunk,
-whose loss its line search evaluates inside one compiled step), the loss, the gradient and
-Levenberg-Marquardt's J^T W J (fitting.gauss_newton). The closed-form start of the
-'linear' method, the uncertainty report and the misfit check run on the plain FitData.
+(Adam: the gradient accumulated over chunks, then one optimizer update; L-BFGS: the
+resident chunks, whose loss its line search evaluates inside one compiled step), the
+loss, the gradient and Levenberg-Marquardt's J^T W J (fitting.gauss_newton). The
+closed-form start of the 'linear' method, the uncertainty report and the misfit check run
+on the plain FitData (their programs take every view at once).
 """
 
 import dataclasses
@@ -52,7 +65,7 @@ from jax.flatten_util import ravel_pytree
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from fitting.batch import common_lights, light_layout, stack_views
+from fitting.batch import common_lights, stack_views
 from fitting.cache import FitData, ViewSamples, predict
 from fitting.gains import scaled_material, view_gains
 from fitting.loss import check_kind, irls_weight, rho
@@ -112,9 +125,9 @@ def _host(tree):
 def _chunk(views, lights, index, rows, spare, n):
     """The Chunk of `views` (ViewSamples in host memory; None: a padding view of weight
     0, a copy of the chunk's first real view), stacked by fitting.batch.stack_views with
-    each leaf padded to its `rows` (every chunk alike: one compiled program); padded rows
-    repeat a real one (`spare`'s first, for a view without pixels), so that nothing is
-    NaN. n: the padded pixel count."""
+    each leaf padded to its `rows` (every chunk of a sample layout alike: one compiled
+    program); padded rows repeat a real one (`spare`'s first, for a view without pixels),
+    so that nothing is NaN. n: the padded pixel count."""
     real = next(v for v in views if v is not None)
     weight = np.zeros((len(views), n), np.asarray(real.target).dtype)
     for i, (v, pad) in enumerate(zip(views, index, strict=True)):
@@ -130,39 +143,64 @@ def _layout(view):
     return jax.tree.structure(view), tuple(np.shape(x)[1:] for x in jax.tree.leaves(view))
 
 
+def layout_index(views) -> tuple:
+    """The view numbers grouped by sample layout (which arrays a view's samples carry:
+    shadow visibility, fragment layers, objects; and their trailing shapes), in order of
+    first appearance: tuple of tuples. Each group is stacked into chunks of its own."""
+    groups = {}
+    for i, view in enumerate(views):
+        groups.setdefault(_layout(view), []).append(i)
+    return tuple(tuple(index) for index in groups.values())
+
+
 def _stack_problem(data: FitData):
-    """Why `data`'s views cannot be stacked into chunks (a message), or None. Shadow
-    visibility and transparency layers are stacked like the other sample arrays
-    (fitting.batch.stack_views), so views need one sample layout and lights that pad to
-    one layout (common_lights: the same shadow flags)."""
-    for i, view in enumerate(data.views):
-        if _layout(view) != _layout(data.views[0]):
-            return (f"views[{i}]: its sample layout (shadow visibility, layers, objects) "
-                    "differs from views[0]'s; sharded or chunked fits stack the views and "
-                    "need one layout (fit with devices=1 and chunk=None)")
-    try:
-        common_lights(data.lights)
-    except ValueError as error:
-        return str(error)
+    """Why `data`'s views cannot be stacked into chunks (a message), or None. The views
+    of each sample layout (layout_index) are stacked apart, their lights padded to one
+    layout (common_lights), which needs the same static settings (shadow flags)."""
+    for index in layout_index(data.views):
+        try:
+            common_lights([data.lights[i] for i in index], index)
+        except ValueError as error:
+            return str(error)
     return None
+
+
+class Group(NamedTuple):
+    """The views of one sample layout, as their chunks are built: index: the view
+    numbers; rows: the row count of each ViewSamples leaf (jax.tree.leaves order), the
+    group's largest, every chunk of the group padded to it; spare: a host ViewSamples of
+    the group with pixels (its first rows pad a leaf none of a chunk's views has rows
+    in); n: the padded pixel count; lights: {view: its LightGroups padded to the group's
+    one layout (common_lights), host}."""
+
+    index: tuple
+    rows: list
+    spare: object
+    n: int
+    lights: dict
 
 
 @dataclasses.dataclass
 class ShardedViews:
-    """A FitData's views stacked, chunked and placed on a device mesh (module docstring).
-    fit_data: the plain FitData (for the closed-form start and the report), its views'
-    arrays NumPy views into the chunks (no second copy); mesh: the 1-D
-    "views" Mesh; chunks: list of Chunk in host memory; count: kept pixel-channels over
-    all views (the loss's denominator); n_views: the real views; chunk_size: views per
-    chunk (a multiple of the device count)."""
+    """A FitData's views laid out for a sharded, chunked fit (module docstring).
+    fit_data: the plain FitData, its views' arrays in host memory (NumPy), read by the
+    chunks as they are built, by the closed-form start and the report; mesh: the 1-D
+    "views" Mesh; groups: one Group per sample layout; slots: per chunk, (its group,
+    its view numbers, None for a padding view of weight 0); count: kept pixel-channels
+    over all views (the loss's denominator); n_views: the real views; chunk_size: the
+    most views per chunk (a multiple of the device count); streamed: whether the chunks
+    are built and transferred per use (a chunk size, and more than one chunk), else all
+    are built once and kept on the devices."""
 
     fit_data: FitData
     mesh: Mesh
-    chunks: list
+    groups: list
+    slots: list
     count: int
     n_views: int
     chunk_size: int
-    _resident: list | None = None
+    streamed: bool
+    _resident: tuple | None = None
     _shared: dict = dataclasses.field(default_factory=dict)
 
     @property
@@ -177,29 +215,62 @@ class ShardedViews:
     def n_devices(self) -> int:
         return self.mesh.devices.size
 
+    @property
+    def n_chunks(self) -> int:
+        return len(self.slots)
+
+    def host_chunk(self, k):
+        """Chunk k, stacked in host memory from its own views only (fitting.batch
+        .stack_views on at most chunk_size views)."""
+        group, index = self.slots[k]
+        group = self.groups[group]
+        first = group.index[0]
+        return _chunk([None if i is None else self.views[i] for i in index],
+                      [group.lights[first if i is None else i] for i in index], index,
+                      group.rows, group.spare, group.n)
+
     def sharded(self, tree):
         """tree placed with its leading axis split over the mesh (each process supplies
         the rows its devices hold)."""
         return _put(tree, NamedSharding(self.mesh, P(AXIS)))
 
+    def placed(self, chunk):
+        """A Chunk built by host_chunk placed as `sharded` places it; on CPU devices its
+        arrays are taken without a copy where they allow it (_adopt): they are the
+        chunk's own, written by nothing after."""
+        return _put(chunk, NamedSharding(self.mesh, P(AXIS)), adopt=True)
+
     def replicated(self, tree):
         return _put(tree, NamedSharding(self.mesh, P()))
 
-    def resident_chunk(self):
-        """The one chunk on the devices, transferred once and kept."""
+    def resident_chunks(self) -> tuple:
+        """Every chunk on the devices (one per sample layout when no chunk size was
+        given), built and transferred once and kept."""
         if self._resident is None:
-            self._resident = [self.sharded(self.chunks[0])]
-        return self._resident[0]
+            self._resident = tuple(self.placed(self.host_chunk(k))
+                                   for k in range(self.n_chunks))
+        return self._resident
 
     def accumulate(self, fn, total):
-        """total = fn(total, chunk) over the chunks on the devices. With one chunk it is
-        transferred once and kept; with several, each is transferred as it is used, and
-        the next only once the previous one's sums are done (JAX dispatches
-        asynchronously: without the wait, every chunk would be in memory at once)."""
-        if len(self.chunks) == 1:
-            return fn(total, self.resident_chunk())
-        for host in self.chunks:
-            total = jax.block_until_ready(fn(total, self.sharded(host)))
+        """total = fn(total, chunk) over the chunks on the devices. Kept chunks
+        (resident_chunks) when not streamed; else each chunk is built on the host from
+        its views and transferred as it is used: chunk k + 1 is stacked while chunk k's
+        sums run (JAX dispatches asynchronously), and placed only once they are done, so
+        that at most one chunk is on the devices and one more on the host (without the
+        wait, every chunk would be in memory at once)."""
+        if not self.streamed:
+            for chunk in self.resident_chunks():
+                total = fn(total, chunk)
+            return total
+        host = self.host_chunk(0)
+        for k in range(self.n_chunks):
+            placed = self.placed(host)
+            host = None
+            total = fn(total, placed)
+            if k + 1 < self.n_chunks:
+                host = self.host_chunk(k + 1)
+            total = jax.block_until_ready(total)
+            del placed
         return total
 
     def shared(self, spec):
@@ -212,7 +283,7 @@ class ShardedViews:
         data = self.fit_data
         if spec.fits_lights:
             for i, g in enumerate(data.lights):
-                if light_layout(g) != light_layout(data.lights[0]):
+                if _light_shapes(g) != _light_shapes(data.lights[0]):
                     raise ValueError(f"views[{i}].lights: other kinds or counts than "
                                      "views[0]'s; a sharded or chunked fit of the lights "
                                      "needs one light layout (fit with devices=1 and "
@@ -259,16 +330,15 @@ class ShardedViews:
     def step_fn(self, spec, options, optimizer):
         """step(params, opt_state, self) -> (params, opt_state, loss) for an optax method:
         L-BFGS (its line search evaluates the loss inside the compiled step) runs
-        fitting.step.make_step on the one chunk; Adam accumulates the gradient over the
-        chunks, then makes one update."""
-        if options.method == "lbfgs":  # FitOptions: chunk None, so one chunk
+        fitting.step.make_step on the resident chunks (one per sample layout); Adam
+        accumulates the gradient over the chunks, then makes one update."""
+        if options.method == "lbfgs":  # FitOptions: chunk None, so the resident chunks
             step = _lbfgs_step(spec, options.loss, self.n_views, self.count, optimizer)
             shared = self.shared(spec)
 
             def lbfgs(params, opt_state, data):
-                chunk = data.resident_chunk()
                 return step(self.replicated(params), self.replicated(opt_state),
-                            (shared, chunk))
+                            (shared, data.resident_chunks()))
             return lbfgs
         update = _update(optimizer)
 
@@ -278,11 +348,31 @@ class ShardedViews:
         return adam
 
 
-def _put(tree, sharding):
+def _adoptable(x, sharding) -> bool:
+    return (isinstance(x, np.ndarray) and x.flags.c_contiguous and x.flags.writeable
+            and x.dtype.kind in "biuf" and x.ndim > 0
+            and all(d.platform == "cpu" for d in sharding.device_set))
+
+
+def _adopt(host, sharding):
+    """A NumPy array as a jax.Array with `sharding` on CPU devices, each device's rows
+    handed to XLA through DLPack: without a copy where XLA's CPU client can use the
+    memory as it is (64-byte aligned, on the first device: fitting.batch.aligned_empty),
+    else copied, as jax.device_put would. The array must not be written afterwards."""
+    parts = [jax.dlpack.from_dlpack(host[index], device=device) for device, index in
+             sharding.addressable_devices_indices_map(host.shape).items()]
+    return jax.make_array_from_single_device_arrays(host.shape, sharding, parts)
+
+
+def _put(tree, sharding, adopt=False):
     """tree's leaves placed with `sharding`; across several processes each process
-    supplies, from its own host copy, the slices its devices hold."""
+    supplies, from its own host copy, the slices its devices hold. adopt: NumPy leaves
+    that nothing writes afterwards are handed to CPU devices without a copy (_adopt)."""
     if sharding.is_fully_addressable:  # one process: one call for what is not placed
         leaves, treedef = jax.tree.flatten(tree)
+        if adopt:
+            leaves = [_adopt(x, sharding) if _adoptable(x, sharding) else x
+                      for x in leaves]
         moving = [i for i, x in enumerate(leaves)
                   if not (isinstance(x, jax.Array) and x.sharding == sharding)]
         for i, x in zip(moving, jax.device_put([leaves[i] for i in moving], sharding),
@@ -302,14 +392,24 @@ def _dtype(params):
     return jax.tree.leaves(params)[0].dtype
 
 
+def _light_shapes(lights):
+    """The kinds and counts of a LightGroups (its leaves' shapes), static settings left
+    out: the views whose lights a sharded fit of the lights stacks must share them."""
+    kinds = tuple(f.name for f in dataclasses.fields(lights) if getattr(lights, f.name)
+                  is not None)
+    return kinds, tuple(np.shape(x) for x in jax.tree.leaves(lights))
+
+
 def shard_views(data: FitData, devices="all", chunk=None, *,
                 consume=False) -> ShardedViews:
     """`data`'s views laid out for a sharded, chunked fit (module docstring). devices:
-    'all' or a count; chunk: the most views per chunk (None: all views in one chunk),
-    rounded up to a multiple of the device count. Use the returned ShardedViews' fit_data
-    in place of `data` from then on: it shares its memory with the chunks. consume: free
-    each view's arrays in `data` (jax.Array.delete) once its chunk holds them, so that
-    the cache is not held twice while it is stacked; `data`'s views are unusable after."""
+    'all' or a count; chunk: the most views per chunk (None: all views of each sample
+    layout in one chunk), rounded up to a multiple of the device count. Use the returned
+    ShardedViews' fit_data in place of `data` from then on: its views are `data`'s in
+    host memory (on a CPU the same memory, no copy). Nothing is stacked here: each chunk
+    is stacked from its own views when it is used. consume: free each view's arrays in
+    `data` (jax.Array.delete) once the host holds them, so that an accelerator's memory
+    does not keep the whole cache; `data`'s views are unusable after."""
     if not isinstance(data, FitData):
         raise TypeError(f"data: got {type(data).__name__}; expected fitting.FitData")
     found = device_list(devices)
@@ -319,44 +419,35 @@ def shard_views(data: FitData, devices="all", chunk=None, *,
     problem = _stack_problem(data)
     if problem is not None:
         raise ValueError(problem)
-    views, n_dev = data.views, len(found)
-    n_views = len(views)
-    n_chunks = 1 if chunk is None else math.ceil(n_views / chunk)
-    size = math.ceil(math.ceil(n_views / n_chunks) / n_dev) * n_dev  # balanced chunks
-    n_chunks = math.ceil(n_views / size)
-    sizes = [[np.shape(x)[0] for x in jax.tree.leaves(v)] for v in views]
-    rows = [max(column) for column in zip(*sizes, strict=True)]
-    n = max(max(v.pixels.shape[0] for v in views), 1)
-    spare = _host(next(v for v in views if v.pixels.shape[0]))  # build_cache keeps one
-    lights = common_lights([_host(g) for g in data.lights])
-    extra = n_chunks * size - n_views  # views of weight 0 (copies of a real view)
-    slots = [(v, light, i) for i, (v, light) in enumerate(zip(views, lights, strict=True))]
-    slots += [(None, lights[0], None)] * extra
-    chunks = []
-    for start in range(0, n_chunks * size, size):
-        part = slots[start:start + size]
-        chunks.append(_chunk([None if v is None else _host(v) for v, _, _ in part],
-                             [light for _, light, _ in part], [i for _, _, i in part],
-                             rows, spare, n))
+    views = []
+    for view in data.views:  # one view at a time: on an accelerator, one more view's memory
+        views.append(_host(view))
         if consume:
-            for i in (i for _, _, i in part if i is not None):
-                for leaf in jax.tree.leaves(data.views[i]):
-                    if isinstance(leaf, jax.Array) and not leaf.is_deleted():
-                        leaf.delete()
+            for leaf in jax.tree.leaves(view):
+                if isinstance(leaf, jax.Array) and not leaf.is_deleted():
+                    leaf.delete()
+    n_dev, n_views = len(found), len(views)
+    groups, slots, size = [], [], n_dev
+    for index in layout_index(views):
+        real = [i for i in index if views[i].pixels.shape[0]]
+        if not real:  # no kept pixel: nothing to add to any sum
+            continue
+        n_chunks = 1 if chunk is None else math.ceil(len(index) / chunk)
+        per = math.ceil(math.ceil(len(index) / n_chunks) / n_dev) * n_dev  # balanced
+        n_chunks, size = math.ceil(len(index) / per), max(size, per)
+        rows = [max(column) for column in zip(*([np.shape(x)[0] for x in
+                                                 jax.tree.leaves(views[i])]
+                                                for i in index), strict=True)]
+        lights = common_lights([_host(data.lights[i]) for i in index], index)
+        groups.append(Group(index, rows, views[real[0]], max(
+            views[i].pixels.shape[0] for i in index), dict(zip(index, lights, strict=True))))
+        padded = list(index) + [None] * (n_chunks * per - len(index))
+        slots += [(len(groups) - 1, tuple(padded[k:k + per]))
+                  for k in range(0, len(padded), per)]
     count = 3 * sum(v.pixels.shape[0] for v in views)
     mesh = Mesh(np.array(found), (AXIS,))
-    lean = dataclasses.replace(data, views=tuple(
-        _unpadded(chunks[i // size], i % size, sizes[i]) for i in range(n_views)))
-    return ShardedViews(lean, mesh, chunks, count, n_views, size)
-
-
-def _unpadded(chunk, row, sizes):
-    """The ViewSamples in the stacked `chunk`'s row, each leaf cut to its own row count
-    (`sizes`, in jax.tree.leaves order), as NumPy views: the plain FitData of a
-    ShardedViews shares its memory with the chunks (the closed-form start and the report
-    read it, transferred per call)."""
-    leaves, tree = jax.tree.flatten(chunk.samples)
-    return jax.tree.unflatten(tree, [a[row, :k] for a, k in zip(leaves, sizes, strict=True)])
+    return ShardedViews(dataclasses.replace(data, views=tuple(views)), mesh, groups, slots,
+                        count, n_views, size, chunk is not None and len(slots) > 1)
 
 
 def for_options(data: FitData, options):
@@ -384,9 +475,11 @@ def _chunk_residuals(params, shared: Shared, chunk: Chunk, spec, n_views):
     values = to_values(params, spec)
     material = values_to_material(values, spec, shared.material)
     lights = chunk.lights
-    if "lights" in values:  # fitted lights: every view's, then the chunk's rows
-        every = values_to_lights(values, spec, shared.lights)
-        lights = jax.tree.map(lambda *x: jnp.stack(x)[chunk.view], *every)
+    if "lights" in values:  # fitted lights: every view's, then the chunk's rows (with
+        every = values_to_lights(values, spec, shared.lights)  # the chunk's static flags)
+        leaves = [jnp.stack(x)[chunk.view] for x in zip(*map(jax.tree.leaves, every),
+                                                                strict=True)]
+        lights = jax.tree.unflatten(jax.tree.structure(chunk.lights), leaves)
     gains = view_gains(values, n_views)
 
     def one(samples, light, view):
@@ -454,7 +547,8 @@ def _lbfgs_step(spec, kind, n_views, count, optimizer):
     key = (spec, kind, n_views, count, optimizer)
     if key not in _LBFGS:
         def loss_fn(params, data):
-            shared, chunk = data
-            return _chunk_sum(params, shared, chunk, spec, kind, n_views) / count
+            shared, chunks = data
+            return sum(_chunk_sum(params, shared, chunk, spec, kind, n_views)
+                       for chunk in chunks) / count
         _LBFGS[key] = make_step(loss_fn, optimizer)
     return _LBFGS[key]

@@ -239,7 +239,7 @@ def fit(dataset: Dataset, spec: FitSpec | None = None, init=None, *, options=Non
     start = time.perf_counter()
     data = build_cache(dataset, init, edge_margin=options.edge_margin)
     views = for_options(data, options)  # sharded and chunked, or data itself
-    data = fit_data(views)  # (sharded: shares the chunks' memory)
+    data = fit_data(views)  # (sharded: its views, in host memory)
     state = start_run(views, spec, init, options)
     state.wall_time = time.perf_counter() - start
     on_step, should_stop = _notifier(callback, spec, data)

@@ -9,12 +9,16 @@ before JAX starts): an Adam fit whose views are sharded over the four devices, s
 in chunks, equals the one-device fit to float32 rounding, and each device holds its own
 views. Views with shadow visibility and fragment layers (a transparent box on a table,
 test_fit_effects): the chunked sums equal the plain ones to 1e-10, and Adam fits on four
-devices or in chunks equal the one-device fit to 1e-10 (float64)."""
+devices or in chunks equal the one-device fit to 1e-10 (float64). Views of two sample
+layouts (shadow visibility in one only) go into chunks of their own, with the same sums.
+Streamed chunks are stacked one at a time, each from its own views only (a spy on
+fitting.batch.stack_views counts the stacked views alive at once)."""
 
 import dataclasses
 import os
 import subprocess
 import sys
+import weakref
 from functools import lru_cache
 
 import jax
@@ -31,6 +35,7 @@ from fitting import (
     FitSpec,
     advance,
     build_cache,
+    distribute,
     make_loss,
     start_run,
     to_unconstrained,
@@ -78,7 +83,7 @@ def test_chunked_sums_equal_the_all_at_once_values():
     with jax.enable_x64(True):
         params = to_unconstrained(GUESS, spec, data.lights)
         views = shard_views(data, devices=1, chunk=2)
-        assert len(views.chunks) == 2 and views.chunks[1].weight[1].sum() == 0
+        assert views.n_chunks == 2 and views.host_chunk(1).weight[1].sum() == 0
         assert_chunks_equal_plain(views, data, params, spec)
 
 
@@ -122,30 +127,84 @@ def test_chunked_sums_with_shadows_and_layers_equal_the_plain_values(glass):
     with jax.enable_x64(True):
         params = to_unconstrained(perturbed(data.material), spec, data.lights)
         views = shard_views(data, devices=1, chunk=1)
-        assert len(views.chunks) == 2
-        assert views.chunks[0].samples.shadows[("point", 0)].shape[0] == 1
+        assert views.n_chunks == 2
+        assert views.host_chunk(0).samples.shadows[("point", 0)].shape[0] == 1
         assert_chunks_equal_plain(views, data, params, spec)
 
 
-def test_views_of_two_sample_layouts_run_on_one_device_or_are_refused():
-    """A view with shadow visibility beside one without, or lights whose shadow flags
-    differ, cannot be stacked: the default options fit on one device; a chunk size is
-    refused, naming the view."""
-    data = cache64(1)
-    view = data.views[1]
-    odd = dataclasses.replace(data, views=[data.views[0], dataclasses.replace(
-        view, shadows={("point", 0): view.points[:, :1]})])
-    assert for_options(odd, FitOptions()) is odd
-    with pytest.raises(ValueError, match=r"views\[1\]: its sample layout"):
-        for_options(odd, FitOptions(chunk=1))
-    data, _ = box64(False)  # shadow flags that differ: the lights do not stack
-    flags = dataclasses.replace(data.lights[1], point=dataclasses.replace(
-        data.lights[1].point, shadows=False))
-    odd = dataclasses.replace(data, lights=(data.lights[0], flags))
-    assert for_options(odd, FitOptions()) is odd
+def test_views_of_two_sample_layouts_go_into_chunks_of_their_own():
+    """The box on a table with its point light's shadows in view 0 only (view 1 has no
+    shadow visibility and a point light without shadows): the views are chunked by
+    sample layout, and in chunks of one (streamed) or in one chunk per layout (L-BFGS's
+    resident chunks) the loss, its gradient (light colours and exposures included) and
+    (loss, J^T W J, J^T W r) equal the plain path's to 1e-10. Lights whose shadow flags
+    differ within one sample layout do not stack: refused, naming the view."""
+    data, _ = box64(False)
+    point = dataclasses.replace(data.lights[1].point, shadows=False)
+    odd = dataclasses.replace(data, views=(data.views[0], dataclasses.replace(
+        data.views[1], shadows=None)), lights=(data.lights[0], dataclasses.replace(
+            data.lights[1], point=point)))
+    spec = dataclasses.replace(FitSpec.from_names(["kd", "ks"]), light_colors=True,
+                               exposure=True)
+    with jax.enable_x64(True):
+        params = to_unconstrained(perturbed(odd.material), spec, odd.lights)
+        for chunk in (1, None):
+            views = shard_views(odd, devices=1, chunk=chunk)
+            assert views.n_chunks == 2 and views.streamed == (chunk is not None)
+            assert [(g.index, g.n) for g in views.groups] == [
+                ((0,), v.pixels.shape[0]) for v in odd.views[:1]] + [
+                ((1,), odd.views[1].pixels.shape[0])]
+            assert views.host_chunk(1).samples.shadows is None
+            assert_chunks_equal_plain(views, odd, params, spec)
+    wrong = dataclasses.replace(data, lights=(data.lights[0], odd.lights[1]))
+    assert for_options(wrong, FitOptions()) is wrong  # default options: one device
     with pytest.raises(ValueError, match=r"views\[1\]\.lights: differ from views\[0\]'s "
                        "in a static setting"):
-        for_options(odd, FitOptions(chunk=1))
+        for_options(wrong, FitOptions(chunk=1))
+
+
+def test_streamed_chunks_are_stacked_one_at_a_time(monkeypatch):
+    """6 views in chunks of 2, through shard_views, the loss, its gradient and J^T W J:
+    every stacking (fitting.batch.stack_views, spied on) holds the 2 views of one chunk,
+    each pass stacks each view once, and at no time are the stacked arrays of more than
+    2 chunks (4 views: the one in use and the next) alive; keeping every chunk, or
+    stacking all views and cutting them, would hold 6. Counted with weakrefs on the
+    stacked NumPy arrays, against the chunk size and the number of views. A chunk placed
+    on the CPU device shares the stacked arrays' memory (no second copy)."""
+    data = cache64(2)
+    assert len(data.views) == 6
+    live, most, calls = {}, [0], []
+    real = distribute.stack_views
+
+    def spy(views, *args, **kwargs):
+        out = real(views, *args, **kwargs)
+        calls.append(tuple(a.shape[0] for a in jax.tree.leaves(out[0])))
+        key = len(calls)
+        live[key] = len(views)
+        most[0] = max(most[0], sum(live.values()))
+        weakref.finalize(out[0].points, live.pop, key)
+        return out
+
+    monkeypatch.setattr(distribute, "stack_views", spy)
+    spec = FitSpec(kd="grey")
+    with jax.enable_x64(True):
+        params = to_unconstrained(GUESS, spec, data.lights)
+        views = shard_views(data, devices=1, chunk=2)
+        assert views.streamed and views.n_chunks == 3 and not calls  # nothing stacked yet
+        for fn in (views.loss, views.value_and_grad, views.linearize):
+            before = len(calls)
+            jax.block_until_ready(fn(params, spec))
+            assert len(calls) - before == 3
+        assert all(set(shape) == {2} for shape in calls), calls
+        assert 2 <= most[0] <= 4, most[0]
+        want = jax.jit(make_loss(spec))(params, data)
+        assert float(views.loss(params, spec)) == pytest.approx(float(want), rel=1e-10)
+        host = views.host_chunk(0)  # on the CPU device without a copy (64-byte aligned)
+        placed = views.placed(host)
+        for got, own in zip(jax.tree.leaves(placed.samples), jax.tree.leaves(host.samples),
+                            strict=True):
+            assert np.shares_memory(np.asarray(got), own)
+            np.testing.assert_array_equal(np.asarray(got), own)
 
 
 def test_dark_lights_pad_views_to_one_light_layout():
@@ -184,8 +243,8 @@ dataset = make_dataset(ds.icosphere(1), ds.material(ka=0.15, kd=(0.55, 0.35, 0.2
                        shininess=25.0), n_views=4, n_lights=2, size=16, noise_std=0.01,
                        settings=ds.RenderSettings(kernels="host"))             # 8 views
 views = shard_views(build_cache(dataset, DEFAULT_INIT), devices=4, chunk=4)
-points = views.sharded(views.chunks[0]).samples.points
-assert len(views.chunks) == 2 and len(points.sharding.device_set) == 4
+points = views.sharded(views.host_chunk(0)).samples.points
+assert views.n_chunks == 2 and len(points.sharding.device_set) == 4
 assert {s.data.shape[0] for s in points.addressable_shards} == {1}     # one view each
 init = ds.material(ka=0.3, kd=0.4, ks=0.2, shininess=10.0)
 run = lambda **kw: fit(dataset, FitSpec(), init, method="adam", steps=20, tol=0,
@@ -236,7 +295,7 @@ for glass, names in ((False, ["kd", "ks"]), (True, ["kd", "kt"])):
     dataset = box_on_table(16, glass=glass, shadows=not glass)      # 2 views
     init = perturbed(dataset.truth)
     views = shard_views(build_cache(dataset, init), devices=4)   # 2 views of weight 0
-    chunk = views.sharded(views.chunks[0]).samples
+    chunk = views.sharded(views.host_chunk(0)).samples
     assert len(chunk.points.sharding.device_set) == 4
     assert (chunk.shadows is None) == glass and (chunk.layers is None) != glass
     run = lambda **kw: fit(dataset, FitSpec.from_names(names), init, method="adam",
