@@ -217,11 +217,13 @@ def _extra(args, state, status, signum, message):
             "checkpoint": CHECKPOINT}
 
 
-def _report(args, dataset, data, state, status, message, signum):
-    """Write the checkpoint and the result files, print the table; returns the exit code."""
+def _report(args, dataset, views, state, status, message, signum):
+    """Write the checkpoint and the result files, print the table; returns the exit code.
+    views: the cached data, or its ShardedViews (the report's sums a chunk at a time)."""
     result_path = os.path.join(args.output, "result.json")
     save_checkpoint(os.path.join(args.output, CHECKPOINT), state)
-    result = fit_result(state, dataset, data, status=status, stop_message=message)
+    result = fit_result(state, dataset, views, status=status, stop_message=message)
+    data = fit_data(views)
     label = (f"interrupted ({SIGNALS.get(signum)})" if status == "stopped"
              else STATUS_LABELS[status])
     paths = write_result(args.output, dataset, result, state.init,
@@ -272,4 +274,4 @@ def run_fit(args) -> int:
             print(f"diffshade: error: fit stopped: {message}; no step had a finite loss, "
                   "nothing written", file=sys.stderr)
             return EXIT_NON_FINITE
-        return _report(args, dataset, data, state, status, message, signals.received)
+        return _report(args, dataset, views, state, status, message, signals.received)

@@ -48,8 +48,14 @@ they agree on the padding and the chunks (docs/performance.md; not tested on rea
 (Adam: the gradient accumulated over chunks, then one optimizer update; L-BFGS: the
 resident chunks, whose loss its line search evaluates inside one compiled step), the
 loss, the gradient and Levenberg-Marquardt's J^T W J (fitting.gauss_newton). The
-closed-form start of the 'linear' method, the uncertainty report and the misfit check run
-on the plain FitData (their programs take every view at once).
+closed-form start of the 'linear' method (fitting.linear), the uncertainty report
+(fitting.uncertainty) and the misfit check (fitting.misfit) take the ShardedViews too and
+run over the same chunks (`host_fold`): per chunk one compiled program, the same for
+every chunk of a sample layout, gives the chunk's per-pixel results (`parts_fold`: the
+unclamped shading parts; `rows_fold`: the residuals and their Jacobian with respect to
+the physical values), which are read back and summed on the host in float64 (the normal
+equations, J^T J, the rounding bound, per-view sums) and dropped; so with a chunk size
+these too hold one chunk's rows, whatever the number of views.
 """
 
 import dataclasses
@@ -66,7 +72,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from fitting.batch import common_lights, stack_views
-from fitting.cache import FitData, ViewSamples, predict
+from fitting.cache import FitData, ViewSamples, pixel_parts, predict
 from fitting.gains import scaled_material, view_gains
 from fitting.loss import check_kind, irls_weight, rho
 from fitting.params import to_values, values_to_lights, values_to_material
@@ -327,6 +333,37 @@ class ShardedViews:
         loss, hess, grad = total
         return loss / self.count, hess, grad
 
+    def host_fold(self, program, fn, total):
+        """total = fn(total, out, weight, view, target) over the chunks (accumulate), out
+        = program(chunk): the chunk's per-pixel results [C, N, ...] in host memory
+        (float64), with its weight [C, N] (0 in the padding and for a padding view), view
+        numbers [C] and targets [C, N, 3] (float64): the host sums of the closed-form
+        start (fitting.linear), the standard errors (fitting.uncertainty) and the misfit
+        check (fitting.misfit), one chunk's rows at a time. One process only (the chunk's
+        rows are read back on the host)."""
+        def one(t, chunk):
+            out = jax.tree.map(lambda a: np.asarray(a, np.float64), program(chunk))
+            return fn(t, out, np.asarray(chunk.weight), np.asarray(chunk.view),
+                      np.asarray(chunk.samples.target, np.float64))
+        return self.accumulate(one, total)
+
+    def parts_fold(self, material, lights, spec, fn, total):
+        """host_fold of the unclamped parts (fitting.cache.pixel_parts, a ShadingParts of
+        [C, N, 3], 0 in the padding) of `material` under `lights` (one LightGroups per
+        view, as fitting.linear.view_parts takes them; None: each view's own)."""
+        shared = self.shared(spec)
+        every = None if lights is None else tuple(lights)
+        return self.host_fold(lambda chunk: _chunk_parts(material, every, shared, chunk),
+                              fn, total)
+
+    def rows_fold(self, values, spec, fn, total):
+        """host_fold of (residuals [C, N, 3], their Jacobian [C, N, 3, p] with respect to
+        the physical `values`, columns in jax.tree.leaves order), 0 in the padding: per
+        chunk what fitting.gauss_newton.normal_system gives for all views at once."""
+        shared = self.shared(spec)
+        return self.host_fold(lambda chunk: _chunk_rows(values, shared, chunk, spec,
+                                                        self.n_views), fn, total)
+
     def step_fn(self, spec, options, optimizer):
         """step(params, opt_state, self) -> (params, opt_state, loss) for an optax method:
         L-BFGS (its line search evaluates the loss inside the compiled step) runs
@@ -470,23 +507,34 @@ def fit_data(data) -> FitData:
 # ---- the compiled chunk functions (one program per chunk shape, spec and loss) ----
 
 
-def _chunk_residuals(params, shared: Shared, chunk: Chunk, spec, n_views):
-    """Residuals [C, N, 3] of the chunk's views (padded pixels included)."""
-    values = to_values(params, spec)
+def _view_lights(chunk, every):
+    """The chunk's lights: its own, or (every: one LightGroups per view, all views alike)
+    its views' rows of `every`, with the chunk's static flags."""
+    if every is None:
+        return chunk.lights
+    leaves = [jnp.stack(x)[chunk.view] for x in zip(*map(jax.tree.leaves, every),
+                                                    strict=True)]
+    return jax.tree.unflatten(jax.tree.structure(chunk.lights), leaves)
+
+
+def _value_residuals(values, shared: Shared, chunk: Chunk, spec, n_views):
+    """Residuals [C, N, 3] of the chunk's views at the physical values (padded pixels
+    included)."""
     material = values_to_material(values, spec, shared.material)
-    lights = chunk.lights
-    if "lights" in values:  # fitted lights: every view's, then the chunk's rows (with
-        every = values_to_lights(values, spec, shared.lights)  # the chunk's static flags)
-        leaves = [jnp.stack(x)[chunk.view] for x in zip(*map(jax.tree.leaves, every),
-                                                                strict=True)]
-        lights = jax.tree.unflatten(jax.tree.structure(chunk.lights), leaves)
+    every = (values_to_lights(values, spec, shared.lights) if "lights" in values
+             else None)  # fitted lights: every view's, then the chunk's rows
     gains = view_gains(values, n_views)
 
     def one(samples, light, view):
         m = material if gains is None else scaled_material(material, gains[view])
         return predict(m, light, shared.global_ambient, samples, shared.settings) - samples.target
 
-    return jax.vmap(one)(chunk.samples, lights, chunk.view)
+    return jax.vmap(one)(chunk.samples, _view_lights(chunk, every), chunk.view)
+
+
+def _chunk_residuals(params, shared: Shared, chunk: Chunk, spec, n_views):
+    """Residuals [C, N, 3] of the chunk's views (padded pixels included)."""
+    return _value_residuals(to_values(params, spec), shared, chunk, spec, n_views)
 
 
 def _chunk_sum(params, shared, chunk, spec, kind, n_views):
@@ -522,6 +570,32 @@ def _chunk_normal(params, total, shared, chunk, spec, kind, n_views):
     loss = jnp.sum(w * rho(kind, r))
     return (total[0] + loss, total[1] + jac.T @ (irls[:, None] * jac),
             total[2] + jac.T @ (irls * r))
+
+
+@jax.jit
+def _chunk_parts(material, every, shared, chunk):
+    """The chunk's unclamped parts (pixel_parts) of `material`, 0 in the padding: one
+    chunk of fitting.linear.view_parts."""
+    def one(samples, light):
+        return pixel_parts(material, light, shared.global_ambient, samples, shared.settings)
+
+    parts = jax.vmap(one)(chunk.samples, _view_lights(chunk, every))
+    kept = chunk.weight[..., None] > 0
+    return jax.tree.map(lambda a: jnp.where(kept, a, 0), parts)
+
+
+@partial(jax.jit, static_argnames=("spec", "n_views"))
+def _chunk_rows(values, shared, chunk, spec, n_views):
+    """(residuals [C, N, 3], d residuals / d values [C, N, 3, p]) of the chunk's views, 0
+    in the padding: one chunk of fitting.gauss_newton.normal_system's r and rows."""
+    def flat(v):
+        r = _value_residuals(v, shared, chunk, spec, n_views)
+        return r.reshape(-1), r
+
+    columns, r = jax.jacfwd(flat, has_aux=True)(values)
+    jac = jnp.concatenate([c.reshape(r.size, -1) for c in jax.tree.leaves(columns)], 1)
+    kept = chunk.weight[..., None] > 0
+    return jnp.where(kept, r, 0), jnp.where(kept[..., None], jac.reshape(*r.shape, -1), 0)
 
 
 _UPDATES = {}

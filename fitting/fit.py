@@ -157,15 +157,17 @@ def fit_result(state, dataset, data, *, with_uncertainty=True, warn=False, truth
     """A FitResult at the state's best params (fitting.run.RunState): values, standard
     errors and warnings (fitting.uncertainty; raised as warnings when `warn`), the values
     at a bound, the misfit check, relative errors against `truth` (default the dataset's)
-    when known; loss is the best loss, loss_history the whole history."""
+    when known; loss is the best loss, loss_history the whole history. data: the cached
+    data, or its ShardedViews (fitting.distribute: the report's sums a chunk at a time)."""
     if state.best_params is None:
         raise ValueError("state: no step had a finite loss; there is no result to report")
     spec, truth = state.spec, dataset.truth if truth is None else truth
     values = jax.tree.map(np.asarray, to_values(state.best_params, spec))
-    report = uncertainty(values, data, spec, warn=warn) if with_uncertainty else None
+    views, data = data, fit_data(data)  # sharded views: the report a chunk at a time
+    report = uncertainty(values, views, spec, warn=warn) if with_uncertainty else None
     bound = tuple(n for n, b in zip(value_names(values), at_bound(values, spec), strict=True)
                   if b)
-    check = (misfit(values, data, spec, [v.camera.width for v in dataset.views])
+    check = (misfit(values, views, spec, [v.camera.width for v in dataset.views])
              if with_uncertainty else None)
     found = (*([f"fit stopped: {stop_message}"] if status == "non-finite" else []),
              *(report.warnings if report else ()),
@@ -247,5 +249,5 @@ def fit(dataset: Dataset, spec: FitSpec | None = None, init=None, *, options=Non
     finish(state, views)
     if state.best_params is None:
         raise ValueError(f"dataset: no step had a finite loss ({message})")
-    return fit_result(state, dataset, data, with_uncertainty=with_uncertainty, warn=True,
+    return fit_result(state, dataset, views, with_uncertainty=with_uncertainty, warn=True,
                       truth=truth, status=status, stop_message=message)

@@ -9,7 +9,8 @@ where A, D, S are the ambient, diffuse and specular parts that `diffshade.shade`
 for unit coefficients (ka = kd = ks = 1). For a given shininess the best coefficients are
 a bound-constrained linear least-squares problem, solved exactly: normal equations
 (p x p, p <= 9) summed on the host in float64 from the parts of every view (one vmapped
-program, `view_parts`, that the identifiability check shares), and a small primal
+program, `view_parts`, that the identifiability check shares; on sharded views with a
+chunk size a chunk of views at a time, fitting.distribute, `fold_parts`), and a small primal
 active-set method for the box [0, upper] on the host (float64). Coefficients held fixed
 move to the right-hand side.
 
@@ -41,6 +42,7 @@ from scipy.optimize import minimize_scalar
 from diffshade.compile_cache import LIGHT_COMPILE, stored_jit
 from fitting.batch import batched, view_map
 from fitting.cache import FitData, pixel_parts
+from fitting.distribute import ShardedViews, fit_data
 from fitting.gains import fitted_gains
 from fitting.params import COEFFICIENTS, FitSpec, values_to_material
 
@@ -114,28 +116,50 @@ def host_parts(material, lights, data: FitData):
                         view_parts(material, lights, batched(data)))
 
 
-def normal_equations(log_shininess, data: FitData, spec: FitSpec, gains=None):
+def fold_parts(material, lights, data, spec, fn, total):
+    """total = fn(total, parts, weight, view, target) over blocks of `data`'s views, in
+    host memory (float64): parts a ShadingParts of [V, N, 3] (host_parts), weight [V, N],
+    view [V] the blocks' view numbers, target [V, N, 3]. A FitData is one block (every
+    view, stacked once); sharded views (fitting.distribute.ShardedViews) are taken a
+    chunk at a time (ShardedViews.parts_fold), so that a chunked fit's closed-form start
+    holds one chunk's parts, whatever the number of views."""
+    if isinstance(data, ShardedViews):
+        return data.parts_fold(material, lights, spec, fn, total)
+    parts, target, weight = host_parts(material, lights, data)
+    return fn(total, parts, weight, np.arange(len(data.views)), target)
+
+
+def normal_equations(log_shininess, data, spec: FitSpec, gains=None):
     """At shininess exp(log_shininess): G = X^T X [p, p], b = X^T y [p], c = y^T y and n
     (the number of usable pixel-channels), for the design X whose columns are the parts
     scaled by each fitted coefficient, and y = target - emission - fixed parts. gains:
-    [V, 3] per-view gains that multiply the parts (None: 1). The parts come from
-    view_parts; the sums are taken on the host in float64."""
-    material = _unit_material(data.material, spec, log_shininess)
-    parts, target, weight = host_parts(material, None, data)
-    if gains is not None:
-        parts = parts.map(lambda a: a * np.asarray(gains, np.float64)[:, None, :])
-    w = _usable(target, weight, data.settings)
-    y = target - _offset(parts, spec, data.material)
-    # per channel c, the 3 x 3 Gram of the parts (x [c, part, pixel]): 9x less work than
-    # the design matrix, as matrix products
-    x = np.stack([np.moveaxis(p, -1, 0).reshape(3, -1)
-                  for p in (parts.ambient, parts.diffuse, parts.specular)], 1)
-    xw = x * np.moveaxis(w, -1, 0).reshape(3, 1, -1)
-    gram = xw @ np.swapaxes(x, 1, 2)
-    rhs = (xw @ np.moveaxis(y, -1, 0).reshape(3, -1, 1))[..., 0]
+    [V, 3] per-view gains that multiply the parts (None: 1). data: a FitData or its
+    ShardedViews (then summed chunk by chunk). The parts come from view_parts (fold_parts);
+    the sums are taken on the host in float64."""
+    base = fit_data(data)
+    material = _unit_material(base.material, spec, log_shininess)
+    gains = None if gains is None else np.asarray(gains, np.float64)
+
+    def add(total, parts, weight, view, target):
+        if gains is not None:
+            parts = parts.map(lambda a: a * gains[view][:, None, :])
+        w = _usable(target, weight, base.settings)
+        y = target - _offset(parts, spec, base.material)
+        # per channel c, the 3 x 3 Gram of the parts (x [c, part, pixel]): 9x less work
+        # than the design matrix, as matrix products
+        x = np.stack([np.moveaxis(p, -1, 0).reshape(3, -1)
+                      for p in (parts.ambient, parts.diffuse, parts.specular)], 1)
+        xw = x * np.moveaxis(w, -1, 0).reshape(3, 1, -1)
+        gram = xw @ np.swapaxes(x, 1, 2)
+        rhs = (xw @ np.moveaxis(y, -1, 0).reshape(3, -1, 1))[..., 0]
+        return (total[0] + gram, total[1] + rhs, total[2] + float(np.sum(w * y * y)),
+                total[3] + float(np.sum(w)))
+
+    gram, rhs, sq, count = fold_parts(material, None, data, spec, add,
+                                      (np.zeros((3, 3, 3)), np.zeros((3, 3)), 0.0, 0.0))
     select = _selection(spec)
     return (np.einsum("ick,jcl,ckl->ij", select, select, gram),
-            np.einsum("ick,ck->i", select, rhs), float(np.sum(w * y * y)), float(np.sum(w)))
+            np.einsum("ick,ck->i", select, rhs), sq, count)
 
 
 def box_least_squares(gram, rhs, lower, upper, max_iter=100):
@@ -210,13 +234,21 @@ def _split(coef, spec, dtype):
     return values
 
 
-def gain_moments(values, data: FitData, spec: FitSpec):
+def gain_moments(values, data, spec: FitSpec):
     """([V, 3] sum of w p t, [V, 3] sum of w p p) per view and channel: p the unclamped
-    colour of the values' material at unit gain, t the target, w 1 at usable pixels."""
-    material = values_to_material(values, spec, data.material)
-    parts, target, weight = host_parts(material, None, data)
-    p, w = parts.total, _usable(target, weight, data.settings)
-    return np.sum(w * p * target, 1), np.sum(w * p * p, 1)
+    colour of the values' material at unit gain, t the target, w 1 at usable pixels
+    (summed chunk by chunk for sharded views: fold_parts)."""
+    base = fit_data(data)
+    material = values_to_material(values, spec, base.material)
+
+    def add(total, parts, weight, view, target):
+        p, w = parts.total, _usable(target, weight, base.settings)
+        np.add.at(total[0], view, np.sum(w * p * target, 1))  # a padding view: w = 0
+        np.add.at(total[1], view, np.sum(w * p * p, 1))
+        return total
+
+    n = len(base.views)
+    return fold_parts(material, None, data, spec, add, (np.zeros((n, 3)), np.zeros((n, 3))))
 
 
 def _best_gains(values, data, spec):
@@ -243,21 +275,23 @@ def _gain_values(gains, spec, dtype):
     return values
 
 
-def solve_linear(data: FitData, spec: FitSpec, *, shininess_range=(1.0, 2000.0),
+def solve_linear(data, spec: FitSpec, *, shininess_range=(1.0, 2000.0),
                  grid_size=24) -> dict:
     """Physical values of the spec's material quantities: the coefficients in closed form,
     shininess (when fitted) by a 1-D search within `shininess_range`, and the per-view
-    gains the spec fits (module docstring). Lights are held at `data.lights`. Returns the
-    values dict (see fitting.params)."""
+    gains the spec fits (module docstring). Lights are held at `data.lights`. data: a
+    FitData, or its ShardedViews (fitting.distribute; with a chunk size, every sum is
+    taken a chunk of views at a time). Returns the values dict (see fitting.params)."""
     lo, hi = shininess_range
     if not (0 < lo < hi < float("inf")):
         raise ValueError(f"shininess_range: got {shininess_range!r}; expected 0 < low < high")
-    dtype = data.material.ka.dtype
-    gains = np.ones((len(data.views), 3)) if fitted_gains(spec) else None
+    base = fit_data(data)
+    dtype = base.material.ka.dtype
+    gains = np.ones((len(base.views), 3)) if fitted_gains(spec) else None
 
     def solve(gains):
         log_s = (_search_shininess(data, spec, shininess_range, grid_size, gains)
-                 if spec.shininess else jnp.log(jnp.maximum(data.material.shininess, 1e-6)))
+                 if spec.shininess else jnp.log(jnp.maximum(base.material.shininess, 1e-6)))
         values = _split(_solve(log_s, data, spec, gains)[0], spec, dtype)
         if spec.shininess:
             values["shininess"] = jnp.asarray(np.exp(log_s), dtype)

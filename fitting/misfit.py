@@ -23,7 +23,8 @@ import dataclasses
 
 import numpy as np
 
-from fitting.uncertainty import rounding_steps, view_residuals
+from fitting.distribute import fit_data
+from fitting.uncertainty import rounding_encoding, rows_fold, steps_in
 
 MAX_RATIO = 3.0
 MIN_RMS = 0.5 / 255.0
@@ -79,19 +80,28 @@ def _neighbour_squares(r, pixels, width):
 
 
 def misfit(values, data, spec, widths) -> Misfit:
-    """The Misfit of the physical `values` on the cached `data` (fitting.build_cache);
-    widths: the image width of each view."""
-    residuals = view_residuals(values, data, spec)
-    flat = np.concatenate([r.ravel() for r in residuals])
-    rms = float(np.sqrt(np.mean(flat**2))) if flat.size else 0.0
-    total, count = 0.0, 0
-    for r, view, width in zip(residuals, data.views, widths, strict=True):
-        t, c = _neighbour_squares(r, np.asarray(view.pixels), width)
-        total, count = total + t, count + c
+    """The Misfit of the physical `values` on the cached `data` (fitting.build_cache, or
+    its ShardedViews: then a chunk of views at a time); widths: the image width of each
+    view."""
+    base = fit_data(data)
+
+    def add(total, rows, weight, view, target):
+        for r, w, v in zip(rows[0], weight, view, strict=True):
+            n = int(np.sum(w > 0))  # a view's kept pixels are its first rows
+            if n:
+                t, c = _neighbour_squares(r[:n], np.asarray(base.views[v].pixels), widths[v])
+                total = (total[0] + float(np.sum(r[:n] ** 2)), total[1] + 3 * n,
+                         total[2] + t, total[3] + c)
+        return total
+
+    squares, size, total, count = rows_fold(values, data, spec)(add, (0.0, 0, 0.0, 0))
+    rms = float(np.sqrt(squares / size)) if size else 0.0
     noise = float(np.sqrt(total / (2 * count))) if count else 0.0
-    targets = np.concatenate([np.asarray(v.target, np.float64).ravel() for v in data.views])
-    steps, _ = rounding_steps(targets)
-    quantization = 0.0 if steps is None else float(np.sqrt(np.mean((2 * steps) ** 2) / 12))
+    targets = [v.target for v in base.views]  # each view's, taken one at a time
+    encoding = rounding_encoding(targets)
+    quantization = 0.0 if encoding is None else float(np.sqrt(
+        sum(np.sum((2 * steps_in(np.asarray(t, np.float64), encoding)) ** 2)
+            for t in targets) / max(sum(np.size(t) for t in targets), 1) / 12))
     floor = max(noise, quantization, 1e-12)
     ratio = rms / floor
     return Misfit(rms, noise, quantization, floor, ratio, not (ratio > MAX_RATIO and rms > MIN_RMS))

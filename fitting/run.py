@@ -129,12 +129,12 @@ def start_run(data, spec: FitSpec, init: Material, options: FitOptions | None = 
     fitting.distribute.ShardedViews); options default FitOptions()."""
     options = FitOptions() if options is None else options
     check_run(spec, init, options)
-    data = fit_data(data)
-    params = start_params(spec, init, data.lights)
+    params = start_params(spec, init, fit_data(data).lights)
     # several objects: Levenberg-Marquardt starts from `init` (the closed-form start
     # solves one material); kt, not linear, starts from `init` too
     linear = bool(spec.coefficients) or spec.shininess
     if options.method == "linear" and linear and "objects" not in params:
+        # sharded views: their sums a chunk at a time (fitting.linear.fold_parts)
         solved = solve_linear(data, spec, shininess_range=options.shininess_range)
         params = {**params, **from_values(solved, spec)}
     return RunState(spec, init, options, params, initial_opt_state(spec, options, params),

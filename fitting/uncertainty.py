@@ -32,8 +32,9 @@ import numpy as np
 from diffshade.color import decode, encode
 from fitting.batch import batched, unpadded
 from fitting.cache import FitData
+from fitting.distribute import ShardedViews, fit_data
 from fitting.gauss_newton import normal_system
-from fitting.linear import host_parts
+from fitting.linear import fold_parts
 from fitting.params import (
     FitSpec,
     at_bound,
@@ -123,29 +124,57 @@ def view_residuals(values, data: FitData, spec: FitSpec) -> tuple:
     return unpadded(r.reshape(len(data.views), -1, 3), data.views)
 
 
-def _pixel_counts(values, data: FitData, spec: FitSpec, highlight_threshold):
+def rows_fold(values, data, spec: FitSpec):
+    """fold(fn, total) -> total = fn(total, (r [V, N, 3], d r / d values [V, N, 3, p]),
+    weight [V, N], view [V], target [V, N, 3]) over blocks of `data`'s views, in host
+    memory (float64; a FitData's Jacobian in its own dtype), 0 in the padding. A FitData
+    is one block, _system_at on every view (computed once here, whatever the number of
+    folds); sharded views (fitting.distribute.ShardedViews) are taken a chunk at a time,
+    computed per fold (ShardedViews.rows_fold), so that a chunked fit's report holds one
+    chunk's rows."""
+    if isinstance(data, ShardedViews):
+        return lambda fn, total: data.rows_fold(values, spec, fn, total)
+    *_, r, jac, weight = _system_at(values, data, spec)
+    n = len(data.views)
+    r = np.asarray(r, np.float64).reshape(n, -1, 3)
+    block = ((r, np.asarray(jac).reshape(*r.shape, -1)),  # float64 once its rows are kept
+             np.asarray(weight).reshape(r.shape)[..., 0], np.arange(n), np.zeros(r.shape))
+    for i, view in enumerate(data.views):
+        block[3][i, :view.target.shape[0]] = np.asarray(view.target, np.float64)
+    return lambda fn, total: fn(total, *block)
+
+
+def _kept(weight, rows):
+    """[V * N * 3] bool: the kept pixel-channels of a block's rows."""
+    return np.broadcast_to(weight[..., None] > 0, rows.shape[:3]).reshape(-1)
+
+
+def _pixel_counts(values, data, spec: FitSpec, highlight_threshold):
     """(kept pixels unlit by every light of their view, kept pixels whose specular part at
     the values exceeds highlight_threshold in some channel), from the linear solve's
-    program (fitting.linear.view_parts)."""
-    material = values_to_material(values, spec, data.material)
+    program (fitting.linear.view_parts, a chunk at a time for sharded views)."""
+    base = fit_data(data)
+    material = values_to_material(values, spec, base.material)
     unit_kd = dataclasses.replace(material, kd=np.ones(np.shape(material.kd),
                                                        np.asarray(material.kd).dtype))
-    lights = values_to_lights(values, spec, data.lights) if "lights" in values else None
-    parts, _, weight = host_parts(unit_kd, lights, data)
-    kept = weight > 0
-    unlit = np.sum(kept & (np.max(parts.diffuse, -1) <= 1e-9))
-    bright = np.sum(kept & (np.max(parts.specular, -1) > highlight_threshold))
-    return unlit, bright
+    lights = values_to_lights(values, spec, base.lights) if "lights" in values else None
+
+    def add(total, parts, weight, view, target):
+        kept = weight > 0
+        return (total[0] + int(np.sum(kept & (np.max(parts.diffuse, -1) <= 1e-9))),
+                total[1] + int(np.sum(kept & (np.max(parts.specular, -1) > highlight_threshold))))
+
+    return fold_parts(unit_kd, lights, data, spec, add, (0, 0))
 
 
 def _data_warnings(values, data, spec, highlight_threshold, min_pixels):
-    unlit, bright = (int(n) for n in _pixel_counts(values, data, spec, highlight_threshold))
+    unlit, bright = _pixel_counts(values, data, spec, highlight_threshold)
     found = []
     if spec.ka is not None and spec.kd is not None and unlit < min_pixels:
         found.append(f"ka and kd are confounded: {unlit} kept pixels are unlit by every "
                      "light (N.L <= 0), so the ambient term is never seen alone; add a "
                      "light or view that leaves part of the object in shadow")
-    has_specular = spec.ks is not None or data.material.ks is not None
+    has_specular = spec.ks is not None or fit_data(data).material.ks is not None
     if has_specular and (spec.ks is not None or spec.shininess) and bright < min_pixels:
         found.append(f"ks and shininess are not determined: {bright} kept pixels have a "
                      f"specular part above {highlight_threshold}; add lights or views "
@@ -183,17 +212,27 @@ def _conditioning_warnings(jtj, names, condition, weak):
     return found
 
 
-def uncertainty(values: dict, data: FitData, spec: FitSpec, *, highlight_threshold=0.01,
+def uncertainty(values: dict, data, spec: FitSpec, *, highlight_threshold=0.01,
                 min_pixels=10, max_condition=1e6, warn=True) -> UncertaintyReport:
-    """Standard errors of the physical `values` (the optimum of a fit on `data`) and
-    identifiability warnings (see module docstring)."""
-    r, jac = (np.asarray(a, np.float64) for a in values_jacobian(values, data, spec))
+    """Standard errors of the physical `values` (the optimum of a fit on `data`, a
+    FitData or its ShardedViews: then J^T J and the rounding bound are summed a chunk of
+    views at a time) and identifiability warnings (see module docstring)."""
+    fold = rows_fold(values, data, spec)
     names = tuple(value_names(values))
     free = ~at_bound(values, spec)
-    n, p = r.shape[0], int(free.sum())
+
+    def add(total, rows, weight, view, target):
+        r, jac = rows
+        keep = _kept(weight, r)
+        r, jac = r.reshape(-1)[keep], np.asarray(jac.reshape(-1, jac.shape[-1])[keep],
+                                                 np.float64)
+        return total[0] + jac.T @ jac, total[1] + float(r @ r), total[2] + r.size
+
+    full, rss, n = fold(add, (np.zeros((len(names), len(names))), 0.0, 0))
+    p = int(free.sum())
     dof = max(n - p, 1)
-    sigma2 = float(r @ r) / dof
-    jtj = jac[:, free].T @ jac[:, free]
+    sigma2 = rss / dof
+    jtj = full[np.ix_(free, free)]
     inverse, condition, weak = _scaled_inverse(jtj, max_condition)
     covariance = np.full((len(names), len(names)), np.nan)
     covariance[np.ix_(free, free)] = sigma2 * inverse
@@ -204,7 +243,7 @@ def uncertainty(values: dict, data: FitData, spec: FitSpec, *, highlight_thresho
             warnings.warn(message, IdentifiabilityWarning, stacklevel=2)
     flat = np.concatenate([np.ravel(np.asarray(x, np.float64))
                            for x in jax.tree.leaves(values)])
-    bound, notes = _rounding(data, jac[:, free], inverse)
+    bound, notes = _rounding(fit_data(data), fold, free, inverse)
     if bound is not None:
         bound = _scatter(bound, free)
     return UncertaintyReport(names, flat, np.sqrt(np.diag(covariance)), covariance, sigma2,
@@ -224,32 +263,55 @@ def _codes_8bit(values, encoding):
     return np.round(codes) if np.all(np.abs(codes - np.round(codes)) < 1e-3) else None
 
 
+def rounding_encoding(targets):
+    """The encoding in which every array of `targets` (linear values, e.g. each view's)
+    holds 8-bit codes: 'linear', else 'srgb', else None (rounding_steps)."""
+    targets = list(targets)  # each converted in turn: one array's float64 copy at a time
+    for encoding in ("linear", "srgb"):
+        if all(_codes_8bit(np.asarray(t, np.float64), encoding) is not None
+               for t in targets):
+            return encoding
+    return None
+
+
+def steps_in(targets, encoding):
+    """rounding_steps of 8-bit `targets` (float64) in a known encoding (rounding_encoding)."""
+    if encoding == "linear":
+        return np.full(targets.shape, 0.5 / 255.0)
+    codes = np.round(encode(targets, encoding) * 255.0)
+    centre = decode(codes / 255.0, "srgb")
+    above = decode(np.minimum(codes + 0.5, 255.0) / 255.0, "srgb") - centre
+    below = centre - decode(np.maximum(codes - 0.5, 0.0) / 255.0, "srgb")
+    return np.maximum(above, below)
+
+
 def rounding_steps(targets):
     """Worst-case |linear target - the value before 8-bit rounding| per value of `targets`
     (linear, [...]), or (None, None) when they are not 8-bit codes; with the encoding the
     codes were found in: 'linear' (0.5 / 255 everywhere) or 'srgb' (half a code step,
     mapped through the sRGB curve: from 0.5 / 255 / 12.92 in the darks to ~0.0044 at 1)."""
     targets = np.asarray(targets, np.float64)
-    if _codes_8bit(targets, "linear") is not None:
-        return np.full(targets.shape, 0.5 / 255.0), "linear"
-    codes = _codes_8bit(targets, "srgb")
-    if codes is None:
-        return None, None
-    centre = decode(codes / 255.0, "srgb")
-    above = decode(np.minimum(codes + 0.5, 255.0) / 255.0, "srgb") - centre
-    below = centre - decode(np.maximum(codes - 0.5, 0.0) / 255.0, "srgb")
-    return np.maximum(above, below), "srgb"
+    encoding = rounding_encoding([targets])
+    return (None, None) if encoding is None else (steps_in(targets, encoding), encoding)
 
 
-def _rounding(data, jac, inverse):
+def _rounding(data, fold, free, inverse):
     """8-bit targets: rounding is no independent noise (a flat region rounds one way), so
     bound its effect instead: the linearized estimate moves by (J^T J)^-1 J^T delta for
-    target errors |delta_i| <= step_i (`rounding_steps`), at most |(J^T J)^-1 J^T| @ step."""
-    targets = np.concatenate([np.asarray(v.target).reshape(-1) for v in data.views])
-    steps, encoding = rounding_steps(targets)
-    if steps is None:
+    target errors |delta_i| <= step_i (`rounding_steps`), at most |(J^T J)^-1 J^T| @ step,
+    summed over the rows of `fold` (rows_fold; a second pass over a sharded fit's chunks,
+    once (J^T J)^-1 is known)."""
+    encoding = rounding_encoding(v.target for v in data.views)
+    if encoding is None:
         return None, ()
-    bound = np.abs(inverse @ jac.T) @ steps
+
+    def add(total, rows, weight, view, target):
+        jac = rows[1]
+        keep = _kept(weight, jac)
+        jac = np.asarray(jac.reshape(-1, jac.shape[-1])[keep][:, free], np.float64)
+        return total + np.abs(inverse @ jac.T) @ steps_in(target.reshape(-1)[keep], encoding)
+
+    bound = fold(add, np.zeros(int(free.sum())))
     return bound, (f"targets are 8-bit ({encoding}-encoded): rounding errors are not "
                    "independent (a flat region rounds one way), so the standard errors "
                    "understate the error; rounding_bound is the worst-case shift it can cause",)

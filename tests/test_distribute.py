@@ -12,7 +12,9 @@ test_fit_effects): the chunked sums equal the plain ones to 1e-10, and Adam fits
 devices or in chunks equal the one-device fit to 1e-10 (float64). Views of two sample
 layouts (shadow visibility in one only) go into chunks of their own, with the same sums.
 Streamed chunks are stacked one at a time, each from its own views only (a spy on
-fitting.batch.stack_views counts the stacked views alive at once)."""
+fitting.batch.stack_views counts the stacked views alive at once). The closed-form start
+of 'linear', the standard errors and the misfit check on chunked views equal the
+plain path's to 1e-10 and stack one chunk at a time too, through a whole fit."""
 
 import dataclasses
 import os
@@ -34,14 +36,21 @@ from fitting import (
     FitOptions,
     FitSpec,
     advance,
+    batch,
     build_cache,
     distribute,
+    fit,
+    linear,
     make_loss,
     start_run,
     to_unconstrained,
 )
 from fitting.distribute import common_lights, for_options, shard_views
 from fitting.gauss_newton import _linearize
+from fitting.linear import normal_equations, solve_linear
+from fitting.misfit import misfit
+from fitting.params import from_values as to_unconstrained_values
+from fitting.uncertainty import uncertainty
 
 TRUTH = dict(ka=0.15, kd=(0.55, 0.35, 0.25), ks=0.35, shininess=25.0)
 GUESS = ds.material(ka=0.3, kd=0.4, ks=0.2, shininess=10.0)
@@ -205,6 +214,102 @@ def test_streamed_chunks_are_stacked_one_at_a_time(monkeypatch):
                             strict=True):
             assert np.shares_memory(np.asarray(got), own)
             np.testing.assert_array_equal(np.asarray(got), own)
+
+
+@lru_cache(maxsize=1)
+def cache8():
+    """float64 cache of 5 cameras x 1 light, 16 px, 8-bit targets, each image with a
+    camera gain (fitted as exposures), and the dataset."""
+    with jax.enable_x64(True):
+        dataset = make_dataset(ds.icosphere(1), ds.material(**TRUTH), n_views=5, n_lights=1,
+                               size=16, quantize_8bit=True, gains=[1.0, 1.1, 0.9, 1.2, 0.8],
+                               settings=ds.RenderSettings(kernels="host"))
+        return build_cache(dataset, DEFAULT_INIT), dataset
+
+
+def test_linear_start_uncertainty_and_misfit_in_chunks_equal_the_plain_values():
+    """5 views of 8-bit targets with per-view gains, in chunks of 2 (the last padded with
+    a view of weight 0): the closed-form start's normal equations (with gains) and gain
+    moments, the solved values, the standard errors (J^T J, sigma^2, the rounding bound,
+    the warnings) and the misfit check, taken a chunk at a time, equal the plain path's
+    (every view at once) to 1e-10. Independently: sigma^2 (n - p) and the misfit's rms^2
+    times the residual count are the sum of squared residuals, the plain loss (make_loss,
+    'mse') times the kept pixel-channels; the normal equations' y^T y at the fitted
+    coefficients' residual is that loss too, and n is 3x the kept pixels when none
+    saturates."""
+    data, dataset = cache8()
+    spec = FitSpec(ka="grey", kd="rgb", ks="grey", shininess=True, exposure=True)
+    widths = [v.camera.width for v in dataset.views]
+    with jax.enable_x64(True):
+        views = shard_views(data, devices=1, chunk=2)
+        assert views.streamed and views.n_chunks == 3
+        assert views.host_chunk(2).weight[1].sum() == 0
+        gains = np.linspace(0.8, 1.2, 15).reshape(5, 3)
+        for g in (None, gains):
+            for got, want in zip(normal_equations(np.log(20.0), views, spec, g),
+                                 normal_equations(np.log(20.0), data, spec, g), strict=True):
+                np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
+        values = solve_linear(data, spec, grid_size=6)
+        jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12),
+                     solve_linear(views, spec, grid_size=6), values)
+        moments = [linear.gain_moments(values, d, spec) for d in (views, data)]
+        for got, want in zip(*moments, strict=True):
+            np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
+        values = jax.tree.map(np.asarray, values)
+        got, want = (uncertainty(values, d, spec, warn=False) for d in (views, data))
+        assert got.rounding_bound is not None and got.names == want.names
+        for name in ("values", "std_errors", "covariance", "rounding_bound"):
+            np.testing.assert_allclose(getattr(got, name), getattr(want, name), rtol=1e-10)
+        assert (got.n_residuals, got.dof, got.warnings, got.notes) == (
+            want.n_residuals, want.dof, want.warnings, want.notes)
+        assert got.sigma2 == pytest.approx(want.sigma2, rel=1e-10)
+        got_m, want_m = (misfit(values, d, spec, widths) for d in (views, data))
+        for name in ("rms", "noise", "quantization", "ratio"):
+            assert getattr(got_m, name) == pytest.approx(getattr(want_m, name), rel=1e-10)
+        kept = 3 * sum(v.pixels.shape[0] for v in data.views)
+        rss = float(jax.jit(make_loss(spec))(to_unconstrained_values(values, spec), data)) * kept
+        assert got.sigma2 * got.dof == pytest.approx(rss, rel=1e-9)
+        assert got_m.rms ** 2 * kept == pytest.approx(rss, rel=1e-9)
+
+
+def test_linear_start_uncertainty_and_misfit_stack_one_chunk_at_a_time(monkeypatch):
+    """5 views in chunks of 2: the closed-form start (a shininess search with gains),
+    the standard errors and the misfit check on the sharded views stack (fitting.batch
+    .stack_views, spied on both where the chunks and where the plain path's batch are
+    stacked) at most the 2 views of one chunk per call, and at no time more than 4 (the
+    chunk in use and the next); on the plain cache they stack all 5 at once (so the spy
+    sees them). So does the whole fit (fitting.fit, method 'linear', chunk=2)."""
+    data, dataset = cache8()
+    spec = FitSpec(kd="grey", ks="grey", shininess=True, exposure=True)
+    widths = [v.camera.width for v in dataset.views]
+    live, most, calls = {}, [0], []
+
+    def spy(real):
+        def stacked(views, *args, **kwargs):
+            out = real(views, *args, **kwargs)
+            calls.append(len(views))
+            key = len(calls)
+            live[key] = len(views)
+            most[0] = max(most[0], sum(live.values()))
+            weakref.finalize(out[0].points, live.pop, key)
+            return out
+        return stacked
+
+    monkeypatch.setattr(distribute, "stack_views", spy(distribute.stack_views))
+    monkeypatch.setattr(batch, "stack_views", spy(batch.stack_views))
+    with jax.enable_x64(True):
+        views = shard_views(data, devices=1, chunk=2)
+        values = jax.tree.map(np.asarray, solve_linear(views, spec, grid_size=4))
+        uncertainty(values, views, spec, warn=False)
+        misfit(values, views, spec, widths)
+        assert calls and set(calls) == {2} and 2 <= most[0] <= 4, (calls, most)
+        calls.clear()  # the whole fit, default method 'linear' (then Levenberg-Marquardt)
+        result = fit(dataset, spec, init=GUESS, chunk=2, steps=2, with_uncertainty=True)
+        assert result.uncertainty is not None and result.misfit is not None
+        assert calls and set(calls) == {2} and 2 <= most[0] <= 4, (calls, most)
+        calls.clear()
+        misfit(values, dataclasses.replace(data), spec, widths)  # plain: every view at once
+        assert max(calls) == 5
 
 
 def test_dark_lights_pad_views_to_one_light_layout():
