@@ -3,7 +3,9 @@
 Each point is one fresh process: a synthetic dataset of N views (data_synth.make_dataset:
 an icosphere(3), one directional light per view, targets of SIZE^2 held in host memory),
 then the fit as `fitting.fit` runs it (build_cache, fitting.distribute.for_options,
-start_run, advance, finish), Adam for --steps steps, float32, on the CPU's one device:
+start_run, advance, finish, fit_result), --method 'adam' or 'linear' (the default
+method: a closed-form start, then Levenberg-Marquardt) for --steps steps, then the
+report (standard errors and the misfit check), float32, on the CPU's one device:
 - chunk 'none': today's path (one compiled loss over every view's cached pixels, a
   program that grows with the number of views);
 - chunk 'all': the views stacked (fitting.distribute) and taken in one chunk: all at
@@ -12,14 +14,17 @@ start_run, advance, finish), Adam for --steps steps, float32, on the CPU's one d
   from its own views when it is used, the gradient summed over chunks, then one update.
 Measured, from /proc/self/status: VmRSS after the dataset is made (the targets and the
 interpreter: the same for every mode), then the peak (VmHWM, reset with
-/proc/self/clear_refs before each phase) while the cache is built, and while the steps
-run (their first step compiles); the step time (median of the steps after the first)
-and the compile + first step. The parent watches every point's resident memory and ends
+/proc/self/clear_refs before each phase) while the cache is built, while the fit starts
+(start_run: for 'linear' the closed-form start), while the steps run (their first step
+compiles) and while the report is made (fitting.fit_result: the uncertainty report and
+the misfit check); the time of each phase, the step time (median of the steps after the
+first) and the compile + first step. The parent watches every point's resident memory and ends
 it above --max-gib (reported as such), so that a loaded, shared machine is not pushed
 into swap or the OOM killer.
 
     python benchmarks/memory_views.py [--views 10,50,100,200] [--size 512]
-        [--chunks none,all,8] [--steps 4] [--json benchmarks/results/memory_views.json]
+        [--chunks none,all,8] [--steps 4] [--method adam|linear]
+        [--json benchmarks/results/memory_views.json]
 """
 
 import argparse
@@ -46,13 +51,13 @@ def _reset_peak():
         f.write("5")  # resets VmHWM to the current RSS (Linux >= 4.0)
 
 
-def point(views, size, chunk, steps):
+def point(views, size, chunk, steps, method="adam"):
     """Run one point in this process; returns its measurements (dict)."""
     import jax
 
     import diffshade as ds
     from data_synth import make_dataset
-    from fitting import FitOptions, FitSpec, build_cache
+    from fitting import FitOptions, FitSpec, build_cache, fit_result
     from fitting.distribute import fit_data, for_options
     from fitting.params import DEFAULT_INIT
     from fitting.run import advance, finish, start_run
@@ -60,7 +65,7 @@ def point(views, size, chunk, steps):
     truth = ds.material(ka=0.15, kd=(0.55, 0.35, 0.25), ks=0.35, shininess=25.0)
     dataset = make_dataset(ds.icosphere(3), truth, n_views=views, n_lights=1, size=size)
     rss_dataset = _status("VmRSS")
-    options = FitOptions(method="adam", steps=steps, tol=0.0, chunk=chunk)
+    options = FitOptions(method=method, steps=steps, tol=0.0, chunk=chunk)
     _reset_peak()
     start = time.perf_counter()
     data = build_cache(dataset, DEFAULT_INIT, edge_margin=options.edge_margin)
@@ -71,25 +76,40 @@ def point(views, size, chunk, steps):
     peak_cache = _status("VmHWM")
     rss_cache = _status("VmRSS")
     _reset_peak()
+    start = time.perf_counter()
     state = start_run(work, FitSpec(), DEFAULT_INIT, options)
+    start_s = time.perf_counter() - start
+    peak_start = _status("VmHWM")
+    _reset_peak()
     stamps = [time.perf_counter()]
     advance(state, work, on_step=lambda s: stamps.append(time.perf_counter()))
     finish(state, work)
+    steps_s = time.perf_counter() - stamps[0]
     peak_steps = _status("VmHWM")
     times = [b - a for a, b in zip(stamps, stamps[1:], strict=False)]
-    return {"views": views, "size": size, "chunk": chunk, "steps": state.step,
+    _reset_peak()
+    start = time.perf_counter()
+    result = fit_result(state, dataset, work)  # as fitting.fit: the views as the fit ran
+    report_s = time.perf_counter() - start
+    peak_report = _status("VmHWM")
+    return {"views": views, "size": size, "chunk": chunk, "method": method,
+            "steps": state.step, "peak_start": peak_start, "start_s": start_s,
+            "peak_report": peak_report, "report_s": report_s,
+            "misfit_rms": result.misfit.rms,
             "kept_pixels": int(sum(v.pixels.shape[0] for v in data.views)),
             "rss_dataset": rss_dataset, "peak_cache": peak_cache, "rss_cache": rss_cache,
-            "peak_steps": peak_steps, "cache_s": cache_s, "first_step_s": times[0],
+            "peak_steps": peak_steps, "cache_s": cache_s,
+            "first_step_s": times[0] if times else None,
+            "steps_s": steps_s,
             "step_s": statistics.median(times[1:]) if len(times) > 1 else None,
             "loss": state.history[-1]}
 
 
-def run_point(views, size, chunk, steps, max_bytes, timeout):
+def run_point(views, size, chunk, steps, max_bytes, timeout, method="adam"):
     """One point in a fresh process, its resident memory watched; returns its dict, or
     one saying why it has none."""
     argv = [sys.executable, os.path.abspath(__file__), "--point", str(views), str(size),
-            str(chunk), str(steps)]
+            str(chunk), str(steps), method]
     env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=env)
@@ -127,41 +147,45 @@ def main(argv=None):
     parser.add_argument("--chunks", default="none,all,8",
                         help="comma-separated: none, all or C (module docstring)")
     parser.add_argument("--steps", type=int, default=4)
+    parser.add_argument("--method", default="adam", choices=("adam", "linear"))
     parser.add_argument("--max-gib", type=float, default=9.0)
     parser.add_argument("--timeout", type=float, default=900.0, help="seconds per point")
     parser.add_argument("--json", default=None)
-    parser.add_argument("--point", nargs=4, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--point", nargs=5, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.point:
-        views, size, chunk, steps = args.point
+        views, size, chunk, steps, method = args.point
         chunk = None if chunk == "None" else int(views) if chunk == "all" else int(chunk)
-        print(json.dumps(point(int(views), int(size), chunk, int(steps))))
+        print(json.dumps(point(int(views), int(size), chunk, int(steps), method)))
         return
     rows = []
     for views in map(int, args.views.split(",")):
         for chunk in args.chunks.split(","):
             chunk = None if chunk == "none" else chunk if chunk == "all" else int(chunk)
             row = run_point(views, args.size, chunk, args.steps, args.max_gib * 2**30,
-                            args.timeout)
+                            args.timeout, args.method)
             row["mode"] = "none" if chunk is None else chunk
             rows.append(row)
             print(json.dumps(row), flush=True)
-    print(f"\n{args.size}^2, Adam {args.steps} steps, float32, 1 CPU device; GiB")
+    print(f"\n{args.size}^2, {args.method} {args.steps} steps, float32, 1 CPU device; GiB")
     print("| views | chunk | kept pixels | RSS with dataset | peak building cache | "
-          "peak in steps | steps - dataset | cache s | compile + 1st step s | step ms |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "peak starting | peak in steps | peak in report | most - dataset | cache s | "
+          "start s | steps s (compile + 1st) | step ms | report s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         chunk = r.get("mode", r["chunk"])
         if "stopped" in r:
             print(f"| {r['views']} | {chunk} | stopped ({r['stopped']}, RSS seen "
-                  f"{_gib(r.get('seen_rss'))} GiB) | | | | | | | |")
+                  f"{_gib(r.get('seen_rss'))} GiB) |" + " |" * 11)
             continue
         step = "—" if r["step_s"] is None else f"{1e3 * r['step_s']:.0f}"
+        first = "—" if r["first_step_s"] is None else f"{r['first_step_s']:.1f}"
+        most = max(r["peak_cache"], r["peak_start"], r["peak_steps"], r["peak_report"])
         print(f"| {r['views']} | {chunk} | {r['kept_pixels']:,} | {_gib(r['rss_dataset'])} | "
-              f"{_gib(r['peak_cache'])} | {_gib(r['peak_steps'])} | "
-              f"{_gib(r['peak_steps'] - r['rss_dataset'])} | {r['cache_s']:.1f} | "
-              f"{r['first_step_s']:.1f} | "
-              f"{step} |")
+              f"{_gib(r['peak_cache'])} | {_gib(r['peak_start'])} | {_gib(r['peak_steps'])} | "
+              f"{_gib(r['peak_report'])} | {_gib(most - r['rss_dataset'])} | "
+              f"{r['cache_s']:.1f} | {r['start_s']:.1f} | {r['steps_s']:.1f} ({first}) | {step} | "
+              f"{r['report_s']:.1f} |")
     if args.json:
         sys.path.insert(0, ROOT)
         from benchmarks.common import write_results

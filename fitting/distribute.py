@@ -55,7 +55,8 @@ every chunk of a sample layout, gives the chunk's per-pixel results (`parts_fold
 unclamped shading parts; `rows_fold`: the residuals and their Jacobian with respect to
 the physical values), which are read back and summed on the host in float64 (the normal
 equations, J^T J, the rounding bound, per-view sums) and dropped; so with a chunk size
-these too hold one chunk's rows, whatever the number of views.
+these too hold one chunk's rows, whatever the number of views. Across several processes
+they run on the plain FitData, every view at once (`local`).
 """
 
 import dataclasses
@@ -333,14 +334,23 @@ class ShardedViews:
         loss, hess, grad = total
         return loss / self.count, hess, grad
 
+    @property
+    def local(self) -> bool:
+        """Whether this process holds every device of the mesh (one process): only then
+        are the host sums taken a chunk at a time (host_fold reads each chunk back);
+        across several processes the closed-form start and the report run on the plain
+        per-view cache, which every process holds (fitting.linear.fold_parts,
+        fitting.uncertainty.rows_fold)."""
+        return all(d.process_index == jax.process_index() for d in self.mesh.devices.flat)
+
     def host_fold(self, program, fn, total):
         """total = fn(total, out, weight, view, target) over the chunks (accumulate), out
         = program(chunk): the chunk's per-pixel results [C, N, ...] in host memory
         (float64), with its weight [C, N] (0 in the padding and for a padding view), view
         numbers [C] and targets [C, N, 3] (float64): the host sums of the closed-form
         start (fitting.linear), the standard errors (fitting.uncertainty) and the misfit
-        check (fitting.misfit), one chunk's rows at a time. One process only (the chunk's
-        rows are read back on the host)."""
+        check (fitting.misfit), one chunk's rows at a time. One process only (`local`: the
+        chunk's rows are read back on the host)."""
         def one(t, chunk):
             out = jax.tree.map(lambda a: np.asarray(a, np.float64), program(chunk))
             return fn(t, out, np.asarray(chunk.weight), np.asarray(chunk.view),

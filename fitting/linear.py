@@ -123,8 +123,9 @@ def fold_parts(material, lights, data, spec, fn, total):
     view, stacked once); sharded views (fitting.distribute.ShardedViews) are taken a
     chunk at a time (ShardedViews.parts_fold), so that a chunked fit's closed-form start
     holds one chunk's parts, whatever the number of views."""
-    if isinstance(data, ShardedViews):
+    if isinstance(data, ShardedViews) and data.local:
         return data.parts_fold(material, lights, spec, fn, total)
+    data = fit_data(data)  # (several processes: every view at once, as each holds all)
     parts, target, weight = host_parts(material, lights, data)
     return fn(total, parts, weight, np.arange(len(data.views)), target)
 

@@ -132,8 +132,9 @@ def rows_fold(values, data, spec: FitSpec):
     folds); sharded views (fitting.distribute.ShardedViews) are taken a chunk at a time,
     computed per fold (ShardedViews.rows_fold), so that a chunked fit's report holds one
     chunk's rows."""
-    if isinstance(data, ShardedViews):
+    if isinstance(data, ShardedViews) and data.local:
         return lambda fn, total: data.rows_fold(values, spec, fn, total)
+    data = fit_data(data)  # (several processes: every view at once, as each holds all)
     *_, r, jac, weight = _system_at(values, data, spec)
     n = len(data.views)
     r = np.asarray(r, np.float64).reshape(n, -1, 3)
