@@ -362,7 +362,8 @@ class ShardedViews:
         [C, N, 3], 0 in the padding) of `material` under `lights` (one LightGroups per
         view, as fitting.linear.view_parts takes them; None: each view's own)."""
         shared = self.shared(spec)
-        every = None if lights is None else tuple(lights)
+        # host arrays of one dtype each: every caller's material shares one compilation
+        material, every = _host((material, None if lights is None else tuple(lights)))
         return self.host_fold(lambda chunk: _chunk_parts(material, every, shared, chunk),
                               fn, total)
 
@@ -370,7 +371,7 @@ class ShardedViews:
         """host_fold of (residuals [C, N, 3], their Jacobian [C, N, 3, p] with respect to
         the physical `values`, columns in jax.tree.leaves order), 0 in the padding: per
         chunk what fitting.gauss_newton.normal_system gives for all views at once."""
-        shared = self.shared(spec)
+        shared, values = self.shared(spec), _host(values)
         return self.host_fold(lambda chunk: _chunk_rows(values, shared, chunk, spec,
                                                         self.n_views), fn, total)
 

@@ -232,11 +232,10 @@ def test_linear_start_uncertainty_and_misfit_in_chunks_equal_the_plain_values():
     a view of weight 0): the closed-form start's normal equations (with gains) and gain
     moments, the solved values, the standard errors (J^T J, sigma^2, the rounding bound,
     the warnings) and the misfit check, taken a chunk at a time, equal the plain path's
-    (every view at once) to 1e-10. Independently: sigma^2 (n - p) and the misfit's rms^2
-    times the residual count are the sum of squared residuals, the plain loss (make_loss,
-    'mse') times the kept pixel-channels; the normal equations' y^T y at the fitted
-    coefficients' residual is that loss too, and n is 3x the kept pixels when none
-    saturates."""
+    (every view at once) to 1e-10, with one compiled chunk program of each kind.
+    Independently: sigma^2 (n - p) and the misfit's rms^2 times the residual count are
+    the sum of squared residuals, the plain loss (make_loss, 'mse') times the kept
+    pixel-channels."""
     data, dataset = cache8()
     spec = FitSpec(ka="grey", kd="rgb", ks="grey", shininess=True, exposure=True)
     widths = [v.camera.width for v in dataset.views]
@@ -245,6 +244,7 @@ def test_linear_start_uncertainty_and_misfit_in_chunks_equal_the_plain_values():
         assert views.streamed and views.n_chunks == 3
         assert views.host_chunk(2).weight[1].sum() == 0
         gains = np.linspace(0.8, 1.2, 15).reshape(5, 3)
+        compiled = distribute._chunk_parts._cache_size(), distribute._chunk_rows._cache_size()
         for g in (None, gains):
             for got, want in zip(normal_equations(np.log(20.0), views, spec, g),
                                  normal_equations(np.log(20.0), data, spec, g), strict=True):
@@ -264,6 +264,9 @@ def test_linear_start_uncertainty_and_misfit_in_chunks_equal_the_plain_values():
             want.n_residuals, want.dof, want.warnings, want.notes)
         assert got.sigma2 == pytest.approx(want.sigma2, rel=1e-10)
         got_m, want_m = (misfit(values, d, spec, widths) for d in (views, data))
+        # one compiled program each for the 3 chunks (the last padded), every pass
+        assert (distribute._chunk_parts._cache_size() - compiled[0],
+                distribute._chunk_rows._cache_size() - compiled[1]) == (1, 1)
         for name in ("rms", "noise", "quantization", "ratio"):
             assert getattr(got_m, name) == pytest.approx(getattr(want_m, name), rel=1e-10)
         kept = 3 * sum(v.pixels.shape[0] for v in data.views)
