@@ -215,8 +215,8 @@ def _soft_face(clip, faces, f, width, height, cull_backfaces, radius_px, tri, co
     for i in range(3):
         scr[i, 0] = (tri[i, 0] / tri[i, 3] + 1.0) * width / 2.0
         scr[i, 1] = (1.0 - tri[i, 1] / tri[i, 3]) * height / 2.0
-    box[0] = np.ceil(scr[:, 1].min() - 0.5 - radius_px)
-    box[1] = np.floor(scr[:, 1].max() - 0.5 + radius_px)
+    box[0] = np.ceil(min(scr[0, 1], scr[1, 1], scr[2, 1]) - 0.5 - radius_px)
+    box[1] = np.floor(max(scr[0, 1], scr[1, 1], scr[2, 1]) - 0.5 + radius_px)
     if not int(max(box[0], 0.0)) <= int(min(box[1], height - 1.0)):
         return False
     area2 = ((scr[1, 0] - scr[0, 0]) * (scr[2, 1] - scr[0, 1])
@@ -229,8 +229,9 @@ def _soft_face(clip, faces, f, width, height, cull_backfaces, radius_px, tri, co
         edge[i, 0], edge[i, 1] = scr[j, 0] - scr[i, 0], scr[j, 1] - scr[i, 1]
         length = np.hypot(edge[i, 0], edge[i, 1])
         inv_len[i] = 1.0 / length if length > 0.0 else 0.0
-    box[2] = int(max(np.ceil(scr[:, 0].min() - 0.5 - radius_px), 0.0))
-    box[3] = int(min(np.floor(scr[:, 0].max() - 0.5 + radius_px), width - 1.0))
+    box[2] = int(max(np.ceil(min(scr[0, 0], scr[1, 0], scr[2, 0]) - 0.5 - radius_px), 0.0))
+    box[3] = int(min(np.floor(max(scr[0, 0], scr[1, 0], scr[2, 0]) - 0.5 + radius_px),
+                     width - 1.0))
     return box[2] <= box[3]
 
 
