@@ -2,7 +2,10 @@
 
 Runs on the host (called through `jax.pure_callback` by raster.py) as a numba-compiled
 loop over each face's screen bounding box, so its cost grows with the number of
-(pixel, nearby face) pairs, never with pixels x faces, and it allocates only the output.
+(pixel, nearby face) pairs, never with pixels x faces. Hard mode loops over the faces per
+band of rows. Soft mode sets each face up once, bins the faces into tiles of
+TILE_W x TILE_H pixels and searches the tiles in parallel: a tile's lists stay in the L1
+cache, and a face's pixels in a tile are evaluated without branches, TILE_W at a time.
 
 Coverage uses 2D homogeneous rasterization (Olano & Greer 1997): with v_i = (X, Y, W)
 of the clip-space vertices and p = (x_ndc, y_ndc, 1), the edge functions
@@ -17,8 +20,9 @@ the projected triangle is a candidate when its squared distance to the triangle 
 radius_px^2, with the depth taken at the clamped barycentrics. Faces that cross the near
 plane are culled in soft mode (their screen-space triangle is not defined).
 
-Each pixel keeps its k nearest faces (by NDC depth) in a small sorted list; every candidate
-fragment that does not fit is counted in `dropped`.
+Each pixel keeps its k best faces (hard: by NDC depth; soft: by blend weight) in a small
+list sorted by (key, face id); every candidate fragment that does not fit is counted in
+`dropped`.
 """
 
 import numba
@@ -72,14 +76,24 @@ def _pixel_range(lo, hi, size, radius_px, flip):
 
 
 @numba.njit(cache=True, nogil=True)
+def _ranks_after(key, face, other_key, other_face):
+    """Whether (key, face) comes after (other_key, other_face) in a pixel's list."""
+    return key > other_key or (key == other_key and face > other_face)
+
+
+@numba.njit(cache=True, nogil=True)
 def _insert(ids, keys, pixel, face, key):
-    """Insert (face, key) into pixel's ascending list; returns 1 if a fragment fell off."""
+    """Insert (face, key) into pixel's list, ascending by key and, among equal keys, by face
+    (so the lists do not depend on the order faces are inserted in); returns 1 if a
+    fragment fell off."""
     k = ids.shape[1]
-    if ids[pixel, k - 1] >= 0 and key >= keys[pixel, k - 1]:
+    if ids[pixel, k - 1] >= 0 and _ranks_after(key, face, keys[pixel, k - 1],
+                                               ids[pixel, k - 1]):
         return 1
     fell = 1 if ids[pixel, k - 1] >= 0 else 0
     slot = k - 1
-    while slot > 0 and (ids[pixel, slot - 1] < 0 or keys[pixel, slot - 1] > key):
+    while slot > 0 and (ids[pixel, slot - 1] < 0
+                        or _ranks_after(keys[pixel, slot - 1], ids[pixel, slot - 1], key, face)):
         ids[pixel, slot] = ids[pixel, slot - 1]
         keys[pixel, slot] = keys[pixel, slot - 1]
         slot -= 1
@@ -160,34 +174,6 @@ def _segment_dist2(px, py, ax, ay, ex, ey, inv_len2):
 
 
 @numba.njit(cache=True, nogil=True)
-def _soft_fragment(scr, edge, inv_len, zndc, px, py, radius_px):
-    """(NDC depth, signed squared distance in pixels^2, positive inside) of the fragment of
-    a screen triangle at pixel p; depth is +inf when the pixel is out of reach.
-
-    scr: [3, 2] vertex pixel coordinates; edge: [3, 2] scr[i + 1] - scr[i]; inv_len: [3]
-    1 / edge lengths; zndc: [3].
-    Inside, depth is taken at the barycentrics (NDC z is affine in screen space); outside,
-    at the clamped ones.
-    """
-    b0 = (scr[1, 0] - px) * (scr[2, 1] - py) - (scr[2, 0] - px) * (scr[1, 1] - py)
-    b1 = (scr[2, 0] - px) * (scr[0, 1] - py) - (scr[0, 0] - px) * (scr[2, 1] - py)
-    b2 = (scr[0, 0] - px) * (scr[1, 1] - py) - (scr[1, 0] - px) * (scr[0, 1] - py)
-    sign = 1.0 if b0 + b1 + b2 > 0.0 else -1.0
-    # signed distances to the edge lines: a cheap necessary test before the exact one
-    if min(b0 * inv_len[1], b1 * inv_len[2], b2 * inv_len[0]) * sign < -radius_px:
-        return np.inf, 0.0
-    d2 = min(_segment_dist2(px, py, scr[0, 0], scr[0, 1], edge[0, 0], edge[0, 1], inv_len[0] ** 2),
-             _segment_dist2(px, py, scr[1, 0], scr[1, 1], edge[1, 0], edge[1, 1], inv_len[1] ** 2),
-             _segment_dist2(px, py, scr[2, 0], scr[2, 1], edge[2, 0], edge[2, 1], inv_len[2] ** 2))
-    inside = b0 * sign >= 0.0 and b1 * sign >= 0.0 and b2 * sign >= 0.0
-    if not inside and d2 > radius_px * radius_px:
-        return np.inf, 0.0
-    w0, w1, w2 = max(b0 * sign, 0.0), max(b1 * sign, 0.0), max(b2 * sign, 0.0)
-    z = (w0 * zndc[0] + w1 * zndc[1] + w2 * zndc[2]) / (w0 + w1 + w2)
-    return z, (d2 if inside else -d2)
-
-
-@numba.njit(cache=True, nogil=True)
 def _depth_logit(z_ndc, soft):
     """zt / gamma of soft_blend from NDC depth: the depth part of a fragment's blend logit.
 
@@ -208,60 +194,204 @@ def _coverage_logit(signed_d2, sigma):
     return -np.log1p(np.exp(-x)) if x >= 0.0 else x - np.log1p(np.exp(x))
 
 
+#: the soft search's tiles, in pixels: a row of a tile is one AVX-512 vector of float64
+#: (_soft_block), and a tile's sorted lists (256 pixels x k keys and ids, 24 KiB for
+#: k = 8) stay in the L1 cache while its faces are tested
+TILE_W, TILE_H = 8, 32
+
+
+@numba.njit(cache=True, nogil=True)
+def _soft_face(clip, faces, f, width, height, cull_backfaces, radius_px, tri, coeffs, scr,
+               edge, inv_len, zndc, box):
+    """Screen-space setup of face f for the soft search: fills scr [3, 2] (vertex pixel
+    coordinates), edge [3, 2] (scr[i + 1] - scr[i]), inv_len [3] (1 / edge lengths, 0 for
+    a point), zndc [3] and box = (first row, last row, first column, last column) of the
+    pixels its footprint may reach (rows unclamped); False when it reaches none."""
+    det = _face_setup(clip, faces, f, tri, coeffs)
+    if not np.isfinite(det) or det == 0.0 or (cull_backfaces and det < 0.0):
+        return False
+    if min(tri[0, 2] + tri[0, 3], tri[1, 2] + tri[1, 3], tri[2, 2] + tri[2, 3]) < 0.0:
+        return False
+    for i in range(3):
+        scr[i, 0] = (tri[i, 0] / tri[i, 3] + 1.0) * width / 2.0
+        scr[i, 1] = (1.0 - tri[i, 1] / tri[i, 3]) * height / 2.0
+    box[0] = np.ceil(min(scr[0, 1], scr[1, 1], scr[2, 1]) - 0.5 - radius_px)
+    box[1] = np.floor(max(scr[0, 1], scr[1, 1], scr[2, 1]) - 0.5 + radius_px)
+    if not int(max(box[0], 0.0)) <= int(min(box[1], height - 1.0)):
+        return False
+    area2 = ((scr[1, 0] - scr[0, 0]) * (scr[2, 1] - scr[0, 1])
+             - (scr[2, 0] - scr[0, 0]) * (scr[1, 1] - scr[0, 1]))
+    if area2 == 0.0:
+        return False
+    for i in range(3):
+        j = (i + 1) % 3
+        zndc[i] = tri[i, 2] / tri[i, 3]
+        edge[i, 0], edge[i, 1] = scr[j, 0] - scr[i, 0], scr[j, 1] - scr[i, 1]
+        length = np.hypot(edge[i, 0], edge[i, 1])
+        inv_len[i] = 1.0 / length if length > 0.0 else 0.0
+    box[2] = int(max(np.ceil(min(scr[0, 0], scr[1, 0], scr[2, 0]) - 0.5 - radius_px), 0.0))
+    box[3] = int(min(np.floor(max(scr[0, 0], scr[1, 0], scr[2, 0]) - 0.5 + radius_px),
+                     width - 1.0))
+    return box[2] <= box[3]
+
+
+@numba.njit(cache=True, nogil=True)
+def _soft_setup(clips, faces, width, height, cull_backfaces, radii):
+    """_soft_face for every face of every view: scr [B, F, 3, 2], edge [B, F, 3, 2],
+    inv_len [B, F, 3], zndc [B, F, 3], box [B, F, 4] and reach [B, F] (False: the face
+    reaches no pixel). Serial: a second parallel region would cost more (threads spinning
+    between regions) than the ~1 ms it takes."""
+    views, count = clips.shape[0], faces.shape[0]
+    scr, edge = np.empty((views, count, 3, 2)), np.empty((views, count, 3, 2))
+    inv_len, zndc = np.empty((views, count, 3)), np.empty((views, count, 3))
+    box, reach = np.empty((views, count, 4)), np.empty((views, count), np.bool_)
+    tri, coeffs = np.empty((3, 4)), np.empty((3, 3))
+    for view in range(views):
+        for f in range(count):
+            reach[view, f] = _soft_face(clips[view], faces, f, width, height, cull_backfaces,
+                                        radii[view], tri, coeffs, scr[view, f], edge[view, f],
+                                        inv_len[view, f], zndc[view, f], box[view, f])
+    return scr, edge, inv_len, zndc, box, reach
+
+
+@numba.njit(cache=True, nogil=True)
+def _bin_faces(box, reach, order, width, height):
+    """Per view, the faces whose box touches each tile, in the order order[view] lists
+    them: (start [B, T + 1], binned [B, N]) with tile t's faces
+    binned[v, start[v, t]:start[v, t + 1]]."""
+    views, count = reach.shape
+    tiles_x, tiles_y = (width + TILE_W - 1) // TILE_W, (height + TILE_H - 1) // TILE_H
+    start = np.zeros((views, tiles_x * tiles_y + 1), np.int64)
+    for view in range(views):
+        for f in order[view]:
+            if reach[view, f]:
+                r0, r1 = int(max(box[view, f, 0], 0.0)), int(min(box[view, f, 1], height - 1.0))
+                for ty in range(r0 // TILE_H, r1 // TILE_H + 1):
+                    for tx in range(int(box[view, f, 2]) // TILE_W,
+                                    int(box[view, f, 3]) // TILE_W + 1):
+                        start[view, ty * tiles_x + tx + 1] += 1
+        for t in range(tiles_x * tiles_y):
+            start[view, t + 1] += start[view, t]
+    binned = np.empty((views, start[:, -1].max()), np.int64)
+    for view in range(views):
+        fill = start[view, :-1].copy()
+        for f in order[view]:
+            if reach[view, f]:
+                r0, r1 = int(max(box[view, f, 0], 0.0)), int(min(box[view, f, 1], height - 1.0))
+                for ty in range(r0 // TILE_H, r1 // TILE_H + 1):
+                    for tx in range(int(box[view, f, 2]) // TILE_W,
+                                    int(box[view, f, 3]) // TILE_W + 1):
+                        binned[view, fill[ty * tiles_x + tx]] = f
+                        fill[ty * tiles_x + tx] += 1
+    return start, binned
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _soft_block(face, tile_c0, r0, c0, c1, radius_px, soft, out, lanes):
+    """The fragments of one face at the pixels of `lanes` // TILE_W rows from row r0,
+    TILE_W columns from tile_c0 each, without branches (LLVM vectorizes the loop): per
+    pixel out[0] = -zt / gamma (-_depth_logit; +inf where the pixel is out of reach, the
+    depth outside [-1, 1] or the column outside c0..c1), out[1] = the signed squared
+    distance to the triangle in pixels^2 (positive inside) and out[2] = a lower bound of
+    the ranking key -(log D + zt / gamma).
+
+    face: _soft_face's scr, edge, inv_len and zndc as 18 scalars (so no load in the loop
+    may alias out). Inside, depth is taken at the barycentrics (NDC z is affine in screen
+    space); outside, at the clamped ones. The signed distances to the edge lines are the
+    cheap test the search once used to skip the segment distances; kept so that the
+    pixels in reach stay exactly the same. The bound: log D <= 0, and outside
+    log D = x - log1p(exp(x)) <= x with x = -d2 / sigma; rounding is monotonic, so
+    out[0] - x computed in float64 is <= the key computed in float64."""
+    (s00, s01, s10, s11, s20, s21, e00, e01, e10, e11, e20, e21,
+     inv0, inv1, inv2, z0, z1, z2) = face
+    inv0_2, inv1_2, inv2_2 = inv0 ** 2, inv1 ** 2, inv2 ** 2
+    for lane in range(lanes):
+        col = tile_c0 + lane % TILE_W
+        px, py = col + 0.5, r0 + lane // TILE_W + 0.5
+        b0 = (s10 - px) * (s21 - py) - (s20 - px) * (s11 - py)
+        b1 = (s20 - px) * (s01 - py) - (s00 - px) * (s21 - py)
+        b2 = (s00 - px) * (s11 - py) - (s10 - px) * (s01 - py)
+        sign = 1.0 if b0 + b1 + b2 > 0.0 else -1.0
+        near = not min(b0 * inv1, b1 * inv2, b2 * inv0) * sign < -radius_px
+        d2 = min(_segment_dist2(px, py, s00, s01, e00, e01, inv0_2),
+                 _segment_dist2(px, py, s10, s11, e10, e11, inv1_2),
+                 _segment_dist2(px, py, s20, s21, e20, e21, inv2_2))
+        inside = (b0 * sign >= 0.0) & (b1 * sign >= 0.0) & (b2 * sign >= 0.0)
+        w0, w1, w2 = max(b0 * sign, 0.0), max(b1 * sign, 0.0), max(b2 * sign, 0.0)
+        z = (w0 * z0 + w1 * z1 + w2 * z2) / (w0 + w1 + w2)
+        reach = ((col >= c0) & (col <= c1) & near & (inside | (not d2 > radius_px * radius_px))
+                 & (-1.0 <= z) & (z <= 1.0))
+        depth_key = -_depth_logit(z, soft)
+        x = -d2 / soft[0]
+        out[0, lane] = depth_key if reach else np.inf
+        out[1, lane] = d2 if inside else -d2
+        out[2, lane] = depth_key if inside else depth_key - x
+
+
+@numba.njit(cache=True, nogil=True)
+def _face_scalars(scr, edge, inv_len, zndc):
+    """_soft_block's face tuple."""
+    return (scr[0, 0], scr[0, 1], scr[1, 0], scr[1, 1], scr[2, 0], scr[2, 1],
+            edge[0, 0], edge[0, 1], edge[1, 0], edge[1, 1], edge[2, 0], edge[2, 1],
+            inv_len[0], inv_len[1], inv_len[2], zndc[0], zndc[1], zndc[2])
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _search_soft(clips, faces, width, height, k, cull_backfaces, radii, params, perspective,
-                 bands):
+def _search_soft(clips, faces, width, height, k, cull_backfaces, radii, params, perspective):
     views = clips.shape[0]
-    all_ids, all_keys, all_dropped = _batch_outputs(views, width * height, k, bands)
-    # one item per (view, band): the views of a batch share one parallel loop
-    for item in prange(views * bands):
-        view, band = item // bands, item % bands
-        clip, ids, keys, dropped = clips[view], all_ids[view], all_keys[view], all_dropped[view]
+    scr, edge, inv_len, zndc, box, reach = _soft_setup(clips, faces, width, height,
+                                                       cull_backfaces, radii)
+    # faces front to back: the lists fill with the best fragments first, and the bound
+    # then rejects most of the rest without the logarithm (the lists are ordered by
+    # (key, face), so the result does not depend on this order)
+    order = np.empty((views, faces.shape[0]), np.int64)
+    for view in range(views):
+        order[view] = np.argsort(zndc[view].sum(1))
+    start, binned = _bin_faces(box, reach, order, width, height)
+    tiles_x, tiles_y = (width + TILE_W - 1) // TILE_W, (height + TILE_H - 1) // TILE_H
+    all_ids = np.empty((views, width * height, k), np.int32)
+    all_dropped = np.zeros((views, tiles_x * tiles_y), np.int64)
+    # one item per (view, tile): the views of a batch share one parallel loop; a tile's
+    # sorted lists are its own until they are copied out
+    for item in prange(views * tiles_x * tiles_y):
+        view, t = item // (tiles_x * tiles_y), item % (tiles_x * tiles_y)
         radius_px = radii[view]
         soft = (params[view, 0], params[view, 1], params[view, 2], params[view, 3], perspective)
-        band_r0, band_r1 = _band_rows(band, bands, height)
-        tri, coeffs = np.empty((3, 4)), np.empty((3, 3))
-        scr, edge, zndc, inv_len = np.empty((3, 2)), np.empty((3, 2)), np.empty(3), np.empty(3)
-        for f in range(faces.shape[0]):
-            det = _face_setup(clip, faces, f, tri, coeffs)
-            if not np.isfinite(det) or det == 0.0 or (cull_backfaces and det < 0.0):
-                continue
-            if min(tri[0, 2] + tri[0, 3], tri[1, 2] + tri[1, 3], tri[2, 2] + tri[2, 3]) < 0.0:
-                continue
-            for i in range(3):
-                scr[i, 0] = (tri[i, 0] / tri[i, 3] + 1.0) * width / 2.0
-                scr[i, 1] = (1.0 - tri[i, 1] / tri[i, 3]) * height / 2.0
-            r0 = int(max(np.ceil(scr[:, 1].min() - 0.5 - radius_px), band_r0))
-            r1 = int(min(np.floor(scr[:, 1].max() - 0.5 + radius_px), band_r1))
-            if r0 > r1:
-                continue
-            area2 = ((scr[1, 0] - scr[0, 0]) * (scr[2, 1] - scr[0, 1])
-                     - (scr[2, 0] - scr[0, 0]) * (scr[1, 1] - scr[0, 1]))
-            if area2 == 0.0:
-                continue
-            for i in range(3):
-                j = (i + 1) % 3
-                zndc[i] = tri[i, 2] / tri[i, 3]
-                edge[i, 0], edge[i, 1] = scr[j, 0] - scr[i, 0], scr[j, 1] - scr[i, 1]
-                length = np.hypot(edge[i, 0], edge[i, 1])
-                inv_len[i] = 1.0 / length if length > 0.0 else 0.0
-            c0 = int(max(np.ceil(scr[:, 0].min() - 0.5 - radius_px), 0.0))
-            c1 = int(min(np.floor(scr[:, 0].max() - 0.5 + radius_px), width - 1.0))
-            for row in range(r0, r1 + 1):
-                for col in range(c0, c1 + 1):
-                    z, sd2 = _soft_fragment(scr, edge, inv_len, zndc, col + 0.5, row + 0.5,
-                                            radius_px)
-                    if not (z < np.inf and -1.0 <= z <= 1.0):
-                        continue
-                    # the key is -(log D + zt / gamma) >= -zt / gamma: a full list whose
-                    # last key beats that bound rejects the fragment without the logarithm
-                    pixel = row * width + col
-                    key = -_depth_logit(z, soft)
-                    if ids[pixel, k - 1] >= 0 and key >= keys[pixel, k - 1]:
-                        dropped[band] += 1
-                        continue
-                    key -= _coverage_logit(sd2, soft[0])
-                    dropped[band] += _insert(ids, keys, pixel, f, key)
+        tile_r0, tile_c0 = t // tiles_x * TILE_H, t % tiles_x * TILE_W
+        tile_r1, tile_c1 = min(tile_r0 + TILE_H, height) - 1, min(tile_c0 + TILE_W, width) - 1
+        tile_w = tile_c1 - tile_c0 + 1
+        ids = np.full(((tile_r1 - tile_r0 + 1) * tile_w, k), -1, np.int32)
+        keys = np.full(((tile_r1 - tile_r0 + 1) * tile_w, k), np.inf)
+        dropped = 0
+        lanes = np.empty(TILE_H * TILE_W, np.int64)
+        out = np.empty((3, TILE_H * TILE_W))
+        for slot in range(start[view, t], start[view, t + 1]):
+            f = binned[view, slot]
+            fb = box[view, f]
+            r0, r1 = int(max(fb[0], tile_r0)), int(min(fb[1], tile_r1))
+            c0, c1 = max(int(fb[2]), tile_c0), min(int(fb[3]), tile_c1)
+            face = _face_scalars(scr[view, f], edge[view, f], inv_len[view, f], zndc[view, f])
+            _soft_block(face, tile_c0, r0, c0, c1, radius_px, soft, out,
+                        (r1 - r0 + 1) * TILE_W)
+            count = 0
+            for lane in range((r1 - r0 + 1) * TILE_W):  # the pixels in reach, no branches
+                lanes[count] = lane
+                count += out[0, lane] < np.inf
+            for i in range(count):
+                lane = lanes[i]
+                # a full list whose last entry ranks before the key's lower bound (out[2])
+                # rejects the fragment without the logarithm
+                pixel = (r0 - tile_r0 + lane // TILE_W) * tile_w + lane % TILE_W
+                if ids[pixel, k - 1] >= 0 and _ranks_after(out[2, lane], f, keys[pixel, k - 1],
+                                                           ids[pixel, k - 1]):
+                    dropped += 1
+                    continue
+                key = out[0, lane] - _coverage_logit(out[1, lane], soft[0])
+                dropped += _insert(ids, keys, pixel, f, key)
+        for row in range(tile_r0, tile_r1 + 1):
+            all_ids[view, row * width + tile_c0:row * width + tile_c1 + 1] = \
+                ids[(row - tile_r0) * tile_w:(row - tile_r0 + 1) * tile_w]
+        all_dropped[view, t] = dropped
     return all_ids, all_dropped.sum(1)
 
 
@@ -289,13 +419,13 @@ def find_candidates(clip, faces, near=0.1, far=100.0, *, width, height, k,
     views = clips.shape[0]
     per_view = lambda x: np.ascontiguousarray(np.broadcast_to(np.asarray(x, np.float64), views))
     radii = per_view(radius_px)
-    bands = min(height, 2 * numba.get_num_threads())
     faces = np.ascontiguousarray(faces, np.int64)
     if np.any(radii > 0.0):
         params = np.stack([per_view(sigma), per_view(gamma), per_view(near), per_view(far)], 1)
         ids, dropped = _search_soft(clips, faces, width, height, k, cull_backfaces, radii,
-                                    params, bool(perspective), bands)
+                                    params, bool(perspective))
     else:
+        bands = min(height, 2 * numba.get_num_threads())
         ids, dropped = _search_hard(clips, faces, width, height, k, cull_backfaces, bands)
     ids, dropped = ids.reshape(views, height, width, k), dropped.astype(np.int32)
     return (ids, dropped) if batched else (ids[0], dropped[0])

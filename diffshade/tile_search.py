@@ -190,7 +190,7 @@ def _segment_dist2(px, py, a, e, inv_len2):
 
 def _soft_fragment(data, px, py, radius_px):
     """(NDC depth [P, C], +inf out of reach; signed squared distance [P, C], positive
-    inside) of each (pixel, face) pair (candidates._soft_fragment); px, py: [P, 1]."""
+    inside) of each (pixel, face) pair (candidates._soft_block); px, py: [P, 1]."""
     scr, edge, inv_len, zndc = data
     sx, sy = scr[..., 0], scr[..., 1]
     b = [_mul_sub(sx[:, j] - px, sy[:, k] - py, sx[:, k] - px, sy[:, j] - py)

@@ -347,6 +347,35 @@ def test_overflow_is_counted_and_the_heaviest_faces_are_kept(k):
     assert np.all(kept_light >= dropped_heavy - 1e-9)
 
 
+def test_tied_fragments_keep_the_lower_face_id_first():
+    """Every face listed twice: the copies reach the same pixels with bit-identical keys.
+    The search visits faces front to back, in no fixed order among equal depths, and still
+    lists the lower id of a tie first; with K too small for both copies, it keeps that
+    one. Checked against the dense oracle's reach and the tie rule, not against itself."""
+    base = icosphere(2)
+    mesh = as_mesh(np.asarray(base.vertices), np.tile(np.asarray(base.faces), (2, 1)),
+                   np.asarray(base.normals))
+    count = base.faces.shape[0]
+    scene = make_scene(mesh, sphere_scene().camera, lights(), shiny())
+    most = int(dense(scene, soft(sigma=2.0))["reach"].sum(-1).max())
+    for k in (most, 3):
+        frags, ids, geom, _ = fragments_and_dense(scene, soft(faces_per_pixel=k, sigma=2.0))
+        reach = geom["reach"]
+        np.testing.assert_array_equal(reach[..., :count], reach[..., count:])
+        assert int(frags.dropped) == int(np.maximum(reach.sum(-1) - k, 0).sum())
+        kept = chosen(ids, 2 * count)
+        # position of each face in its pixel's list (k: not kept)
+        slot = np.full(kept.shape, k)
+        rows, cols, slots = np.nonzero(ids >= 0)
+        slot[rows, cols, ids[rows, cols, slots]] = slots
+        if k == most:
+            np.testing.assert_array_equal(kept, reach)
+        pairs = kept[..., count:]
+        assert pairs.sum() > 100
+        assert np.all(slot[..., :count][pairs] < slot[..., count:][pairs])
+        assert np.all(kept[..., :count][pairs])
+
+
 def test_overflowing_render_equals_the_oracle_on_the_kept_faces():
     scene, k = triangles_scene(), 2
     settings = soft(faces_per_pixel=k, sigma=1.0, gamma=1e-3)
