@@ -1,7 +1,7 @@
 """Compiled forward and backward kernels of the per-fragment geometry and interpolation.
 
-raster.py and interpolate.py wrap these in `jax.custom_vjp` ops (through
-`jax.pure_callback`), nvdiffrast-style: the per-fragment work and its hand-written
+raster.py and interpolate.py wrap these in JAX primitives (hostop.py, through the host
+callback of hostcall.py), nvdiffrast-style: the per-fragment work and its hand-written
 gradient run as one numba loop each, and JAX differentiates only the cheap per-face
 setup around them (edge coefficients, screen positions, the gather of vertex attributes to
 face corners). On XLA CPU this is ~10x faster than letting JAX differentiate the
