@@ -6,7 +6,9 @@ it: the whole soft forward (render), the hard forward, the rasterization
 (rasterize_scene: search + fragment geometry), the search kernel alone
 (candidates.find_candidates), the geometry and interpolation kernels alone
 (fragment_kernels), the blend weights, the active-slot compaction (compact.active_indices)
-and what follows the rasterization (render_fragments); then forward + backward with
+and what follows the rasterization (render_fragments); everything after the search (the
+fragment geometry from fixed face ids, then render_fragments), forward and forward +
+backward with respect to the material and the vertices; then forward + backward with
 respect to the material, and to the material and the vertices; and the cached material
 steps (value_and_grad w.r.t. the material through render_fragments on cached fragments,
 and through render_cached on cache_shading).
@@ -55,6 +57,7 @@ def stages(size):
     from diffshade.candidates import find_candidates
     from diffshade.compact import active_indices
     from diffshade.project import project
+    from diffshade.raster import fragments_from_ids
 
     render_module = importlib.import_module("diffshade.render")
     scene = judged_scene(size, 4)
@@ -84,6 +87,18 @@ def stages(size):
 
     def mse(image):
         return jnp.mean((image - target) ** 2)
+
+    def after_search(material, vertices):
+        moved = ds.replace(scene, material=material,
+                           mesh=ds.replace(scene.mesh, vertices=vertices))
+        moved_proj = project(moved)
+        moved_frags = fragments_from_ids(moved_proj, faces, frags.face_ids, frags.dropped,
+                                         soft=True)
+        return ds.render_fragments(moved, moved_frags, soft, proj=moved_proj)
+    after_search_fwd = jax.jit(after_search)
+    after_search_fb = jax.jit(jax.value_and_grad(lambda m, v: mse(after_search(m, v)),
+                                                 argnums=(0, 1)))
+    material_vertices = (scene.material, scene.mesh.vertices)
     cached_frags = jax.jit(jax.value_and_grad(lambda m, s, f: mse(
         ds.render_fragments(ds.replace(s, material=m), f, soft))))
     cache = ds.cache_shading(scene, frags, soft)
@@ -104,6 +119,8 @@ def stages(size):
             ids, bary, corners, kernels.chunks())),
         ("  blend weights", lambda: weights(scene, frags)),
         ("  active slots (compaction)", lambda: compaction(active)),
+        ("after the search, forward", lambda: after_search_fwd(*material_vertices)),
+        ("after the search, f+b mat. + vert.", lambda: after_search_fb(*material_vertices)),
         ("soft f+b, material", lambda: fb_material(scene.material)),
         ("soft f+b, material + vertices", lambda: fb_vertices(*vertex_args)),
         ("cached step, render_fragments", lambda: cached_frags(scene.material, scene, frags)),

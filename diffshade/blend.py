@@ -36,13 +36,28 @@ def normalized_inverse_depth(depth, near, far):
     return jnp.clip((inv - 1.0 / far) / (1.0 / near - 1.0 / far), 0.0, 1.0)
 
 
+def log_coverages(frags, sigma):
+    """(log D, log(1 - D)) [H, W, K] of every slot (module docstring; the slots must then
+    be masked with frags.valid). Both are jax.nn.log_sigmoid written out,
+    log_sigmoid(+-x) = min(+-x, 0) - log1p(exp(-|x|)), so that under one jit XLA computes
+    the shared exp and log1p once for the weights and the alpha."""
+    x = frags.dist / sigma
+    tail = jnp.log1p(jnp.exp(-jnp.abs(x)))
+    return jnp.minimum(x, 0.0) - tail, jnp.minimum(-x, 0.0) - tail
+
+
 def soft_weights(frags, near, far, sigma, gamma):
     """The aggregation weights [H, W, K + 1] of soft_blend (the last is the background's):
-    a softmax of the logits log D_k + zt_k / gamma (module docstring)."""
+    a softmax of the logits log D_k + zt_k / gamma (module docstring), with the
+    background's logit kept apart rather than concatenated to the K others."""
     zt = normalized_inverse_depth(frags.depth, near, far)
-    logits = jnp.where(frags.valid, jax.nn.log_sigmoid(frags.dist / sigma) + zt / gamma, -jnp.inf)
-    bg = jnp.full(logits.shape[:-1] + (1,), BACKGROUND_EPS / gamma, logits.dtype)
-    return jax.nn.softmax(jnp.concatenate([logits, bg], -1), axis=-1)
+    logits = jnp.where(frags.valid, log_coverages(frags, sigma)[0] + zt / gamma, -jnp.inf)
+    bg = jnp.asarray(BACKGROUND_EPS / gamma, logits.dtype)
+    top = jax.lax.stop_gradient(jnp.maximum(jnp.max(logits, -1, keepdims=True), bg))
+    unnormalized = jnp.exp(logits - top)
+    unnormalized_bg = jnp.exp(bg - top)
+    total = jnp.sum(unnormalized, -1, keepdims=True) + unnormalized_bg
+    return jnp.concatenate([unnormalized / total, unnormalized_bg / total], -1)
 
 
 def soft_blend(colours, frags, background, near, far, sigma, gamma, weights=None):
@@ -53,6 +68,6 @@ def soft_blend(colours, frags, background, near, far, sigma, gamma, weights=None
     if weights is None:
         weights = soft_weights(frags, near, far, sigma, gamma)
     rgb = jnp.sum(weights[..., :-1, None] * colours, -2) + weights[..., -1:] * background
-    log_clear = jnp.sum(jnp.where(frags.valid, jax.nn.log_sigmoid(-frags.dist / sigma), 0.0), -1)
+    log_clear = jnp.sum(jnp.where(frags.valid, log_coverages(frags, sigma)[1], 0.0), -1)
     alpha = 1.0 - jnp.exp(log_clear)
     return jnp.concatenate([rgb, alpha[..., None]], axis=-1)

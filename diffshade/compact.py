@@ -67,8 +67,11 @@ def on_active(fn, active, capacity, *arrays, axis_name=None, host=None):
 
     def compacted(flat):
         out = fn(*[jnp.take(a, idx, axis=0, mode="clip") for a in flat])
-        return jax.tree.map(
-            lambda o: jnp.zeros((n,) + o.shape[1:], o.dtype).at[idx].set(o, mode="drop"), out)
+        # unique_indices: the indices in range are distinct, and the padding (N) is
+        # dropped; without it, the derivative of the scatter is two more scatters and a
+        # gather over the N entries (how JAX handles repeated indices)
+        return jax.tree.map(lambda o: jnp.zeros((n,) + o.shape[1:], o.dtype).at[idx].set(
+            o, mode="drop", unique_indices=True), out)
 
     def everywhere(flat):
         return fn(*flat)

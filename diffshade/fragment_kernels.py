@@ -1,7 +1,7 @@
 """Compiled forward and backward kernels of the per-fragment geometry and interpolation.
 
-raster.py and interpolate.py wrap these in `jax.custom_vjp` ops (through
-`jax.pure_callback`), nvdiffrast-style: the per-fragment work and its hand-written
+raster.py and interpolate.py wrap these in JAX primitives (hostop.py, through the host
+callback of hostcall.py), nvdiffrast-style: the per-fragment work and its hand-written
 gradient run as one numba loop each, and JAX differentiates only the cheap per-face
 setup around them (edge coefficients, screen positions, the gather of vertex attributes to
 face corners). On XLA CPU this is ~10x faster than letting JAX differentiate the
@@ -15,7 +15,10 @@ parallel (`chunks()`); backward kernels accumulate per-face gradients in one buf
 part (no races), summed at the end.
 
 Every division is `safe_div` semantics (numerics.py): num / den where |den| > tiny,
-0 (and zero gradient) elsewhere.
+0 (and zero gradient) elsewhere. The geometry kernels multiply by reciprocals instead of
+dividing (`_inv`): one per fragment and sum, and per face those of the corners' W and of
+the edges' squared lengths (`_face_constants`, computed once per call): a division costs
+~10x a multiplication, and the kernels once made ~25 per fragment.
 """
 
 import numba
@@ -29,8 +32,25 @@ def chunks() -> int:
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _div(num, den, tiny):
-    return num / den if abs(den) > tiny else 0.0
+def _inv(den, tiny):
+    """1 / den where |den| > tiny, else 0: x * _inv(d) is safe_div(x, d)."""
+    return 1.0 / den if abs(den) > tiny else 0.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _face_constants(corner_w, scr, tiny):
+    """Per face: (inv_w [F, 3], the corners' 1 / W; inv_len2 [F, 3], 1 / |edge i|^2 of
+    the edge from corner i to corner i+1 mod 3), float64, by _inv."""
+    nfaces = corner_w.shape[0]
+    inv_w = np.empty((nfaces, 3), np.float64)
+    inv_len2 = np.empty((nfaces, 3), np.float64)
+    for f in range(nfaces):
+        for i in range(3):
+            j = (i + 1) % 3
+            ex, ey = scr[f, j, 0] - scr[f, i, 0], scr[f, j, 1] - scr[f, i, 1]
+            inv_w[f, i] = _inv(corner_w[f, i], tiny)
+            inv_len2[f, i] = _inv(ex * ex + ey * ey, tiny)
+    return inv_w, inv_len2
 
 
 @numba.njit(cache=True, nogil=True)
@@ -52,44 +72,44 @@ def _face(coeffs, corner_w, f, x, y):
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _hard_bary(e0, e1, e2, tiny):
-    """Hard mode's (perspective-correct) barycentrics: b = e / sum(e)."""
-    total = e0 + e1 + e2
-    return _div(e0, total, tiny), _div(e1, total, tiny), _div(e2, total, tiny)
+    """Hard mode's (perspective-correct) barycentrics b = e / sum(e), and 1 / sum(e)."""
+    inv = _inv(e0 + e1 + e2, tiny)
+    return e0 * inv, e1 * inv, e2 * inv, inv
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _soft_bary(e0, e1, e2, w0, w1, w2, tiny):
+def _soft_bary(e0, e1, e2, w0, w1, w2, inv_w, f, tiny):
     """Soft mode's barycentrics: screen-space s = e w / sum(e w) clamped to >= 0, then
     corrected for perspective, b = (c / w) / sum(c / w).
-    Returns (s0, s1, s2, q0, q1, q2, b0, b1, b2)."""
-    total = e0 * w0 + e1 * w1 + e2 * w2
-    s0, s1, s2 = _div(e0 * w0, total, tiny), _div(e1 * w1, total, tiny), _div(e2 * w2, total, tiny)
-    q0 = _div(max(s0, 0.0), w0, tiny)
-    q1 = _div(max(s1, 0.0), w1, tiny)
-    q2 = _div(max(s2, 0.0), w2, tiny)
-    qsum = q0 + q1 + q2
-    return (s0, s1, s2, q0, q1, q2, _div(q0, qsum, tiny), _div(q1, qsum, tiny),
-            _div(q2, qsum, tiny))
+    Returns (s, q = max(s, 0) / w, b, 1 / sum(e w), 1 / sum(q)), each vector as 3 scalars."""
+    inv_s = _inv(e0 * w0 + e1 * w1 + e2 * w2, tiny)
+    s0, s1, s2 = e0 * w0 * inv_s, e1 * w1 * inv_s, e2 * w2 * inv_s
+    q0 = max(s0, 0.0) * inv_w[f, 0]
+    q1 = max(s1, 0.0) * inv_w[f, 1]
+    q2 = max(s2, 0.0) * inv_w[f, 2]
+    inv_q = _inv(q0 + q1 + q2, tiny)
+    return s0, s1, s2, q0, q1, q2, q0 * inv_q, q1 * inv_q, q2 * inv_q, inv_s, inv_q
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _segment(px, py, ax, ay, bx, by, tiny):
-    """(squared distance, t, dx, dy) from p to the segment ab; d = p - a - t (b - a)."""
+def _segment(px, py, ax, ay, bx, by, inv_len2):
+    """(squared distance, t, dx, dy) from p to the segment ab; d = p - a - t (b - a);
+    inv_len2: 1 / |b - a|^2 (_face_constants)."""
     ex, ey = bx - ax, by - ay
-    t = min(max(_div((px - ax) * ex + (py - ay) * ey, ex * ex + ey * ey, tiny), 0.0), 1.0)
+    t = min(max(((px - ax) * ex + (py - ay) * ey) * inv_len2, 0.0), 1.0)
     dx, dy = px - ax - t * ex, py - ay - t * ey
     return dx * dx + dy * dy, t, dx, dy
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _nearest_edge(px, py, scr, f, tiny):
+def _nearest_edge(px, py, scr, inv_len2, f):
     """(edge index i: from corner i to corner i+1 mod 3, squared distance, t, dx, dy) of
     the nearest edge; ties go to the first (as jnp.where(a <= b, a, b))."""
     x0, y0, x1, y1, x2, y2 = (scr[f, 0, 0], scr[f, 0, 1], scr[f, 1, 0], scr[f, 1, 1],
                               scr[f, 2, 0], scr[f, 2, 1])
-    d0, t0, dx0, dy0 = _segment(px, py, x0, y0, x1, y1, tiny)
-    d1, t1, dx1, dy1 = _segment(px, py, x1, y1, x2, y2, tiny)
-    d2, t2, dx2, dy2 = _segment(px, py, x2, y2, x0, y0, tiny)
+    d0, t0, dx0, dy0 = _segment(px, py, x0, y0, x1, y1, inv_len2[f, 0])
+    d1, t1, dx1, dy1 = _segment(px, py, x1, y1, x2, y2, inv_len2[f, 1])
+    d2, t2, dx2, dy2 = _segment(px, py, x2, y2, x0, y0, inv_len2[f, 2])
     if d0 <= d1:
         if d0 <= d2:
             return 0, d0, t0, dx0, dy0
@@ -117,6 +137,7 @@ def geometry_forward(ids, corner_w, corner_z, coeffs, scr, width, height, soft, 
     """
     npix, k = ids.shape
     dtype = coeffs.dtype
+    inv_w, inv_len2 = _face_constants(corner_w, scr, tiny)
     bary = np.zeros((npix, k, 3), dtype)
     depth = np.zeros((npix, k), dtype)
     dist = np.zeros((npix, k), dtype)
@@ -130,10 +151,11 @@ def geometry_forward(ids, corner_w, corner_z, coeffs, scr, width, height, soft, 
                     continue
                 e0, e1, e2, w0, w1, w2 = _face(coeffs, corner_w, f, x, y)
                 if not soft:
-                    b0, b1, b2 = _hard_bary(e0, e1, e2, tiny)
+                    b0, b1, b2, _ = _hard_bary(e0, e1, e2, tiny)
                 else:
-                    s0, s1, s2, _, _, _, b0, b1, b2 = _soft_bary(e0, e1, e2, w0, w1, w2, tiny)
-                    d2 = _nearest_edge(px, py, scr, f, tiny)[1]
+                    s0, s1, s2, _, _, _, b0, b1, b2, _, _ = _soft_bary(e0, e1, e2, w0, w1, w2,
+                                                                       inv_w, f, tiny)
+                    d2 = _nearest_edge(px, py, scr, inv_len2, f)[1]
                     dist[pixel, slot] = d2 if s0 >= 0.0 and s1 >= 0.0 and s2 >= 0.0 else -d2
                 bary[pixel, slot, 0], bary[pixel, slot, 1], bary[pixel, slot, 2] = b0, b1, b2
                 depth[pixel, slot] = b0 * corner_z[f, 0] + b1 * corner_z[f, 1] + b2 * corner_z[f, 2]
@@ -141,18 +163,19 @@ def geometry_forward(ids, corner_w, corner_z, coeffs, scr, width, height, soft, 
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _softmax_like_grad(g0, g1, g2, v0, v1, v2, den, tiny):
-    """Gradient through v_i = u_i / sum(u) (den = sum(u)): g_u_i = (g_i - g . v) / den."""
+def _softmax_like_grad(g0, g1, g2, v0, v1, v2, inv_den):
+    """Gradient through v_i = u_i / sum(u) (inv_den = _inv(sum(u))):
+    g_u_i = (g_i - g . v) / sum(u)."""
     dot = g0 * v0 + g1 * v1 + g2 * v2
-    return _div(g0 - dot, den, tiny), _div(g1 - dot, den, tiny), _div(g2 - dot, den, tiny)
+    return (g0 - dot) * inv_den, (g1 - dot) * inv_den, (g2 - dot) * inv_den
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _dist_grad(acc_s, chunk, f, px, py, scr, g_m, tiny):
+def _dist_grad(acc_s, chunk, f, px, py, scr, inv_len2, g_m):
     """Accumulate the gradient g_m of the nearest edge's squared distance |d|^2 into the
     corners' screen positions: d |d|^2 = -2 d . ((1 - t) da + t db); t drops out (it
     minimizes |d|^2 inside [0, 1] and is constant where clamped)."""
-    i, _, t, dx, dy = _nearest_edge(px, py, scr, f, tiny)
+    i, _, t, dx, dy = _nearest_edge(px, py, scr, inv_len2, f)
     j = (i + 1) % 3
     acc_s[chunk, f, i, 0] -= 2.0 * g_m * (1.0 - t) * dx
     acc_s[chunk, f, i, 1] -= 2.0 * g_m * (1.0 - t) * dy
@@ -168,10 +191,12 @@ def geometry_backward(ids, corner_w, corner_z, coeffs, scr, width, height, soft,
     npix, k = ids.shape
     nfaces = coeffs.shape[0]
     dtype = coeffs.dtype
-    acc_c = np.zeros((chunks, nfaces, 3, 3), dtype)
-    acc_w = np.zeros((chunks, nfaces, 3), dtype)
-    acc_z = np.zeros((chunks, nfaces, 3), dtype)
-    acc_s = np.zeros((chunks, nfaces, 3, 2), dtype)
+    inv_w, inv_len2 = _face_constants(corner_w, scr, tiny)
+    # float64 accumulators: more accurate, and no conversion per fragment
+    acc_c = np.zeros((chunks, nfaces, 3, 3), np.float64)
+    acc_w = np.zeros((chunks, nfaces, 3), np.float64)
+    acc_z = np.zeros((chunks, nfaces, 3), np.float64)
+    acc_s = np.zeros((chunks, nfaces, 3, 2), np.float64)
     for chunk in prange(chunks):
         start, stop = _chunk(chunk, chunks, npix)
         for pixel in range(start, stop):
@@ -191,35 +216,32 @@ def geometry_backward(ids, corner_w, corner_z, coeffs, scr, width, height, soft,
                 e0, e1, e2, w0, w1, w2 = _face(coeffs, corner_w, f, x, y)
                 if not needs_bary:
                     # only the distance's gradient (the fragment still counts in alpha)
-                    total = e0 * w0 + e1 * w1 + e2 * w2
-                    inside = (_div(e0 * w0, total, tiny) >= 0.0
-                              and _div(e1 * w1, total, tiny) >= 0.0
-                              and _div(e2 * w2, total, tiny) >= 0.0)
-                    _dist_grad(acc_s, chunk, f, px, py, scr, g_d if inside else -g_d, tiny)
+                    inv_s = _inv(e0 * w0 + e1 * w1 + e2 * w2, tiny)
+                    inside = (e0 * w0 * inv_s >= 0.0 and e1 * w1 * inv_s >= 0.0
+                              and e2 * w2 * inv_s >= 0.0)
+                    _dist_grad(acc_s, chunk, f, px, py, scr, inv_len2, g_d if inside else -g_d)
                     continue
                 if not soft:
-                    b0, b1, b2 = _hard_bary(e0, e1, e2, tiny)
-                    ge0, ge1, ge2 = _softmax_like_grad(gb0, gb1, gb2, b0, b1, b2, e0 + e1 + e2,
-                                                       tiny)
+                    b0, b1, b2, inv_e = _hard_bary(e0, e1, e2, tiny)
+                    ge0, ge1, ge2 = _softmax_like_grad(gb0, gb1, gb2, b0, b1, b2, inv_e)
                 else:
-                    s0, s1, s2, q0, q1, q2, b0, b1, b2 = _soft_bary(e0, e1, e2, w0, w1, w2, tiny)
+                    s0, s1, s2, q0, q1, q2, b0, b1, b2, inv_s, inv_q = _soft_bary(
+                        e0, e1, e2, w0, w1, w2, inv_w, f, tiny)
                     # b = q / sum(q); q_i = max(s_i, 0) / w_i; s = e w / sum(e w)
-                    gq0, gq1, gq2 = _softmax_like_grad(gb0, gb1, gb2, b0, b1, b2, q0 + q1 + q2,
-                                                       tiny)
-                    acc_w[chunk, f, 0] -= _div(gq0 * q0, w0, tiny)
-                    acc_w[chunk, f, 1] -= _div(gq1 * q1, w1, tiny)
-                    acc_w[chunk, f, 2] -= _div(gq2 * q2, w2, tiny)
-                    gs0 = _div(gq0, w0, tiny) if s0 > 0.0 else 0.0
-                    gs1 = _div(gq1, w1, tiny) if s1 > 0.0 else 0.0
-                    gs2 = _div(gq2, w2, tiny) if s2 > 0.0 else 0.0
-                    gt0, gt1, gt2 = _softmax_like_grad(gs0, gs1, gs2, s0, s1, s2,
-                                                       e0 * w0 + e1 * w1 + e2 * w2, tiny)
+                    gq0, gq1, gq2 = _softmax_like_grad(gb0, gb1, gb2, b0, b1, b2, inv_q)
+                    gs0, gs1, gs2 = gq0 * inv_w[f, 0], gq1 * inv_w[f, 1], gq2 * inv_w[f, 2]
+                    acc_w[chunk, f, 0] -= gs0 * q0
+                    acc_w[chunk, f, 1] -= gs1 * q1
+                    acc_w[chunk, f, 2] -= gs2 * q2
+                    gt0, gt1, gt2 = _softmax_like_grad(gs0 if s0 > 0.0 else 0.0,
+                                                       gs1 if s1 > 0.0 else 0.0,
+                                                       gs2 if s2 > 0.0 else 0.0, s0, s1, s2, inv_s)
                     ge0, ge1, ge2 = gt0 * w0, gt1 * w1, gt2 * w2
                     acc_w[chunk, f, 0] += gt0 * e0
                     acc_w[chunk, f, 1] += gt1 * e1
                     acc_w[chunk, f, 2] += gt2 * e2
                     inside = s0 >= 0.0 and s1 >= 0.0 and s2 >= 0.0
-                    _dist_grad(acc_s, chunk, f, px, py, scr, g_d if inside else -g_d, tiny)
+                    _dist_grad(acc_s, chunk, f, px, py, scr, inv_len2, g_d if inside else -g_d)
                 acc_z[chunk, f, 0] += b0 * g_z
                 acc_z[chunk, f, 1] += b1 * g_z
                 acc_z[chunk, f, 2] += b2 * g_z
@@ -232,7 +254,8 @@ def geometry_backward(ids, corner_w, corner_z, coeffs, scr, width, height, soft,
                 acc_c[chunk, f, 2, 0] += ge2 * x
                 acc_c[chunk, f, 2, 1] += ge2 * y
                 acc_c[chunk, f, 2, 2] += ge2
-    return acc_w.sum(0), acc_z.sum(0), acc_c.sum(0), acc_s.sum(0)
+    return (acc_w.sum(0).astype(dtype), acc_z.sum(0).astype(dtype), acc_c.sum(0).astype(dtype),
+            acc_s.sum(0).astype(dtype))
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
@@ -248,10 +271,10 @@ def interpolate_forward(ids, bary, corners, chunks):
                 f = ids[pixel, slot]
                 if f < 0:
                     continue
-                b = bary[pixel, slot]
+                b0, b1, b2 = bary[pixel, slot, 0], bary[pixel, slot, 1], bary[pixel, slot, 2]
                 for ch in range(nc):
-                    out[pixel, slot, ch] = (b[0] * corners[f, 0, ch] + b[1] * corners[f, 1, ch]
-                                            + b[2] * corners[f, 2, ch])
+                    out[pixel, slot, ch] = (b0 * corners[f, 0, ch] + b1 * corners[f, 1, ch]
+                                            + b2 * corners[f, 2, ch])
     return out
 
 
@@ -270,14 +293,15 @@ def interpolate_backward(ids, bary, corners, g_out, chunks):
                 f = ids[pixel, slot]
                 if f < 0:
                     continue
-                if g_out[pixel, slot].max() == 0.0 and g_out[pixel, slot].min() == 0.0:
-                    continue  # g_bary stays 0 and nothing accumulates
-                for i in range(3):
-                    total = 0.0
-                    b = bary[pixel, slot, i]
-                    for ch in range(nc):
-                        g = g_out[pixel, slot, ch]
-                        total += g * corners[f, i, ch]
-                        acc[chunk, f, i, ch] += b * g
-                    g_bary[pixel, slot, i] = total
+                b0, b1, b2 = bary[pixel, slot, 0], bary[pixel, slot, 1], bary[pixel, slot, 2]
+                t0 = t1 = t2 = 0.0
+                for ch in range(nc):
+                    g = g_out[pixel, slot, ch]
+                    t0 += g * corners[f, 0, ch]
+                    t1 += g * corners[f, 1, ch]
+                    t2 += g * corners[f, 2, ch]
+                    acc[chunk, f, 0, ch] += b0 * g
+                    acc[chunk, f, 1, ch] += b1 * g
+                    acc[chunk, f, 2, ch] += b2 * g
+                g_bary[pixel, slot, 0], g_bary[pixel, slot, 1], g_bary[pixel, slot, 2] = t0, t1, t2
     return g_bary, acc.sum(0)

@@ -34,7 +34,7 @@ from diffshade.numerics import clamp01, safe_normalize
 from diffshade.objects import take_material
 from diffshade.project import Projected, project
 from diffshade.raster import Fragments, rasterize
-from diffshade.samples import Samples, read, shading_samples
+from diffshade.samples import Samples, phong_samples, read, shading_samples
 from diffshade.scene import Scene
 from diffshade.settings import RenderSettings
 from diffshade.shading import ShadingParts, shade
@@ -108,25 +108,35 @@ def shade_fragments(scene, proj: Projected, frags: Fragments, settings, active=N
 
     active: optional [H, W, K] bool, the fragments whose colour matters; Phong shading
     then interpolates and lights only those (the others' values are 0 or unspecified;
-    see diffshade.compact, and its axis_name for a batch of views)."""
+    see _shade_active, and diffshade.compact's axis_name for a batch of views)."""
     host = settings.use_host_kernels()
-    if active is not None and settings.shading == "phong":
-        # interpolate (and differentiate) only the fragments that will be lit: the
-        # interpolation kernels skip empty slots
-        frags = dataclasses.replace(frags, face_ids=jnp.where(active, frags.face_ids, -1))
-    samples, reader = shading_samples(scene, proj, frags, settings.shading, host)
     maps = shadow_maps(scene, settings)
-    light = lambda *leaves: shade_samples(scene, Samples(*leaves), settings, maps)
-    if active is None or reader.table is not None:
-        lit = light(*samples.leaves())
+    light = lambda samples: shade_samples(scene, samples, settings, maps)
+    if active is not None and settings.shading == "phong":
+        parts, colour = _shade_active(scene, proj, frags, active, light, axis_name, host)
     else:
-        height, width, k = frags.face_ids.shape
-        capacity = height * width * min(k, ACTIVE_SLOTS_PER_PIXEL)
-        lit = on_active(light, active, capacity, *samples.leaves(), axis_name=axis_name,
-                        host=host)
-    parts, colour = read(lit, reader, host)
+        samples, reader = shading_samples(scene, proj, frags, settings.shading, host)
+        parts, colour = read(light(samples), reader, host)
     # interpolated clamped colours can exceed 1 by a rounding error; keep [0, 1] exact
     return parts, clamp01(colour) if settings.clamp else colour
+
+
+def _shade_active(scene, proj, frags, active, light, axis_name, host):
+    """Phong shading of the active fragments (active [H, W, K] bool): on_active gathers
+    their face ids, barycentrics and sides, and only those are interpolated and lit;
+    light(Samples) -> (ShadingParts, colour). The other slots' face ids are masked to -1,
+    which the interpolation kernels skip, should on_active process every slot."""
+    height, width, k = frags.face_ids.shape
+    capacity = height * width * min(k, ACTIVE_SLOTS_PER_PIXEL)
+
+    def lit(face_ids, bary, front):
+        # N fragments ([N], [N, 3], [N]) as N pixels of one slot each
+        samples = phong_samples(scene, proj, face_ids[:, None], bary[:, None], front[:, None],
+                                host)
+        return jax.tree.map(lambda a: a[:, 0], light(samples))
+    face_ids = jnp.where(active, frags.face_ids, -1)
+    return on_active(lit, active, capacity, face_ids, frags.bary, frags.front,
+                     axis_name=axis_name, host=host)
 
 
 def check_arguments(scene, settings):

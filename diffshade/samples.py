@@ -22,7 +22,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from diffshade.interpolate import interpolate_rows, interpolate_tree
+from diffshade.interpolate import interpolate_rows
 from diffshade.numerics import safe_normalize
 from diffshade.raster import face_edge_coefficients
 
@@ -78,12 +78,19 @@ def object_ids(scene, per_face, index):
     return jnp.take(ids, jnp.maximum(index, 0), axis=0)
 
 
+def phong_samples(scene, proj, face_ids, bary, front, host=None):
+    """Phong's samples of fragments given by their face ids [N, K] (-1 = empty),
+    barycentrics [N, K, 3] and sides [N, K]: interpolated points and renormalized normals
+    (render lights only the fragments that count this way, diffshade.render)."""
+    points, normals = interpolate_rows((proj.world, proj.normals), scene.mesh.faces, face_ids,
+                                       bary, host)
+    normals = _oriented(safe_normalize(normals), front, scene.two_sided)
+    return Samples(points, normals, front, object_ids(scene, True, face_ids))
+
+
 def _phong(scene, proj, frags, host):
-    points, normals = interpolate_tree((proj.world, proj.normals), scene.mesh.faces, frags,
-                                       host)
-    normals = _oriented(safe_normalize(normals), frags.front, scene.two_sided)
-    objects = object_ids(scene, True, frags.face_ids)
-    return Samples(points, normals, frags.front, objects), Reader(frags.face_ids)
+    samples = phong_samples(scene, proj, frags.face_ids, frags.bary, frags.front, host)
+    return samples, Reader(frags.face_ids)
 
 
 def _per_vertex(scene, proj, frags, corners):
