@@ -1,7 +1,7 @@
 """Candidate search: which faces reach which pixel, nearest first (non-differentiable).
 
-Runs on the host (called through `jax.pure_callback` by raster.py) as a numba-compiled
-loop over each face's screen bounding box, so its cost grows with the number of
+Runs on the host (called through a host callback, hostcall.py, by raster.py) as a
+numba-compiled loop over tiles of the faces' screen footprints, so its cost grows with the number of
 (pixel, nearby face) pairs, never with pixels x faces. Hard mode loops over the faces per
 band of rows. Soft mode sets each face up once, bins the faces into tiles of
 TILE_W x TILE_H pixels and searches the tiles in parallel: a tile's lists stay in the L1

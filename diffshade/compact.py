@@ -9,7 +9,7 @@ and evaluates it everywhere otherwise (`lax.cond` picks at run time; under `vmap
 branches run). Gradients flow through either branch.
 
 The indices of the active slots come from a compiled host kernel on the CPU backend
-(`host=True`; through `jax.pure_callback`, hostcall.py): XLA's `jnp.nonzero` (a cumulative
+(`host=True`; through a host callback, hostcall.py): XLA's `jnp.nonzero` (a cumulative
 sum and a scatter) took ~11 ms for the 524,288 slots of a 256^2, K = 8 render, more than
 lighting the active slots; the kernel takes well under 1 ms.
 """

@@ -15,7 +15,7 @@ user's home behind their back):
 Every program is cached however quickly it compiled (JAX's default skips those under 1 s,
 and most of a fit's programs compile in 0.1-1 s each). JAX never caches a program that
 contains a host callback: on CPU, rasterization runs diffshade's compiled kernels through
-`jax.pure_callback` (diffshade.hostop), so the programs that rasterize are compiled afresh
+a host callback (diffshade.hostcall), so the programs that rasterize are compiled afresh
 in every process; the fit's steps, which shade cached fragments, are cached.
 
 JAX computes a program's cache key from its lowered module, so even a warm run traces

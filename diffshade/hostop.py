@@ -17,7 +17,7 @@ through `native` (jvp rules from jax.jvp of the native maps). Batching (vmap, ja
 vmap of grad) folds the batch into one kernel call: B images of H rows become one image of
 B*H rows (the kernels take the pixel position modulo H*W), and the per-face arrays of the
 B batch members are concatenated with face ids offset by b*F. jvp_p batches with jax.vmap
-of its native map. Under `jit` the kernels run through `jax.pure_callback` (hostcall.py);
+of its native map. Under `jit` the kernels run through a host callback (hostcall.py);
 they are CPU code, which is why render picks host=True only on the CPU backend.
 
 Argument kinds: the first argument is always `ids` [H, W, K] int32 (-1 = empty); each

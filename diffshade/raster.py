@@ -2,7 +2,7 @@
 
 Two stages. The search (which faces cover which pixel, nearest first) is discrete and
 non-differentiable: a compiled kernel on the host (candidates.py, through
-`jax.pure_callback`, hostcall.py; under `vmap`, views of one mesh are searched in one
+a host callback, hostcall.py; under `vmap`, views of one mesh are searched in one
 call), or tile binning in JAX (tile_search.py), as RenderSettings.kernels says.
 Everything computed *from* the chosen face ids is
 differentiable with respect to vertices and camera: barycentrics from 2D homogeneous edge
