@@ -255,6 +255,14 @@ def _soft_setup(clips, faces, width, height, cull_backfaces, radii):
 
 
 @numba.njit(cache=True, nogil=True)
+def _face_tiles(box, height):
+    """Inclusive tile rows and columns (ty0, ty1, tx0, tx1) that a face's pixel box
+    (_soft_face's box) touches."""
+    r0, r1 = int(max(box[0], 0.0)), int(min(box[1], height - 1.0))
+    return r0 // TILE_H, r1 // TILE_H, int(box[2]) // TILE_W, int(box[3]) // TILE_W
+
+
+@numba.njit(cache=True, nogil=True)
 def _bin_faces(box, reach, order, width, height):
     """Per view, the faces whose box touches each tile, in the order order[view] lists
     them: (start [B, T + 1], binned [B, N]) with tile t's faces
@@ -265,10 +273,9 @@ def _bin_faces(box, reach, order, width, height):
     for view in range(views):
         for f in order[view]:
             if reach[view, f]:
-                r0, r1 = int(max(box[view, f, 0], 0.0)), int(min(box[view, f, 1], height - 1.0))
-                for ty in range(r0 // TILE_H, r1 // TILE_H + 1):
-                    for tx in range(int(box[view, f, 2]) // TILE_W,
-                                    int(box[view, f, 3]) // TILE_W + 1):
+                ty0, ty1, tx0, tx1 = _face_tiles(box[view, f], height)
+                for ty in range(ty0, ty1 + 1):
+                    for tx in range(tx0, tx1 + 1):
                         start[view, ty * tiles_x + tx + 1] += 1
         for t in range(tiles_x * tiles_y):
             start[view, t + 1] += start[view, t]
@@ -277,10 +284,9 @@ def _bin_faces(box, reach, order, width, height):
         fill = start[view, :-1].copy()
         for f in order[view]:
             if reach[view, f]:
-                r0, r1 = int(max(box[view, f, 0], 0.0)), int(min(box[view, f, 1], height - 1.0))
-                for ty in range(r0 // TILE_H, r1 // TILE_H + 1):
-                    for tx in range(int(box[view, f, 2]) // TILE_W,
-                                    int(box[view, f, 3]) // TILE_W + 1):
+                ty0, ty1, tx0, tx1 = _face_tiles(box[view, f], height)
+                for ty in range(ty0, ty1 + 1):
+                    for tx in range(tx0, tx1 + 1):
                         binned[view, fill[ty * tiles_x + tx]] = f
                         fill[ty * tiles_x + tx] += 1
     return start, binned
