@@ -1,11 +1,12 @@
 """Candidate search: which faces reach which pixel, nearest first (non-differentiable).
 
 Runs on the host (called through a host callback, hostcall.py, by raster.py) as a
-numba-compiled loop over tiles of the faces' screen footprints, so its cost grows with the number of
-(pixel, nearby face) pairs, never with pixels x faces. Hard mode loops over the faces per
-band of rows. Soft mode sets each face up once, bins the faces into tiles of
-TILE_W x TILE_H pixels and searches the tiles in parallel: a tile's lists stay in the L1
-cache, and a face's pixels in a tile are evaluated without branches, TILE_W at a time.
+numba-compiled loop over tiles of the faces' screen footprints, so its cost grows with the
+number of (pixel, nearby face) pairs, never with pixels x faces. Hard mode sets each face
+up once and loops over the faces per band of rows. Soft mode sets each face up once, bins
+the faces into tiles of TILE_W x TILE_H pixels and searches the tiles in parallel: a
+tile's lists stay in the L1 cache, and a face's pixels in a tile are evaluated without
+branches, TILE_W at a time.
 
 Coverage uses 2D homogeneous rasterization (Olano & Greer 1997): with v_i = (X, Y, W)
 of the clip-space vertices and p = (x_ndc, y_ndc, 1), the edge functions
@@ -128,28 +129,50 @@ def _batch_outputs(views, pixels, k, bands):
             np.zeros((views, bands), np.int64))
 
 
+@numba.njit(cache=True, nogil=True)
+def _hard_setup(clips, faces, width, height, cull_backfaces):
+    """Per view and face, once (not once per band): tri [B, F, 3, 4], coeffs [B, F, 3, 3],
+    the pixel box [B, F, 4] = (first column, last column, first row, last row) of the face
+    clipped to the near plane, and reach [B, F] (False: culled, degenerate or behind)."""
+    views, count = clips.shape[0], faces.shape[0]
+    tri, coeffs = np.empty((views, count, 3, 4)), np.empty((views, count, 3, 3))
+    pixels, reach = np.empty((views, count, 4), np.int64), np.zeros((views, count), np.bool_)
+    box = np.empty(4)
+    for view in range(views):
+        for f in range(count):
+            det = _face_setup(clips[view], faces, f, tri[view, f], coeffs[view, f])
+            if not np.isfinite(det) or det == 0.0 or (cull_backfaces and det < 0.0):
+                continue
+            if not _near_clipped_bbox(tri[view, f], box):
+                continue
+            pixels[view, f, 0], pixels[view, f, 1] = _pixel_range(box[0], box[1], width, 0.0,
+                                                                  False)
+            pixels[view, f, 2], pixels[view, f, 3] = _pixel_range(box[2], box[3], height, 0.0,
+                                                                  True)
+            reach[view, f] = True
+    return tri, coeffs, pixels, reach
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _search_hard(clips, faces, width, height, k, cull_backfaces, bands):
     views = clips.shape[0]
     all_ids, all_keys, all_dropped = _batch_outputs(views, width * height, k, bands)
+    tri, coeffs, pixels, reach = _hard_setup(clips, faces, width, height, cull_backfaces)
     # one item per (view, band): the views of a batch share one parallel loop
     for item in prange(views * bands):
         view, band = item // bands, item % bands
-        clip, ids, keys, dropped = clips[view], all_ids[view], all_keys[view], all_dropped[view]
+        ids, keys, dropped = all_ids[view], all_keys[view], all_dropped[view]
+        view_tri, view_coeffs = tri[view], coeffs[view]
         band_r0, band_r1 = _band_rows(band, bands, height)
-        tri, coeffs, box = np.empty((1, 3, 4)), np.empty((1, 3, 3)), np.empty(4)
         for f in range(faces.shape[0]):
-            det = _face_setup(clip, faces, f, tri[0], coeffs[0])
-            if not np.isfinite(det) or det == 0.0 or (cull_backfaces and det < 0.0):
+            if not reach[view, f]:
                 continue
-            if not _near_clipped_bbox(tri[0], box):
-                continue
-            c0, c1 = _pixel_range(box[0], box[1], width, 0.0, False)
-            r0, r1 = _pixel_range(box[2], box[3], height, 0.0, True)
+            c0, c1, r0, r1 = pixels[view, f]
             for row in range(max(r0, band_r0), min(r1, band_r1) + 1):
                 y = 1.0 - (2.0 * row + 1.0) / height
                 for col in range(c0, c1 + 1):
-                    z = _covered_depth(coeffs, tri, 0, (2.0 * col + 1.0) / width - 1.0, y)
+                    z = _covered_depth(view_coeffs, view_tri, f,
+                                       (2.0 * col + 1.0) / width - 1.0, y)
                     if z < np.inf:
                         dropped[band] += _insert(ids, keys, row * width + col, f, z)
     return all_ids, all_dropped.sum(1)
@@ -192,6 +215,34 @@ def _coverage_logit(signed_d2, sigma):
     """log D = log_sigmoid(d2 / sigma) of soft_blend (<= 0)."""
     x = signed_d2 / sigma
     return -np.log1p(np.exp(-x)) if x >= 0.0 else x - np.log1p(np.exp(x))
+
+
+@numba.njit(cache=True, nogil=True)
+def _fragment_key(depth, signed_d2, bound, depth_bits, sigma):
+    """The ranking key depth - _coverage_logit(signed_d2, sigma) of a lane of
+    _soft_block's out (out[0], out[1], out[2] = bound), bit for bit, without the logarithm
+    where adding log D cannot change the float64 key; depth_bits: depth's bits as int64.
+
+    Proof that the shortcuts are exact (round to nearest; libm exp and log1p within one
+    ulp, so their computed u = log1p(exp(-|x|)) <= 4 exp(-|x|); a = depth <= 0 finite):
+    - x = signed_d2 / sigma >= 0 (the slow path returns a - (-u) = a + u, u >= 0): with
+      biased exponent E >= 1 of a (normal, nonzero), |a| >= 2^(E-1023), the doubles just
+      below |a| are at least 2^(E-1076) apart, so a + u rounds to a when
+      u < 2^(E-1077), which holds when exp(-x) < 2^(E-1079), i.e. x > (1079 - E) ln 2;
+      we ask x > (1082 - E) ln 2 (a margin of 8x for the rounding of the threshold).
+    - x <= -40 (the slow path returns a - (x - u)): |x| >= 40, the doubles just above |x|
+      are more than |x| 2^-53 apart, and u <= 4 e^-40 < 2e-17 < 40 * 2^-55 (< half that
+      spacing, by 100x), so x - u rounds to x and the key is a - x, which _soft_block
+      already computed the same way (-d2 / sigma is exactly d2 / sigma negated) as bound.
+    Elsewhere (a = 0, subnormal or -0.0 included) it takes the slow path."""
+    x = signed_d2 / sigma
+    if x >= 0.0:
+        biased = (depth_bits >> 52) & 0x7FF
+        if biased >= 1 and x > (1082 - biased) * 0.6931471805599453:
+            return depth
+    elif x <= -40.0:
+        return bound
+    return depth - _coverage_logit(signed_d2, sigma)
 
 
 #: the soft search's tiles, in pixels: a row of a tile is one AVX-512 vector of float64
@@ -371,6 +422,7 @@ def _search_soft(clips, faces, width, height, k, cull_backfaces, radii, params, 
         dropped = 0
         lanes = np.empty(TILE_H * TILE_W, np.int64)
         out = np.empty((3, TILE_H * TILE_W))
+        depth_bits = out[0].view(np.int64)
         for slot in range(start[view, t], start[view, t + 1]):
             f = binned[view, slot]
             fb = box[view, f]
@@ -392,7 +444,8 @@ def _search_soft(clips, faces, width, height, k, cull_backfaces, radii, params, 
                                                            ids[pixel, k - 1]):
                     dropped += 1
                     continue
-                key = out[0, lane] - _coverage_logit(out[1, lane], soft[0])
+                key = _fragment_key(out[0, lane], out[1, lane], out[2, lane], depth_bits[lane],
+                                    soft[0])
                 dropped += _insert(ids, keys, pixel, f, key)
         for row in range(tile_r0, tile_r1 + 1):
             all_ids[view, row * width + tile_c0:row * width + tile_c1 + 1] = \

@@ -276,3 +276,33 @@ def test_host_search_under_vmap_equals_separate_calls():
             assert (np.asarray(want[0]) >= 0).any()
             assert_same((np.asarray(got[0][i]), int(got[1][i])),
                         (np.asarray(want[0]), int(want[1])))
+
+
+def test_host_soft_key_shortcut_is_bit_exact():
+    """The host soft search skips the logarithm where log D cannot change the float64 key
+    (candidates._fragment_key); against the key computed in Python (libm log1p and exp)
+    bit for bit, at depth terms from 0 (and -0.0, subnormal) to -1e6 and coverage terms
+    around both thresholds."""
+    import math
+
+    from diffshade.candidates import _fragment_key
+
+    rng = np.random.default_rng(5)
+    depths = np.concatenate([[0.0, -0.0, -5e-324, -1e-310, -1e-300, -1e-12, -0.5, -1.0],
+                             -10.0 ** rng.uniform(-8, 6, 400)])
+    xs = np.concatenate([[0.0, -0.0, 40.0, -40.0, 39.999, -40.001, 745.0, 800.0],
+                         rng.uniform(-60, 80, 300), rng.uniform(20, 60, 300)])
+    sigma = 0.75
+    checked = 0
+    for depth in depths:
+        bits = np.array([depth]).view(np.int64)[0]
+        for x in rng.choice(xs, 60):
+            signed_d2 = x * sigma
+            x = signed_d2 / sigma
+            log_d = -math.log1p(math.exp(-x)) if x >= 0.0 else x - math.log1p(math.exp(x))
+            want = depth - log_d
+            got = _fragment_key(depth, signed_d2, depth - x, bits, sigma)
+            assert np.array([got]).view(np.int64)[0] == np.array([want]).view(np.int64)[0], \
+                (depth, signed_d2, got, want)
+            checked += 1
+    assert checked == len(depths) * 60
