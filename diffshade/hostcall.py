@@ -16,7 +16,9 @@ Under jit, host_call is its own primitive, lowered as jax.pure_callback is (XLA 
 back into Python) but handing `fn` the operands as XLA gives them: pure_callback first
 copies every operand into a new JAX array (`device_put`), ~0.1 ms per MB, ~6 ms per
 forward + backward pass of a 256^2 soft render. Its vmap rule is pure_callback's
-("sequential", or "expand_dims" when batched).
+("sequential", or "expand_dims" when batched). The primitive's lowering uses JAX internals
+(jax._src.callback, mlir.emit_python_callback), so it is used only with the JAX versions
+it was tested with (NO_COPY_JAX); with any other, host_call is jax.pure_callback itself.
 
 Called outside any trace (every argument a concrete array), host_call runs `fn` at once
 on the NumPy arrays: nothing is compiled. A program that contains a callback cannot be
@@ -30,11 +32,24 @@ import threading
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax._src import callback as jax_callback
 from jax.extend.core import Primitive
 from jax.interpreters import batching, mlir
 
+try:
+    from jax._src import callback as jax_callback
+except ImportError:  # another JAX's internals
+    jax_callback = None
+
 _LOCK = threading.Lock()
+#: JAX versions (major, minor) whose internals the no-copy primitive was tested with
+NO_COPY_JAX = ((0, 10),)
+
+
+def _no_copy():
+    """Whether host_call may use its own primitive (else jax.pure_callback)."""
+    version = tuple(int(p) for p in jax.__version__.split(".")[:2])
+    return (version in NO_COPY_JAX and jax_callback is not None
+            and hasattr(jax_callback, "_callback_op_sharding"))
 
 
 def _is64(dtype):
@@ -90,8 +105,12 @@ def host_call(fn, result_shapes, *args, batched=False):
             r = np.ascontiguousarray(r, s.dtype).reshape(lead + s.shape)
             out.append(r.view(np.uint32).reshape(lead + s.shape + (2,)) if is64 else r)
         return tuple(out)
-    results = _host_p.bind(*[_pack(a) for a in args], fn=host, result_shapes=packed,
-                           batched=batched)
+    if _no_copy():
+        results = _host_p.bind(*[_pack(a) for a in args], fn=host, result_shapes=packed,
+                               batched=batched)
+    else:
+        results = jax.pure_callback(host, packed, *[_pack(a) for a in args],
+                                    vmap_method="expand_dims" if batched else "sequential")
     return tuple(jax.lax.bitcast_convert_type(r, jnp.float64) if is64 else r
                  for r, is64 in zip(results, outs_64, strict=True))
 
