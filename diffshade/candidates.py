@@ -23,7 +23,9 @@ plane are culled in soft mode (their screen-space triangle is not defined).
 
 Each pixel keeps its k best faces (hard: by NDC depth; soft: by blend weight) in a small
 list sorted by (key, face id); every candidate fragment that does not fit is counted in
-`dropped`.
+`dropped`. The soft key is a float64 sum with libm's log1p and exp; the soft search
+brackets it first without libm (_key_bracket) and calls libm only where the bracket does
+not decide its bits.
 """
 
 import numba
@@ -83,26 +85,42 @@ def _ranks_after(key, face, other_key, other_face):
 
 
 @numba.njit(cache=True, nogil=True)
-def _insert(ids, keys, pixel, face, key):
-    """Insert (face, key) into pixel's list, ascending by key and, among equal keys, by face
-    (so the lists do not depend on the order faces are inserted in); returns 1 if a
-    fragment fell off."""
+def _insert(ids, keys, filled, pixel, face, key):
+    """Insert (face, key) into pixel's list of filled[pixel] entries, ascending by key and,
+    among equal keys, by face (so the lists do not depend on the order faces are inserted
+    in); returns 1 if a fragment fell off. filled[pixel] counts the entries, so an
+    append into a list that is not full costs one comparison."""
     k = ids.shape[1]
-    if ids[pixel, k - 1] >= 0 and _ranks_after(key, face, keys[pixel, k - 1],
-                                               ids[pixel, k - 1]):
-        return 1
-    fell = 1 if ids[pixel, k - 1] >= 0 else 0
-    slot = k - 1
-    while slot > 0 and (ids[pixel, slot - 1] < 0
-                        or _ranks_after(keys[pixel, slot - 1], ids[pixel, slot - 1], key, face)):
+    slot = filled[pixel]
+    if slot == k:
+        if _ranks_after(key, face, keys[pixel, k - 1], ids[pixel, k - 1]):
+            return 1
+        slot, fell = k - 1, 1
+    else:
+        filled[pixel] = slot + 1
+        fell = 0
+    while slot > 0 and _ranks_after(keys[pixel, slot - 1], ids[pixel, slot - 1], key, face):
         ids[pixel, slot] = ids[pixel, slot - 1]
         keys[pixel, slot] = keys[pixel, slot - 1]
-        slot -= 1
-    while slot > 0 and ids[pixel, slot - 1] < 0:
         slot -= 1
     ids[pixel, slot] = face
     keys[pixel, slot] = key
     return fell
+
+
+@numba.njit(cache=True, nogil=True)
+def _sort_list(ids, keys, pixel, count, scratch_ids, scratch_keys):
+    """Sort the first `count` entries of pixel's list by (key, face), as _insert orders
+    them, without branches: each entry goes to its rank (the number of entries before it;
+    a pixel's faces are distinct, so the ranks are a permutation)."""
+    for i in range(count):
+        scratch_ids[i], scratch_keys[i] = ids[pixel, i], keys[pixel, i]
+    for i in range(count):
+        key, face, rank = scratch_keys[i], scratch_ids[i], 0
+        for j in range(count):  # _ranks_after(key, face, ...), with & and | (no branch)
+            rank += (key > scratch_keys[j]) | ((key == scratch_keys[j])
+                                               & (face > scratch_ids[j]))
+        ids[pixel, rank], keys[pixel, rank] = face, key
 
 
 @numba.njit(cache=True, nogil=True)
@@ -123,10 +141,11 @@ def _covered_depth(coeffs, tri, f, x, y):
 
 @numba.njit(cache=True, nogil=True)
 def _batch_outputs(views, pixels, k, bands):
-    """Per view: the K nearest ids (-1: none) and keys (inf) per pixel, and the count of
-    candidates each row band dropped."""
+    """Per view: the K nearest ids (-1: none) and keys (inf) per pixel, the number of
+    entries of each pixel's list (_insert) and the count of candidates each row band
+    dropped."""
     return (np.full((views, pixels, k), -1, np.int32), np.full((views, pixels, k), np.inf),
-            np.zeros((views, bands), np.int64))
+            np.zeros((views, pixels), np.int32), np.zeros((views, bands), np.int64))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -156,12 +175,14 @@ def _hard_setup(clips, faces, width, height, cull_backfaces):
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _search_hard(clips, faces, width, height, k, cull_backfaces, bands):
     views = clips.shape[0]
-    all_ids, all_keys, all_dropped = _batch_outputs(views, width * height, k, bands)
+    all_ids, all_keys, all_filled, all_dropped = _batch_outputs(views, width * height, k,
+                                                                bands)
     tri, coeffs, pixels, reach = _hard_setup(clips, faces, width, height, cull_backfaces)
     # one item per (view, band): the views of a batch share one parallel loop
     for item in prange(views * bands):
         view, band = item // bands, item % bands
-        ids, keys, dropped = all_ids[view], all_keys[view], all_dropped[view]
+        ids, keys, filled = all_ids[view], all_keys[view], all_filled[view]
+        dropped = all_dropped[view]
         view_tri, view_coeffs = tri[view], coeffs[view]
         band_r0, band_r1 = _band_rows(band, bands, height)
         for f in range(faces.shape[0]):
@@ -174,7 +195,7 @@ def _search_hard(clips, faces, width, height, k, cull_backfaces, bands):
                     z = _covered_depth(view_coeffs, view_tri, f,
                                        (2.0 * col + 1.0) / width - 1.0, y)
                     if z < np.inf:
-                        dropped[band] += _insert(ids, keys, row * width + col, f, z)
+                        dropped[band] += _insert(ids, keys, filled, row * width + col, f, z)
     return all_ids, all_dropped.sum(1)
 
 
@@ -243,6 +264,75 @@ def _fragment_key(depth, signed_d2, bound, depth_bits, sigma):
     elif x <= -40.0:
         return bound
     return depth - _coverage_logit(signed_d2, sigma)
+
+
+#: 2^-k for k = 0..52 (_softplus_neg's range reduction)
+_TWO_POW_NEG = np.array([2.0 ** -k for k in range(53)])
+#: bracket half-width of _key_bracket: _softplus_neg is within ~6e-16 of log1p(exp(-a))
+#: (a dozen roundings of ~1.1e-16 relative, on values <= ln 2 < 1; truncation < 1e-17)
+#: and libm's exp then log1p within ~3.3e-16 (one ulp each); 2^-49 = 1.8e-15 is twice
+#: their sum, and 8x the largest difference between the two seen on 32 million
+#: arguments (2.2e-16, tests/test_tile_search.py)
+KEY_SLACK = 2.0 ** -49
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _softplus_neg(a):
+    """log1p(exp(-a)) for a >= 0 without libm (LLVM vectorizes it), absolute error
+    < 1e-15 (tests/test_tile_search.py): exp(-a) = 2^-k exp(-r), |r| <= ln2 / 2, by its
+    Taylor polynomial of degree 13 (truncation < 5e-18 relative); log(z) for z = 1 + exp(-a)
+    in [1, 2], halved above sqrt(2), as 2 atanh(s), s = (z - 1) / (z + 1), |s| <= 0.172,
+    by the series to s^19 (truncation < 1e-17). a is clamped to 36 (log1p(exp(-36)) <
+    2.4e-16)."""
+    a = min(a, 36.0)
+    k = np.floor(a * 1.4426950408889634 + 0.5)
+    r = (a - k * 6.93147180369123816490e-01) - k * 1.90821492927058770002e-10
+    m = -r
+    p = 1.0 / 6227020800.0
+    p = p * m + 1.0 / 479001600.0
+    p = p * m + 1.0 / 39916800.0
+    p = p * m + 1.0 / 3628800.0
+    p = p * m + 1.0 / 362880.0
+    p = p * m + 1.0 / 40320.0
+    p = p * m + 1.0 / 5040.0
+    p = p * m + 1.0 / 720.0
+    p = p * m + 1.0 / 120.0
+    p = p * m + 1.0 / 24.0
+    p = p * m + 1.0 / 6.0
+    p = p * m + 0.5
+    p = p * m + 1.0
+    p = p * m + 1.0
+    z = 1.0 + p * _TWO_POW_NEG[int(k)]
+    big = z > 1.4142135623730951
+    z = z * 0.5 if big else z
+    t = (z - 1.0) / (z + 1.0)
+    t2 = t * t
+    q = 1.0 / 19.0
+    q = q * t2 + 1.0 / 17.0
+    q = q * t2 + 1.0 / 15.0
+    q = q * t2 + 1.0 / 13.0
+    q = q * t2 + 1.0 / 11.0
+    q = q * t2 + 1.0 / 9.0
+    q = q * t2 + 1.0 / 7.0
+    q = q * t2 + 1.0 / 5.0
+    q = q * t2 + 1.0 / 3.0
+    q = q * t2 + 1.0
+    return 2.0 * t * q + (0.6931471805599453 if big else 0.0)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _key_bracket(depth, signed_d2, sigma):
+    """(lo, hi) with lo <= _fragment_key(depth, signed_d2, ...) <= hi, without libm: the
+    key's two float64 formulas (depth - (-u) inside, depth - (x - u) outside, with
+    u = libm's log1p(exp(-|x|)), x = signed_d2 / sigma) evaluated at u's bracket
+    _softplus_neg(|x|) -+ KEY_SLACK. Rounding is monotonic and both formulas grow with u,
+    so where lo == hi that is the key, bit for bit (else _fragment_key computes it)."""
+    x = signed_d2 / sigma
+    u = _softplus_neg(abs(x))
+    u_lo, u_hi = u - KEY_SLACK, u + KEY_SLACK
+    if x >= 0.0:
+        return depth - (-u_lo), depth - (-u_hi)
+    return depth - (x - u_lo), depth - (x - u_hi)
 
 
 #: the soft search's tiles, in pixels: a row of a tile is one AVX-512 vector of float64
@@ -409,7 +499,8 @@ def _search_soft(clips, faces, width, height, k, cull_backfaces, radii, params, 
     all_ids = np.empty((views, width * height, k), np.int32)
     all_dropped = np.zeros((views, tiles_x * tiles_y), np.int64)
     # one item per (view, tile): the views of a batch share one parallel loop; a tile's
-    # sorted lists are its own until they are copied out
+    # lists are its own until they are copied out (a list is appended to unsorted until
+    # full, then sorted once and kept sorted by _insert; the others are sorted at the end)
     for item in prange(views * tiles_x * tiles_y):
         view, t = item // (tiles_x * tiles_y), item % (tiles_x * tiles_y)
         radius_px = radii[view]
@@ -419,9 +510,12 @@ def _search_soft(clips, faces, width, height, k, cull_backfaces, radii, params, 
         tile_w = tile_c1 - tile_c0 + 1
         ids = np.full(((tile_r1 - tile_r0 + 1) * tile_w, k), -1, np.int32)
         keys = np.full(((tile_r1 - tile_r0 + 1) * tile_w, k), np.inf)
+        filled = np.zeros((tile_r1 - tile_r0 + 1) * tile_w, np.int32)
         dropped = 0
         lanes = np.empty(TILE_H * TILE_W, np.int64)
         out = np.empty((3, TILE_H * TILE_W))
+        key_lo, key_hi = np.empty(TILE_H * TILE_W), np.empty(TILE_H * TILE_W)
+        scratch_ids, scratch_keys = np.empty(k, np.int32), np.empty(k)
         depth_bits = out[0].view(np.int64)
         for slot in range(start[view, t], start[view, t + 1]):
             f = binned[view, slot]
@@ -434,19 +528,33 @@ def _search_soft(clips, faces, width, height, k, cull_backfaces, radii, params, 
             count = 0
             for lane in range((r1 - r0 + 1) * TILE_W):  # the pixels in reach, no branches
                 lanes[count] = lane
+                key_lo[count], key_hi[count] = out[0, lane], out[1, lane]
                 count += out[0, lane] < np.inf
+            for i in range(count):  # the keys' brackets (vectorized: contiguous, no libm)
+                key_lo[i], key_hi[i] = _key_bracket(key_lo[i], key_hi[i], soft[0])
             for i in range(count):
                 lane = lanes[i]
                 # a full list whose last entry ranks before the key's lower bound (out[2])
                 # rejects the fragment without the logarithm
                 pixel = (r0 - tile_r0 + lane // TILE_W) * tile_w + lane % TILE_W
-                if ids[pixel, k - 1] >= 0 and _ranks_after(out[2, lane], f, keys[pixel, k - 1],
+                if filled[pixel] == k and _ranks_after(out[2, lane], f, keys[pixel, k - 1],
                                                            ids[pixel, k - 1]):
                     dropped += 1
                     continue
-                key = _fragment_key(out[0, lane], out[1, lane], out[2, lane], depth_bits[lane],
-                                    soft[0])
-                dropped += _insert(ids, keys, pixel, f, key)
+                key = key_lo[i]
+                if key != key_hi[i]:  # the bracket straddles a rounding boundary: libm
+                    key = _fragment_key(out[0, lane], out[1, lane], out[2, lane],
+                                        depth_bits[lane], soft[0])
+                if filled[pixel] < k:  # appended unsorted; sorted once full
+                    ids[pixel, filled[pixel]], keys[pixel, filled[pixel]] = f, key
+                    filled[pixel] += 1
+                    if filled[pixel] == k:
+                        _sort_list(ids, keys, pixel, k, scratch_ids, scratch_keys)
+                else:
+                    dropped += _insert(ids, keys, filled, pixel, f, key)
+        for pixel in range(ids.shape[0]):
+            if filled[pixel] < k:
+                _sort_list(ids, keys, pixel, filled[pixel], scratch_ids, scratch_keys)
         for row in range(tile_r0, tile_r1 + 1):
             all_ids[view, row * width + tile_c0:row * width + tile_c1 + 1] = \
                 ids[(row - tile_r0) * tile_w:(row - tile_r0 + 1) * tile_w]

@@ -306,3 +306,46 @@ def test_host_soft_key_shortcut_is_bit_exact():
                 (depth, signed_d2, got, want)
             checked += 1
     assert checked == len(depths) * 60
+
+
+def test_host_soft_key_bracket_holds_the_libm_key():
+    """The host soft search brackets each key without libm (candidates._key_bracket) and
+    takes the bracket's ends as the key where they are equal: against the key computed in
+    Python (libm log1p and exp), lo <= key <= hi and, where lo == hi, the same bits; and
+    its log1p(exp(-a)) (candidates._softplus_neg) is within a quarter of the bracket's
+    half-width of libm's on a dense grid of a."""
+    import math
+
+    import numba
+
+    from diffshade.candidates import KEY_SLACK, _key_bracket, _softplus_neg
+
+    @numba.njit
+    def worst(a):
+        return max([abs(_softplus_neg(v) - math.log1p(math.exp(-v))) for v in a])
+
+    grid = np.concatenate([np.linspace(0.0, 40.0, 2_000_001), np.linspace(0.0, 1e-3, 100_001),
+                           np.linspace(36.0, 800.0, 10_001), [1e-300, 5e-324, 1e4, 1e300]])
+    assert worst(grid) <= KEY_SLACK / 4
+
+    rng = np.random.default_rng(6)
+    depths = np.concatenate([[0.0, -0.0, -1e-300, -0.5, -1.0],
+                             -10.0 ** rng.uniform(-6, 6, 400)])
+    xs = np.concatenate([[0.0, -0.0, 1e-300, -1e-300, 40.0, -40.0, 745.0, -800.0],
+                         rng.uniform(-12, 12, 300), rng.uniform(-60, 80, 100)])
+    exact, far = 0, 0
+    for depth in depths:
+        for x, sigma in zip(rng.choice(xs, 60), rng.choice([0.05, 0.75, 1.0, 3.0], 60),
+                            strict=True):
+            signed_d2 = x * sigma
+            x = signed_d2 / sigma
+            log_d = -math.log1p(math.exp(-x)) if x >= 0.0 else x - math.log1p(math.exp(x))
+            want = depth - log_d
+            lo, hi = _key_bracket(depth, signed_d2, sigma)
+            assert lo <= want <= hi, (depth, signed_d2, sigma, lo, want, hi)
+            if lo == hi:
+                assert np.array([lo]).view(np.int64)[0] == np.array([want]).view(np.int64)[0]
+                exact += abs(depth) >= 1e3
+            far += abs(depth) >= 1e3
+    # where the key's spacing (>= 1.1e-13) dwarfs the bracket, it decides nearly every key
+    assert exact >= 0.9 * far > 0
