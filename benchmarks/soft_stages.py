@@ -77,7 +77,7 @@ def stages(size):
     corners = np.asarray(jnp.take(jnp.concatenate([proj.world, proj.normals], -1), faces,
                                   axis=0))
     weights = jax.jit(lambda s, f: render_module.blend_weights(s, f, soft))
-    active = (weights(scene, frags)[..., :-1] > 0.0).reshape(-1)
+    active = (weights(scene, frags)[0] > 0.0).reshape(-1)
     compaction = jax.jit(lambda m: active_indices(m, size * size * 4))
     after_raster = jax.jit(lambda s, f: ds.render_fragments(s, f, soft))
     target = jnp.full((size, size, 4), 0.5, jnp.float32)

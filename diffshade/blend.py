@@ -47,17 +47,28 @@ def log_coverages(frags, sigma):
 
 
 def soft_weights(frags, near, far, sigma, gamma):
-    """The aggregation weights [H, W, K + 1] of soft_blend (the last is the background's):
-    a softmax of the logits log D_k + zt_k / gamma (module docstring), with the
-    background's logit kept apart rather than concatenated to the K others."""
+    """The aggregation weights of soft_blend: (per slot [H, W, K], the background's
+    [H, W]), a softmax of the logits log D_k + zt_k / gamma and the background's
+    (module docstring). The background's logit is kept apart rather than concatenated to
+    the K others, and the two parts are returned apart: under jit(grad), XLA on CPU runs
+    the concatenation, and the slicing of its derivative, as index arithmetic per element
+    in every fusion that reads the [H, W, K + 1] array (the forward + backward of the
+    blend took twice as long, docs/soft-rasterization.md)."""
     zt = normalized_inverse_depth(frags.depth, near, far)
     logits = jnp.where(frags.valid, log_coverages(frags, sigma)[0] + zt / gamma, -jnp.inf)
     bg = jnp.asarray(BACKGROUND_EPS / gamma, logits.dtype)
-    top = jax.lax.stop_gradient(jnp.maximum(jnp.max(logits, -1, keepdims=True), bg))
-    unnormalized = jnp.exp(logits - top)
+    top = jax.lax.stop_gradient(jnp.maximum(jnp.max(logits, -1), bg))
+    unnormalized = jnp.exp(logits - top[..., None])
     unnormalized_bg = jnp.exp(bg - top)
-    total = jnp.sum(unnormalized, -1, keepdims=True) + unnormalized_bg
-    return jnp.concatenate([unnormalized / total, unnormalized_bg / total], -1)
+    total = jnp.sum(unnormalized, -1) + unnormalized_bg
+    return unnormalized / total[..., None], unnormalized_bg / total
+
+
+def soft_alpha(frags, sigma):
+    """alpha = 1 - prod_k (1 - D_k) [H, W] of soft_blend, in log space (module
+    docstring)."""
+    log_clear = jnp.sum(jnp.where(frags.valid, log_coverages(frags, sigma)[1], 0.0), -1)
+    return 1.0 - jnp.exp(log_clear)
 
 
 def soft_blend(colours, frags, background, near, far, sigma, gamma, weights=None):
@@ -65,9 +76,7 @@ def soft_blend(colours, frags, background, near, far, sigma, gamma, weights=None
     -> [H, W, 4] RGBA by SoftRas aggregation (module docstring). The colours of fragments
     whose weight is exactly 0 do not matter (render may leave them 0). weights: the
     soft_weights, when the caller has them already."""
-    if weights is None:
-        weights = soft_weights(frags, near, far, sigma, gamma)
-    rgb = jnp.sum(weights[..., :-1, None] * colours, -2) + weights[..., -1:] * background
-    log_clear = jnp.sum(jnp.where(frags.valid, log_coverages(frags, sigma)[1], 0.0), -1)
-    alpha = 1.0 - jnp.exp(log_clear)
-    return jnp.concatenate([rgb, alpha[..., None]], axis=-1)
+    slots, bg_weight = soft_weights(frags, near, far, sigma, gamma) if weights is None \
+        else weights
+    rgb = jnp.sum(slots[..., None] * colours, -2) + bg_weight[..., None] * background
+    return jnp.concatenate([rgb, soft_alpha(frags, sigma)[..., None]], axis=-1)

@@ -168,8 +168,8 @@ def _rasterize_scene(scene, settings=DEFAULT_SETTINGS) -> Fragments:
 
 
 def blend_weights(scene, frags: Fragments, settings):
-    """Soft mode's aggregation weights [H, W, K + 1] (the last is the background's), or
-    None in hard mode."""
+    """Soft mode's aggregation weights (per slot [H, W, K], the background's [H, W];
+    blend.soft_weights), or None in hard mode."""
     if settings.raster == "hard":
         return None
     cam = scene.camera
@@ -209,7 +209,7 @@ def render_fragments(scene, frags: Fragments, settings=DEFAULT_SETTINGS, axis_na
     scene's Projected when the caller has it (fixed geometry), else projected here."""
     kt = fragment_kt(scene, frags)
     weights = None if kt is not None else blend_weights(scene, frags, settings)
-    active = None if weights is None else weights[..., :-1] > 0.0
+    active = None if weights is None else weights[0] > 0.0
     proj = project(scene) if proj is None else proj
     _, colours = shade_fragments(scene, proj, frags, settings, active, axis_name)
     return blend(scene, colours, frags, settings, weights, kt)

@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from diffshade.blend import soft_alpha
 from diffshade.numerics import clamp01
 from diffshade.project import project
 from diffshade.raster import Fragments
@@ -56,10 +57,8 @@ def _fixed_parts(scene, frags, settings):
         slot = jnp.zeros(frags.face_ids.shape, alpha.dtype).at[..., 0].set(alpha)
         background = 1.0 - alpha
     else:
-        weights = blend_weights(scene, frags, settings)
-        slot, background = weights[..., :-1], weights[..., -1]
-        clear = jnp.where(frags.valid, jax.nn.log_sigmoid(-frags.dist / settings.sigma), 0.0)
-        alpha = 1.0 - jnp.exp(jnp.sum(clear, -1))
+        slot, background = blend_weights(scene, frags, settings)
+        alpha = soft_alpha(frags, settings.sigma)
     active = slot > 0.0
     if settings.shading == "phong":
         frags = dataclasses.replace(frags, face_ids=jnp.where(active, frags.face_ids, -1))
