@@ -232,7 +232,8 @@ def test_linear_start_uncertainty_and_misfit_in_chunks_equal_the_plain_values():
     a view of weight 0): the closed-form start's normal equations (with gains) and gain
     moments, the solved values, the standard errors (J^T J, sigma^2, the rounding bound,
     the warnings) and the misfit check, taken a chunk at a time, equal the plain path's
-    (every view at once) to 1e-10, with one compiled chunk program of each kind.
+    (every view at once) to 1e-10 (the solved values to the shininess search's 1e-6),
+    with one compiled chunk program of each kind.
     Independently: sigma^2 (n - p) and the misfit's rms^2 times the residual count are
     the sum of squared residuals, the plain loss (make_loss, 'mse') times the kept
     pixel-channels."""
@@ -250,8 +251,11 @@ def test_linear_start_uncertainty_and_misfit_in_chunks_equal_the_plain_values():
                                  normal_equations(np.log(20.0), data, spec, g), strict=True):
                 np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
         values = solve_linear(data, spec, grid_size=6)
-        jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12),
-                     solve_linear(views, spec, grid_size=6), values)
+        # the values: the shininess is Brent's minimum to xatol = 1e-6 in log-shininess
+        # (linear.py), and Brent's steps follow the profile's last digits, which the two
+        # summation orders give differently; the rest is solved at that shininess
+        jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=2e-6, atol=1e-12),
+            solve_linear(views, spec, grid_size=6), values)
         moments = [linear.gain_moments(values, d, spec) for d in (views, data)]
         for got, want in zip(*moments, strict=True):
             np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
