@@ -26,15 +26,24 @@ from diffshade.hostcall import host_call
 def _first_active(mask, capacity):
     """(indices [capacity] int32 of the first `capacity` True entries of mask [N], padded
     with N; count [] int32 of all True entries)."""
+    idx, count = np.empty(capacity, np.int32), np.empty(1, np.int32)
+    first_active_into(mask, idx, count)
+    return idx, count[0]
+
+
+@numba.njit(cache=True, nogil=True)
+def first_active_into(mask, idx, count):
+    """_first_active writing into idx [capacity] and count [1] (ffi.py)."""
     n = mask.shape[0]
-    idx = np.full(capacity, n, np.int32)
-    count = 0
+    found = 0
     for i in range(n):
         if mask[i]:
-            if count < capacity:
-                idx[count] = i
-            count += 1
-    return idx, np.int32(count)
+            if found < idx.shape[0]:
+                idx[found] = i
+            found += 1
+    for i in range(min(found, idx.shape[0]), idx.shape[0]):
+        idx[i] = n
+    count[0] = found
 
 
 def active_indices(mask, capacity, host=None):
@@ -46,7 +55,8 @@ def active_indices(mask, capacity, host=None):
         return (jnp.nonzero(mask, size=capacity, fill_value=mask.shape[0])[0].astype(jnp.int32),
                 jnp.sum(mask, dtype=jnp.int32))
     shapes = (jax.ShapeDtypeStruct((capacity,), jnp.int32), jax.ShapeDtypeStruct((), jnp.int32))
-    return host_call(lambda m: _first_active(np.asarray(m, np.bool_), capacity), shapes, mask)
+    return host_call(lambda m: _first_active(np.asarray(m, np.bool_), capacity), shapes, mask,
+                     ffi=("active", ()))
 
 
 def on_active(fn, active, capacity, *arrays, axis_name=None, host=None):

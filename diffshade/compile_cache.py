@@ -14,9 +14,9 @@ user's home behind their back):
 
 Every program is cached however quickly it compiled (JAX's default skips those under 1 s,
 and most of a fit's programs compile in 0.1-1 s each). JAX never caches a program that
-contains a host callback: on CPU, rasterization runs diffshade's compiled kernels through
-a host callback (diffshade.hostcall), so the programs that rasterize are compiled afresh
-in every process; the fit's steps, which shade cached fragments, are cached.
+contains a host callback; on CPU diffshade's compiled kernels are XLA FFI custom calls
+(diffshade.ffi), which it does cache (with DIFFSHADE_FFI=0 they are host callbacks, and
+the programs that rasterize are compiled afresh in every process).
 
 JAX computes a program's cache key from its lowered module, so even a warm run traces
 and lowers every program (a second or more for a fit's biggest). The program store

@@ -144,7 +144,7 @@ def _chunk(chunk, chunks, npix):
     return chunk * step, min(npix, (chunk + 1) * step)
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def geometry_forward(ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny, chunks):
     """bary [P, K, 3], depth [P, K] = bary . corner_z and the signed squared pixel distance
     [P, K] (soft; zeros in hard mode).
@@ -155,11 +155,22 @@ def geometry_forward(ids, corner_w, corner_z, coeffs, scr, width, height, soft, 
     """
     npix, k = ids.shape
     dtype = coeffs.dtype
-    table = _face_table(corner_w, coeffs, scr, tiny)
-    # np.empty, every element written below: zeroing ~10 MB first cost ~10% of the kernel
+    # np.empty, every element written: zeroing ~10 MB first cost ~10% of the kernel
     bary = np.empty((npix, k, 3), dtype)
     depth = np.empty((npix, k), dtype)
     dist = np.empty((npix, k), dtype)
+    geometry_forward_into(ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny,
+                          chunks, bary, depth, dist)
+    return bary, depth, dist
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def geometry_forward_into(ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny,
+                          chunks, bary, depth, dist):
+    """geometry_forward writing every element of bary, depth and dist (as XLA's buffers
+    given by an FFI call, ffi.py)."""
+    npix, k = ids.shape
+    table = _face_table(corner_w, coeffs, scr, tiny)
     xs, pxs, ys, pys = _pixel_coords(width, height)
     for chunk in prange(chunks):
         start, stop = _chunk(chunk, chunks, npix // width)  # whole rows
@@ -187,7 +198,6 @@ def geometry_forward(ids, corner_w, corner_z, coeffs, scr, width, height, soft, 
                     dist[pixel, slot] = d2 if s0 >= 0.0 and s1 >= 0.0 and s2 >= 0.0 else -d2
                 bary[pixel, slot, 0], bary[pixel, slot, 1], bary[pixel, slot, 2] = b0, b1, b2
                 depth[pixel, slot] = b0 * corner_z[f, 0] + b1 * corner_z[f, 1] + b2 * corner_z[f, 2]
-    return bary, depth, dist
 
 
 #: geometry_backward's per-face accumulator row: the gradients of corner_w [3] at _W,
@@ -216,14 +226,25 @@ def _dist_grad(acc, chunk, f, px, py, table, g_m):
     acc[chunk, f, _S + 1 + 2 * j] -= 2.0 * g_m * t * dy
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def geometry_backward(ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny, chunks,
                       g_bary, g_depth, g_dist):
     """Gradients of geometry_forward: (g_w [F, 3], g_z [F, 3], g_coeffs [F, 3, 3],
     g_scr [F, 3, 2])."""
+    nfaces, dtype = coeffs.shape[0], coeffs.dtype
+    out_w, out_z = np.empty((nfaces, 3), dtype), np.empty((nfaces, 3), dtype)
+    out_coeffs, out_scr = np.empty((nfaces, 3, 3), dtype), np.empty((nfaces, 3, 2), dtype)
+    geometry_backward_into(ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny,
+                           chunks, g_bary, g_depth, g_dist, out_w, out_z, out_coeffs, out_scr)
+    return out_w, out_z, out_coeffs, out_scr
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def geometry_backward_into(ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny,
+                           chunks, g_bary, g_depth, g_dist, out_w, out_z, out_coeffs, out_scr):
+    """geometry_backward writing its gradients into out_w, out_z, out_coeffs and out_scr."""
     npix, k = ids.shape
     nfaces = coeffs.shape[0]
-    dtype = coeffs.dtype
     table = _face_table(corner_w, coeffs, scr, tiny)
     # float64 accumulators: more accurate, and no conversion per fragment; a face's sums
     # side by side in one row (_ACC_WIDTH), not in four arrays: ~7% faster
@@ -292,24 +313,39 @@ def geometry_backward(ids, corner_w, corner_z, coeffs, scr, width, height, soft,
                 acc[chunk, f, _C + 6] += ge2 * x
                 acc[chunk, f, _C + 7] += ge2 * y
                 acc[chunk, f, _C + 8] += ge2
-    total = acc.sum(0).astype(dtype)
-    return (total[:, _W:_W + 3].copy(), total[:, _Z:_Z + 3].copy(),
-            total[:, _C:_C + 9].copy().reshape(nfaces, 3, 3),
-            total[:, _S:_S + 6].copy().reshape(nfaces, 3, 2))
+    total = acc.sum(0)
+    for f in range(nfaces):
+        for i in range(3):
+            out_w[f, i] = total[f, _W + i]
+            out_z[f, i] = total[f, _Z + i]
+            for j in range(3):
+                out_coeffs[f, i, j] = total[f, _C + 3 * i + j]
+            for j in range(2):
+                out_scr[f, i, j] = total[f, _S + 2 * i + j]
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def interpolate_forward(ids, bary, corners, chunks):
     """sum_i bary_i * corners[f, i]: [P, K, C] for corners [F, 3, C]."""
     npix, k = ids.shape
+    out = np.empty((npix, k, corners.shape[2]), corners.dtype)
+    interpolate_forward_into(ids, bary, corners, chunks, out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def interpolate_forward_into(ids, bary, corners, chunks, out):
+    """interpolate_forward writing every element of out [P, K, C]."""
+    npix, k = ids.shape
     nc = corners.shape[2]
-    out = np.zeros((npix, k, nc), corners.dtype)
     for chunk in prange(chunks):
         start, stop = _chunk(chunk, chunks, npix)
         for pixel in range(start, stop):
             for slot in range(k):
                 f = ids[pixel, slot]
                 if f < 0:
+                    for ch in range(nc):
+                        out[pixel, slot, ch] = 0.0
                     continue
                 b0, b1, b2 = bary[pixel, slot, 0], bary[pixel, slot, 1], bary[pixel, slot, 2]
                 for ch in range(nc):
@@ -318,13 +354,22 @@ def interpolate_forward(ids, bary, corners, chunks):
     return out
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def interpolate_backward(ids, bary, corners, g_out, chunks):
     """Gradients of interpolate_forward: (g_bary [P, K, 3], g_corners [F, 3, C])."""
     npix, k = ids.shape
+    g_bary = np.empty((npix, k, 3), corners.dtype)
+    g_corners = np.empty(corners.shape, corners.dtype)
+    interpolate_backward_into(ids, bary, corners, g_out, chunks, g_bary, g_corners)
+    return g_bary, g_corners
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def interpolate_backward_into(ids, bary, corners, g_out, chunks, g_bary, g_corners):
+    """interpolate_backward writing every element of g_bary and g_corners."""
+    npix, k = ids.shape
     nfaces, _, nc = corners.shape
     dtype = corners.dtype
-    g_bary = np.empty((npix, k, 3), dtype)  # every element written below
     acc = np.zeros((chunks, nfaces, 3, nc), dtype)
     for chunk in prange(chunks):
         start, stop = _chunk(chunk, chunks, npix)
@@ -345,4 +390,4 @@ def interpolate_backward(ids, bary, corners, g_out, chunks):
                     acc[chunk, f, 1, ch] += b1 * g
                     acc[chunk, f, 2, ch] += b2 * g
                 g_bary[pixel, slot, 0], g_bary[pixel, slot, 1], g_bary[pixel, slot, 2] = t0, t1, t2
-    return g_bary, acc.sum(0)
+    g_corners[:] = acc.sum(0)

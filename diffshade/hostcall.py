@@ -1,4 +1,10 @@
-"""host_call: `jax.pure_callback` that keeps float64 arrays float64.
+"""host_call: `jax.pure_callback` that keeps float64 arrays float64, or an XLA FFI call.
+
+Where the caller names an FFI target of ffi.py (the rasterizer's kernels do), host_call
+binds its primitive with the operands as they are and lowers it, on the CPU, to a custom
+call of that target: XLA runs the compiled handler on its own buffers (no Python, no GIL,
+no copy; ffi.py). `fn` then serves eager calls, other platforms, and DIFFSHADE_FFI=0 in
+the environment (read when a program is traced). What follows is the callback path.
 
 Under the `jax.enable_x64()` context manager (thread-local), XLA may run a callback on one
 of its own threads, where x64 is off: jax then hands the callback float64 operands
@@ -27,6 +33,7 @@ a host kernel on fixed inputs (the fitting cache's candidate search, fitting.cac
 it this way, between jitted programs that have no callback.
 """
 
+import os
 import threading
 
 import jax
@@ -41,6 +48,8 @@ except ImportError:  # another JAX's internals
     jax_callback = None
 
 _LOCK = threading.Lock()
+#: DIFFSHADE_FFI=0 in the environment: the kernels run through the Python callback only
+FFI_SWITCH = "DIFFSHADE_FFI"
 #: JAX versions (major, minor) whose internals the no-copy primitive was tested with
 NO_COPY_JAX = ((0, 10),)
 
@@ -50,6 +59,16 @@ def _no_copy():
     version = tuple(int(p) for p in jax.__version__.split(".")[:2])
     return (version in NO_COPY_JAX and jax_callback is not None
             and hasattr(jax_callback, "_callback_op_sharding"))
+
+
+def _ffi_target(base, args):
+    """The FFI target of ffi.py that host_call may run for `base` and these operands, or
+    None (also where the environment sets DIFFSHADE_FFI=0)."""
+    from diffshade import ffi as handlers  # (it imports the kernels' modules)
+
+    if os.environ.get(FFI_SWITCH) == "0" or not (_no_copy() and handlers.available()):
+        return None
+    return handlers.target_for(base, args)
 
 
 def _is64(dtype):
@@ -72,7 +91,7 @@ def _canonical(x):
     return x.astype(jax.dtypes.canonicalize_dtype(x.dtype), copy=False)
 
 
-def host_call(fn, result_shapes, *args, batched=False):
+def host_call(fn, result_shapes, *args, batched=False, ffi=None):
     """fn(*numpy arrays) -> tuple of numpy arrays shaped like result_shapes (a tuple of
     jax.ShapeDtypeStruct); run under jit and vmap as pure_callback does.
 
@@ -81,6 +100,11 @@ def host_call(fn, result_shapes, *args, batched=False):
     axes (of size 1 where that argument is not batched; pure_callback's "expand_dims"),
     and returns results with leading axes of the broadcast batch shape.
 
+    ffi: (base, attributes), the same computation as an XLA FFI target of ffi.py
+    (ffi.target_for) with int attributes: under jit on the CPU, XLA then calls the
+    compiled handler instead of fn (no Python, no copies); fn still serves eager calls
+    and other platforms.
+
     Called outside a trace, fn runs at once on NumPy arrays: nothing is compiled."""
     if not any(isinstance(a, jax.core.Tracer) for a in args):  # eager: run it now
         with _LOCK:
@@ -88,6 +112,12 @@ def host_call(fn, result_shapes, *args, batched=False):
         return tuple(jax.device_put(np.ascontiguousarray(r, s.dtype).reshape(s.shape))
                      for r, s in zip(results, result_shapes, strict=True))
     args = [jnp.asarray(a) for a in args]
+    target = None if ffi is None else _ffi_target(ffi[0], args)
+    if target is not None:
+        # operands and results cross as they are: no bit-casting of float64 (the handler
+        # runs in XLA, whatever the x64 state of its thread)
+        return tuple(_host_p.bind(*args, fn=_locked(fn), result_shapes=tuple(result_shapes),
+                                  batched=batched, ffi=(target, tuple(ffi[1]))))
     args_64 = [_is64(a.dtype) for a in args]
     outs_64 = [_is64(s.dtype) for s in result_shapes]
     packed = tuple(jax.ShapeDtypeStruct(s.shape + (2,), np.uint32) if is64 else s
@@ -107,7 +137,7 @@ def host_call(fn, result_shapes, *args, batched=False):
         return tuple(out)
     if _no_copy():
         results = _host_p.bind(*[_pack(a) for a in args], fn=host, result_shapes=packed,
-                               batched=batched)
+                               batched=batched, ffi=None)
     else:
         results = jax.pure_callback(host, packed, *[_pack(a) for a in args],
                                     vmap_method="expand_dims" if batched else "sequential")
@@ -115,21 +145,36 @@ def host_call(fn, result_shapes, *args, batched=False):
                  for r, is64 in zip(results, outs_64, strict=True))
 
 
+def _locked(fn):
+    """fn run under the lock, its results as contiguous arrays (for the primitive's eager
+    rule and the Python callback, where an FFI target is not used)."""
+    def run(*arrays):
+        with _LOCK:
+            return tuple(np.ascontiguousarray(r) for r in fn(*arrays))
+    return run
+
+
 _host_p = Primitive("diffshade_host_call")
 _host_p.multiple_results = True
 
 
 @_host_p.def_impl
-def _host_impl(*args, fn, result_shapes, batched):
-    return [jnp.asarray(r) for r in fn(*[np.asarray(a) for a in args])]
+def _host_impl(*args, fn, result_shapes, batched, ffi):
+    results = fn(*[np.asarray(a) for a in args])
+    return [jnp.asarray(np.asarray(r, s.dtype).reshape(s.shape))
+            for r, s in zip(results, result_shapes, strict=True)]
 
 
 @_host_p.def_abstract_eval
-def _host_avals(*args, fn, result_shapes, batched):
+def _host_avals(*args, fn, result_shapes, batched, ffi):
     return [jax.core.ShapedArray(s.shape, s.dtype) for s in result_shapes]
 
 
-def _host_lowering(ctx, *operands, fn, result_shapes, batched):
+def _host_lowering(ctx, *operands, fn, result_shapes, batched, ffi):
+    if ffi is not None and tuple(ctx.module_context.platforms) == ("cpu",):
+        from diffshade import ffi as handlers  # (it imports the kernels' modules)
+
+        return handlers.lowering(ctx, operands, *ffi)
     # where the callback runs in a sharded program: as pure_callback decides
     sharding = jax_callback._callback_op_sharding(ctx.module_context.axis_context, None,
                                                   ctx.avals_out)
@@ -139,7 +184,7 @@ def _host_lowering(ctx, *operands, fn, result_shapes, batched):
     return results
 
 
-def _host_batch(args, dims, *, fn, result_shapes, batched):
+def _host_batch(args, dims, *, fn, result_shapes, batched, ffi):
     """pure_callback's vmap methods: one call with the batch axes leading (unbatched
     arguments get an axis of size 1) when `batched`, else one call per batch member."""
     size = next(a.shape[d] for a, d in zip(args, dims, strict=True) if d is not None)
@@ -147,7 +192,7 @@ def _host_batch(args, dims, *, fn, result_shapes, batched):
     shapes = tuple(jax.ShapeDtypeStruct((size,) + s.shape, s.dtype) for s in result_shapes)
     if batched:
         args = [a[None] if d is None else a for a, d in zip(args, dims, strict=True)]
-        out = _host_p.bind(*args, fn=fn, result_shapes=shapes, batched=True)
+        out = _host_p.bind(*args, fn=fn, result_shapes=shapes, batched=True, ffi=ffi)
         return out, [0] * len(out)
     mapped = [i for i, d in enumerate(dims) if d is not None]
 
@@ -155,7 +200,7 @@ def _host_batch(args, dims, *, fn, result_shapes, batched):
         full = list(args)
         for i, member in zip(mapped, members, strict=True):
             full[i] = member
-        return _host_p.bind(*full, fn=fn, result_shapes=result_shapes, batched=False)
+        return _host_p.bind(*full, fn=fn, result_shapes=result_shapes, batched=False, ffi=ffi)
     out = jax.lax.map(one, [args[i] for i in mapped])
     return out, [0] * len(out)
 

@@ -50,6 +50,10 @@ class FragmentOp:
     forward: object
     backward: object
     out_avals: object
+    #: (prefix, names of the int params): the kernels as XLA FFI targets of ffi.py,
+    #: prefix_forward and prefix_backward, given those params as attributes; None: the
+    #: host callback only
+    ffi: tuple = None
 
     def __post_init__(self):
         prims = {p: Primitive(f"{self.name}_{p}") for p in ("op", "jvp", "vjp")}
@@ -79,10 +83,17 @@ class FragmentOp:
     def _forward_avals(self, ids, *args, **params):
         return tuple(self.out_avals(ids, *args, **params))
 
+    def _ffi(self, stage, params):
+        """host_call's ffi argument of the forward or backward kernel."""
+        if self.ffi is None:
+            return None
+        prefix, names = self.ffi
+        return f"{prefix}_{stage}", tuple(int(params[name]) for name in names)
+
     def _forward_host(self, ids, *args, **params):
         return host_call(partial(self.forward, **params), self._forward_avals(ids, *args,
                                                                               **params),
-                         ids, *args)
+                         ids, *args, ffi=self._ffi("forward", params))
 
     def _jvp_avals(self, ids, *args, **params):
         return self._forward_avals(ids, *args[:len(self.kinds)], **params)
@@ -98,7 +109,7 @@ class FragmentOp:
     def _backward_host(self, ids, *args, **params):
         return host_call(partial(self.backward, **params), self._vjp_avals(ids, *args,
                                                                            **params),
-                         ids, *args)
+                         ids, *args, ffi=self._ffi("backward", params))
 
     def _vjp_native(self, ids, *args, **params):
         n = len(self.kinds)

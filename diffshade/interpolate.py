@@ -46,7 +46,8 @@ def _interpolate_backward(ids, bary, corners, g_out):
 #: sum_i bary_i * corners[face, i] per fragment: ids [H, W, K] int (-1 = empty), bary
 #: [H, W, K, 3], corners [F, 3, C] (one dtype) -> ([H, W, K, C],) (zeros in empty slots).
 interpolate_corners = FragmentOp("interpolate_corners", ("pixel", "face"), _interpolate_native,
-                                 _interpolate_forward, _interpolate_backward, _interpolate_avals)
+                                 _interpolate_forward, _interpolate_backward, _interpolate_avals,
+                                 ffi=("interpolate", ()))
 
 
 def interpolate_rows(tree, table, ids, weights, host=None):

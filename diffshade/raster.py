@@ -107,8 +107,10 @@ def search_faces(clip, faces, camera, k, settings, soft):
                 for c, f, n, r, p, s, g in zip(*batch, strict=True)), strict=True))
         return ids.reshape(lead + ids.shape[1:]), dropped.reshape(lead)
     clip, near, far, radius, sigma, gamma = operands
+    ffi = ("search", (camera.width, camera.height, k, settings.cull_backfaces,
+                                perspective))
     return host_call(search, shapes, clip, faces, near, far, radius, sigma, gamma,
-                     batched=True)
+                     batched=True, ffi=ffi)
 
 
 def _screen_positions(clip, width, height):
@@ -211,7 +213,8 @@ def _geometry_backward(ids, corner_w, corner_z, coeffs, scr, g_bary, g_depth, g_
 #: depth of the corners, coeffs [F, 3, 3] edge coefficients (face_edge_coefficients), scr
 #: [F, 3, 2] corner pixel positions. Static: width, height, soft.
 fragment_geometry = FragmentOp("fragment_geometry", ("face",) * 4, _geometry_native,
-                               _geometry_forward, _geometry_backward, _geometry_avals)
+                               _geometry_forward, _geometry_backward, _geometry_avals,
+                               ffi=("geometry", ("width", "height", "soft")))
 
 
 def fragments_from_ids(proj: Projected, faces, face_ids, dropped, soft=False,

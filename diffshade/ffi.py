@@ -1,0 +1,457 @@
+"""The host kernels as XLA FFI targets: compiled handlers XLA calls with its own buffers.
+
+Through a Python callback (hostcall.py), every call of a host kernel under `jit` goes
+from XLA's thread into Python (the GIL), wraps the operands as NumPy arrays, runs the
+kernel, and XLA copies the kernel's freshly allocated results into its own buffers: ~1 ms
+per call of the geometry kernels of a 256^2, K = 8 soft render (~10 MB of results), on
+top of the kernel. As an XLA FFI custom call (`jax.ffi`), XLA calls a compiled handler
+with the addresses of its operand and result buffers: the kernel reads and writes them
+in place, with no Python, no GIL and no copy.
+
+Each handler here is a numba `cfunc` with XLA's FFI handler signature,
+`XLA_FFI_Error* handler(XLA_FFI_CallFrame*)`. It reads the call frame as int64 words
+(XLA's C API, xla/ffi/api/c_api.h, as jaxlib 0.10 ships it; `FRAME_*` below), answers
+XLA's metadata query (the FFI API version, asked once when the target is registered),
+and otherwise wraps each buffer as an array of its dtype and shape and calls the kernel.
+Static settings (image size, K, flags) travel as int64 attributes named a0, a1, ...
+(XLA passes attributes sorted by name), then numba's thread count. Float operands are
+float32, or float64 under x64: a target per dtype (`target_for`).
+
+A target is compiled (or loaded from numba's cache) and registered with XLA the first
+time a program using it is lowered (`lowering`), so importing diffshade compiles nothing.
+Targets exist for the CPU only. hostcall.host_call uses the Python callback instead on
+other platforms, for operand types no handler takes, with JAX versions other than the
+one this layout was read from (hostcall.NO_COPY_JAX), with numba's workqueue threading
+layer (`available`), and where the environment sets DIFFSHADE_FFI=0.
+"""
+
+import jax
+import numba
+import numpy as np
+from numba import carray, cfunc, types
+from numba.core import cgutils
+from numba.extending import intrinsic
+
+from diffshade import candidates, compact
+from diffshade import fragment_kernels as kernels
+from diffshade.numerics import tiny
+
+# XLA_FFI_CallFrame as int64 words: struct_size, extension_start, api, ctx, stage; then
+# XLA_FFI_Args (struct_size, extension_start, size, types, args), XLA_FFI_Rets (same,
+# rets) and XLA_FFI_Attrs (struct_size, extension_start, size, types, names, attrs)
+FRAME_WORDS, FRAME_EXTENSION, FRAME_ARGS, FRAME_RETS, FRAME_ATTRS = 21, 1, 9, 14, 20
+# XLA_FFI_Buffer as int64 words: struct_size, extension_start, dtype, data, rank, dims
+BUFFER_DTYPE, BUFFER_DATA, BUFFER_RANK, BUFFER_DIMS = 2, 3, 4, 5
+# XLA_FFI_DataType of the operands the handlers take
+PRED, S32, S64, F32, F64 = 1, 4, 5, 11, 12
+# XLA_FFI_Extension_Metadata; the FFI API version the handlers declare (XLA accepts 0.1
+# up to its own, 0.3 in jaxlib 0.10)
+METADATA_EXTENSION, API_MAJOR, API_MINOR = 1, 0, 1
+#: the attribute lowering appends to every call: numba's thread count when lowered (the
+#: kernels' parallel parts; numba.get_num_threads in a handler would keep numba from
+#: caching it)
+THREADS = -1
+
+_SIGNATURE = types.voidptr(types.voidptr)
+#: numerics.tiny of each float dtype (numba freezes them as constants)
+_TINY32, _TINY64 = tiny(np.float32), tiny(np.float64)
+
+
+@intrinsic
+def _pointer(typingctx, address):
+    """An int64 address (or a void pointer, unchanged) as a void pointer (for carray)."""
+    if address == types.voidptr:
+        return types.voidptr(address), lambda context, builder, signature, args: args[0]
+    if not isinstance(address, types.Integer):
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.inttoptr(args[0], cgutils.voidptr_t)
+    return types.voidptr(address), codegen
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _words(address, count):
+    return carray(_pointer(address), (count,), np.int64)
+
+
+@numba.njit(cache=True, nogil=True)
+def _answered_metadata(frame):
+    """Whether the call is XLA's metadata query (then answered: the API version the
+    handler implements, no traits). XLA_FFI_Metadata_Extension: the extension base
+    (struct_size, type, next) and a pointer to XLA_FFI_Metadata (struct_size, then
+    XLA_FFI_Api_Version: struct_size, extension_start, major, minor (int32 each), then the
+    traits (uint32))."""
+    if frame[FRAME_EXTENSION] == 0:
+        return False
+    extension = _words(frame[FRAME_EXTENSION], 4)
+    if (extension[1] & 0xFFFFFFFF) != METADATA_EXTENSION:
+        return False
+    metadata = carray(_pointer(extension[3]), (9,), np.int32)
+    metadata[6], metadata[7], metadata[8] = API_MAJOR, API_MINOR, 0
+    return True
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _buffer(frame, which, index):
+    """The XLA_FFI_Buffer words of argument (which = FRAME_ARGS) or result (FRAME_RETS)
+    `index`."""
+    return _words(_words(frame[which], index + 1)[index], 6)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _size(buffer):
+    """Number of elements."""
+    rank = buffer[BUFFER_RANK]
+    dims = _words(buffer[BUFFER_DIMS], max(rank, 1))
+    n = 1
+    for i in range(rank):
+        n *= dims[i]
+    return n
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _dim(buffer, axis):
+    """Size of an axis (negative: from the end)."""
+    rank = buffer[BUFFER_RANK]
+    return _words(buffer[BUFFER_DIMS], rank)[axis % rank]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _attribute(frame, index):
+    """int64 attribute `index` (a0, a1, ... in name order; negative: from the end): an
+    XLA_FFI_Scalar (dtype, value pointer)."""
+    index = index + frame[FRAME_ATTRS - 3] if index < 0 else index  # from the end
+    scalar = _words(_words(frame[FRAME_ATTRS], index + 1)[index], 2)
+    return _words(scalar[1], 1)[0]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _dtype(frame, which, index):
+    return _buffer(frame, which, index)[BUFFER_DTYPE] & 0xFFFFFFFF
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _array2(frame, which, index, tail, dtype):
+    """A buffer as [N / tail, tail] of `dtype`."""
+    b = _buffer(frame, which, index)
+    return carray(_pointer(b[BUFFER_DATA]), (_size(b) // tail, tail), dtype)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _array3(frame, which, index, middle, tail, dtype):
+    """A buffer as [N / (middle * tail), middle, tail] of `dtype`."""
+    b = _buffer(frame, which, index)
+    return carray(_pointer(b[BUFFER_DATA]), (_size(b) // (middle * tail), middle, tail),
+                  dtype)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _flat(frame, which, index, dtype):
+    b = _buffer(frame, which, index)
+    return carray(_pointer(b[BUFFER_DATA]), (_size(b),), dtype)
+
+
+# -- fragment geometry (raster.fragment_geometry) ------------------------------------------
+# arguments: ids [R, W, K] int32, corner_w [F, 3], corner_z [F, 3], coeffs [F, 3, 3], scr
+# [F, 3, 2]; attributes: width, height, soft. Forward results: bary [R, W, K, 3], depth
+# and dist [R, W, K]; backward: cotangents of those three follow the arguments, results
+# are the gradients of the four per-face arrays.
+
+@numba.njit(cache=True, nogil=True)
+def _geometry_forward(frame, dtype, tiny):
+    k = _dim(_buffer(frame, FRAME_ARGS, 0), -1)
+    width, height, soft = _attribute(frame, 0), _attribute(frame, 1), _attribute(frame, 2)
+    kernels.geometry_forward_into(
+        _array2(frame, FRAME_ARGS, 0, k, np.int32), _array2(frame, FRAME_ARGS, 1, 3, dtype),
+        _array2(frame, FRAME_ARGS, 2, 3, dtype), _array3(frame, FRAME_ARGS, 3, 3, 3, dtype),
+        _array3(frame, FRAME_ARGS, 4, 3, 2, dtype), width, height, soft != 0,
+        tiny, _attribute(frame, THREADS),
+        _array3(frame, FRAME_RETS, 0, k, 3, dtype), _array2(frame, FRAME_RETS, 1, k, dtype),
+        _array2(frame, FRAME_RETS, 2, k, dtype))
+
+
+def _geometry_forward_f32(address):
+    frame = _words(address, FRAME_WORDS)
+    if not _answered_metadata(frame):
+        _geometry_forward(frame, np.float32, _TINY32)
+    return _pointer(0)
+
+
+def _geometry_forward_f64(address):
+    frame = _words(address, FRAME_WORDS)
+    if not _answered_metadata(frame):
+        _geometry_forward(frame, np.float64, _TINY64)
+    return _pointer(0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _geometry_backward(frame, dtype, tiny):
+    k = _dim(_buffer(frame, FRAME_ARGS, 0), -1)
+    width, height, soft = _attribute(frame, 0), _attribute(frame, 1), _attribute(frame, 2)
+    kernels.geometry_backward_into(
+        _array2(frame, FRAME_ARGS, 0, k, np.int32), _array2(frame, FRAME_ARGS, 1, 3, dtype),
+        _array2(frame, FRAME_ARGS, 2, 3, dtype), _array3(frame, FRAME_ARGS, 3, 3, 3, dtype),
+        _array3(frame, FRAME_ARGS, 4, 3, 2, dtype), width, height, soft != 0,
+        tiny, _attribute(frame, THREADS),
+        _array3(frame, FRAME_ARGS, 5, k, 3, dtype), _array2(frame, FRAME_ARGS, 6, k, dtype),
+        _array2(frame, FRAME_ARGS, 7, k, dtype),
+        _array2(frame, FRAME_RETS, 0, 3, dtype), _array2(frame, FRAME_RETS, 1, 3, dtype),
+        _array3(frame, FRAME_RETS, 2, 3, 3, dtype), _array3(frame, FRAME_RETS, 3, 3, 2, dtype))
+
+
+def _geometry_backward_f32(address):
+    frame = _words(address, FRAME_WORDS)
+    if not _answered_metadata(frame):
+        _geometry_backward(frame, np.float32, _TINY32)
+    return _pointer(0)
+
+
+def _geometry_backward_f64(address):
+    frame = _words(address, FRAME_WORDS)
+    if not _answered_metadata(frame):
+        _geometry_backward(frame, np.float64, _TINY64)
+    return _pointer(0)
+
+
+# -- interpolation (interpolate.interpolate_corners) ---------------------------------------
+# arguments: ids [R, W, K] int32, bary [R, W, K, 3], corners [F, 3, C]; forward result
+# [R, W, K, C]; backward: the cotangent [R, W, K, C] follows, results g_bary and g_corners.
+
+@numba.njit(cache=True, nogil=True)
+def _interpolate_forward(frame, dtype):
+    k = _dim(_buffer(frame, FRAME_ARGS, 0), -1)
+    c = _dim(_buffer(frame, FRAME_ARGS, 2), -1)
+    kernels.interpolate_forward_into(
+        _array2(frame, FRAME_ARGS, 0, k, np.int32), _array3(frame, FRAME_ARGS, 1, k, 3, dtype),
+        _array3(frame, FRAME_ARGS, 2, 3, c, dtype), _attribute(frame, THREADS),
+        _array3(frame, FRAME_RETS, 0, k, c, dtype))
+
+
+def _interpolate_forward_f32(address):
+    frame = _words(address, FRAME_WORDS)
+    if not _answered_metadata(frame):
+        _interpolate_forward(frame, np.float32)
+    return _pointer(0)
+
+
+def _interpolate_forward_f64(address):
+    frame = _words(address, FRAME_WORDS)
+    if not _answered_metadata(frame):
+        _interpolate_forward(frame, np.float64)
+    return _pointer(0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _interpolate_backward(frame, dtype):
+    k = _dim(_buffer(frame, FRAME_ARGS, 0), -1)
+    c = _dim(_buffer(frame, FRAME_ARGS, 2), -1)
+    kernels.interpolate_backward_into(
+        _array2(frame, FRAME_ARGS, 0, k, np.int32), _array3(frame, FRAME_ARGS, 1, k, 3, dtype),
+        _array3(frame, FRAME_ARGS, 2, 3, c, dtype), _array3(frame, FRAME_ARGS, 3, k, c, dtype),
+        _attribute(frame, THREADS), _array3(frame, FRAME_RETS, 0, k, 3, dtype),
+        _array3(frame, FRAME_RETS, 1, 3, c, dtype))
+
+
+def _interpolate_backward_f32(address):
+    frame = _words(address, FRAME_WORDS)
+    if not _answered_metadata(frame):
+        _interpolate_backward(frame, np.float32)
+    return _pointer(0)
+
+
+def _interpolate_backward_f64(address):
+    frame = _words(address, FRAME_WORDS)
+    if not _answered_metadata(frame):
+        _interpolate_backward(frame, np.float64)
+    return _pointer(0)
+
+
+# -- active slots (compact.active_indices) --------------------------------------------------
+# argument: mask [N] bool; results: indices [capacity] int32, count [] int32
+
+def _active(address):
+    frame = _words(address, FRAME_WORDS)
+    if not _answered_metadata(frame):
+        compact.first_active_into(_flat(frame, FRAME_ARGS, 0, np.bool_),
+                                          _flat(frame, FRAME_RETS, 0, np.int32),
+                                          _flat(frame, FRAME_RETS, 1, np.int32))
+    return _pointer(0)
+
+
+# -- candidate search (raster.search_faces) -------------------------------------------------
+# arguments: clip [*B, V, 4], faces [F, 3] int32 or int64 (one mesh for every view), near,
+# far, radius, sigma and gamma (each [*B] or of size 1); attributes: width, height, k,
+# cull_backfaces, perspective. Results: face ids [*B, H, W, k] int32, dropped [*B] int32.
+
+@numba.njit(cache=True, nogil=True)
+def _member(view, lead, buffer, core):
+    """Index into argument `buffer` (leading axes broadcast against the batch shape
+    `lead`, then `core` axes of its own) of batch member `view` (row-major in lead)."""
+    rank = buffer[BUFFER_RANK]
+    dims = _words(buffer[BUFFER_DIMS], max(rank, 1))
+    axes = rank - core
+    index, stride, rest = 0, 1, view
+    for axis in range(lead.shape[0] - 1, -1, -1):
+        coordinate = rest % lead[axis]
+        rest //= lead[axis]
+        own = axis - (lead.shape[0] - axes)
+        if own >= 0:
+            if dims[own] > 1:
+                index += coordinate * stride
+            stride *= dims[own]
+    return index
+
+
+@numba.njit(cache=True, nogil=True)
+def _per_view(frame, index, lead, views):
+    """Argument `index` ([*B], broadcast; float32 or float64) as float64 [views]."""
+    buffer = _buffer(frame, FRAME_ARGS, index)
+    out = np.empty(views)
+    if (buffer[BUFFER_DTYPE] & 0xFFFFFFFF) == F64:
+        values64 = _flat(frame, FRAME_ARGS, index, np.float64)
+        for v in range(views):
+            out[v] = values64[_member(v, lead, buffer, 0)]
+    else:
+        values32 = _flat(frame, FRAME_ARGS, index, np.float32)
+        for v in range(views):
+            out[v] = values32[_member(v, lead, buffer, 0)]
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _search(frame, dtype, face_dtype):
+    ids = _flat(frame, FRAME_RETS, 0, np.int32)
+    out_dropped = _buffer(frame, FRAME_RETS, 1)
+    dropped = _flat(frame, FRAME_RETS, 1, np.int32)
+    views = dropped.shape[0]
+    lead = _words(out_dropped[BUFFER_DIMS], max(out_dropped[BUFFER_RANK], 1)).copy()
+    if out_dropped[BUFFER_RANK] == 0:
+        lead[0] = 1
+    clip_buffer, face_buffer = _buffer(frame, FRAME_ARGS, 0), _buffer(frame, FRAME_ARGS, 1)
+    clip_in = _array3(frame, FRAME_ARGS, 0, _dim(clip_buffer, -2), 4, dtype)
+    clips = np.empty((views, clip_in.shape[1], 4))
+    for v in range(views):
+        clips[v] = clip_in[_member(v, lead, clip_buffer, 2)]
+    faces_in = _array3(frame, FRAME_ARGS, 1, _dim(face_buffer, -2), 3, face_dtype)
+    near, far = _per_view(frame, 2, lead, views), _per_view(frame, 3, lead, views)
+    radii = _per_view(frame, 4, lead, views)
+    params = np.empty((views, 4))
+    params[:, 0] = _per_view(frame, 5, lead, views)
+    params[:, 1] = _per_view(frame, 6, lead, views)
+    params[:, 2], params[:, 3] = near, far
+    width, height, k = _attribute(frame, 0), _attribute(frame, 1), _attribute(frame, 2)
+    cull, perspective = _attribute(frame, 3) != 0, _attribute(frame, 4) != 0
+    bands = min(height, 2 * _attribute(frame, THREADS))
+    pixels = height * width * k
+    # views of one mesh: one call searches them all; else one call per view
+    groups = 1 if faces_in.shape[0] == 1 else views
+    per_group = views // groups
+    for g in range(groups):
+        faces = faces_in[_member(g, lead, face_buffer, 2) if groups > 1 else 0].astype(np.int64)
+        chosen = slice(g * per_group, (g + 1) * per_group)
+        if (radii[chosen] > 0.0).any():  # as find_candidates decides
+            found, lost = candidates._search_soft(clips[chosen], faces, width, height, k, cull,
+                                                  radii[chosen], params[chosen], perspective)
+        else:
+            found, lost = candidates._search_hard(clips[chosen], faces, width, height, k,
+                                                  cull, bands)
+        ids[g * per_group * pixels:(g + 1) * per_group * pixels] = found.reshape(-1)
+        for v in range(per_group):
+            dropped[g * per_group + v] = lost[v]
+
+
+def _search_f32_i32(address):
+    frame = _words(address, FRAME_WORDS)
+    if not _answered_metadata(frame):
+        _search(frame, np.float32, np.int32)
+    return _pointer(0)
+
+
+def _search_f32_i64(address):
+    frame = _words(address, FRAME_WORDS)
+    if not _answered_metadata(frame):
+        _search(frame, np.float32, np.int64)
+    return _pointer(0)
+
+
+def _search_f64_i32(address):
+    frame = _words(address, FRAME_WORDS)
+    if not _answered_metadata(frame):
+        _search(frame, np.float64, np.int32)
+    return _pointer(0)
+
+
+def _search_f64_i64(address):
+    frame = _words(address, FRAME_WORDS)
+    if not _answered_metadata(frame):
+        _search(frame, np.float64, np.int64)
+    return _pointer(0)
+
+
+#: target name -> handler (compiled on first use); a target per operand dtype, so that
+#: only the dtypes a program uses are compiled
+_HANDLERS = {f"diffshade_{name}": globals()[f"_{name}"] for name in (
+    "geometry_forward_f32", "geometry_forward_f64", "geometry_backward_f32",
+    "geometry_backward_f64", "interpolate_forward_f32", "interpolate_forward_f64",
+    "interpolate_backward_f32", "interpolate_backward_f64", "search_f32_i32",
+    "search_f32_i64", "search_f64_i32", "search_f64_i64", "active")}
+_REGISTERED = {}
+
+
+def available() -> bool:
+    """Whether the handlers may be used: a JAX with the FFI they are written for, and a
+    numba threading layer that runs parallel kernels started from two threads at once
+    (OpenMP or TBB: XLA may run two independent custom calls together, where the host
+    callbacks take a lock; numba's fallback layer, workqueue, aborts on that)."""
+    version = tuple(int(p) for p in jax.__version__.split(".")[:2])
+    if version < (0, 5) or not hasattr(jax, "ffi") or not hasattr(jax.ffi, "ffi_lowering"):
+        return False
+    numba.get_num_threads()  # starts the threading layer
+    return numba.threading_layer() in ("omp", "tbb")
+
+
+def target_for(base, args):
+    """The target of `base` (geometry_forward, search, ...) for operands `args`, or None
+    where no handler takes their dtypes: float32 or float64 (one of them for all of a
+    call's float operands, but the search's per-view scalars), int32 face ids, bool masks,
+    the search's faces int32 or int64."""
+    dtypes = [np.dtype(a.dtype) for a in args]
+    floats = {d for d in dtypes if d.kind == "f"}
+    width = {np.dtype(np.float32): "f32", np.dtype(np.float64): "f64"}
+    if not floats <= set(width):
+        return None
+    if base == "search":
+        ints = {np.dtype(np.int32): "i32", np.dtype(np.int64): "i64"}
+        if dtypes[0].kind != "f" or dtypes[1] not in ints:
+            return None
+        return f"diffshade_search_{width[dtypes[0]]}_{ints[dtypes[1]]}"
+    if base == "active":
+        return "diffshade_active" if dtypes == [np.dtype(np.bool_)] else None
+    if len(floats) != 1 or not all(d.kind == "f" or d == np.int32 for d in dtypes):
+        return None
+    return f"diffshade_{base}_{width[floats.pop()]}"
+
+
+def _register(target):
+    """Compile (or load from numba's cache) and register a handler, once per process."""
+    if target not in _REGISTERED:
+        # starts numba's threading layer, which defines the symbols (allocate_sched, ...)
+        # that the parallel kernels' code refers to: a cfunc loaded from numba's cache
+        # does not start it
+        numba.get_num_threads()
+        handler = cfunc(_SIGNATURE, nogil=True, cache=True)(_HANDLERS[target])
+        jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(handler.address),
+                                    platform="cpu")
+        _REGISTERED[target] = handler  # kept alive: XLA holds only its address
+
+
+def lowering(ctx, operands, target, attributes):
+    """The MLIR of a call of `target` (registered on first use) with int attributes
+    a0, a1, ... = attributes, then numba's thread count (THREADS)."""
+    _register(target)
+    values = (*attributes, numba.get_num_threads())
+    named = {f"a{i}": np.int64(int(value)) for i, value in enumerate(values)}
+    return jax.ffi.ffi_lowering(target)(ctx, *operands, **named)
+
+
