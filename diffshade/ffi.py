@@ -280,9 +280,11 @@ def _active(address):
 
 
 # -- candidate search (raster.search_faces) -------------------------------------------------
-# arguments: clip [*B, V, 4], faces [F, 3] int32 or int64 (one mesh for every view), near,
-# far, radius, sigma and gamma (each [*B] or of size 1); attributes: width, height, k,
+# arguments: clip [*B, V, 4], faces [*B, F, 3] int32 or int64, near, far, radius, sigma and
+# gamma [*B] (each broadcast against the batch shape B); attributes: width, height, k,
 # cull_backfaces, perspective. Results: face ids [*B, H, W, k] int32, dropped [*B] int32.
+# The soft target runs the soft search whatever the radius (find_candidates picks the
+# hard one where every radius is 0: settings never give a soft render that radius).
 
 @numba.njit(cache=True, nogil=True)
 def _member(view, lead, buffer, core):
@@ -320,7 +322,11 @@ def _per_view(frame, index, lead, views):
 
 
 @numba.njit(cache=True, nogil=True)
-def _search(frame, dtype, face_dtype):
+def _search_inputs(frame, dtype, face_dtype):
+    """What the search of every view needs: (ids [views * H * W * k], dropped [views],
+    views, groups (1: one mesh for every view, else one per view), faces of group g
+    (_group_faces), clips [views, V, 4], radii [views], params [views, 4] (sigma, gamma,
+    near, far), width, height, k, cull, perspective, threads)."""
     ids = _flat(frame, FRAME_RETS, 0, np.int32)
     out_dropped = _buffer(frame, FRAME_RETS, 1)
     dropped = _flat(frame, FRAME_RETS, 1, np.int32)
@@ -334,58 +340,111 @@ def _search(frame, dtype, face_dtype):
     for v in range(views):
         clips[v] = clip_in[_member(v, lead, clip_buffer, 2)]
     faces_in = _array3(frame, FRAME_ARGS, 1, _dim(face_buffer, -2), 3, face_dtype)
+    groups = 1 if faces_in.shape[0] == 1 else views
+    faces = np.empty((groups, faces_in.shape[1], 3), np.int64)
+    for g in range(groups):
+        faces[g] = faces_in[_member(g, lead, face_buffer, 2) if groups > 1 else 0]
     near, far = _per_view(frame, 2, lead, views), _per_view(frame, 3, lead, views)
     radii = _per_view(frame, 4, lead, views)
     params = np.empty((views, 4))
     params[:, 0] = _per_view(frame, 5, lead, views)
     params[:, 1] = _per_view(frame, 6, lead, views)
     params[:, 2], params[:, 3] = near, far
-    width, height, k = _attribute(frame, 0), _attribute(frame, 1), _attribute(frame, 2)
-    cull, perspective = _attribute(frame, 3) != 0, _attribute(frame, 4) != 0
-    bands = min(height, 2 * _attribute(frame, THREADS))
-    pixels = height * width * k
-    # views of one mesh: one call searches them all; else one call per view
-    groups = 1 if faces_in.shape[0] == 1 else views
-    per_group = views // groups
-    for g in range(groups):
-        faces = faces_in[_member(g, lead, face_buffer, 2) if groups > 1 else 0].astype(np.int64)
+    return (ids, dropped, views, faces, clips, radii, params, _attribute(frame, 0),
+            _attribute(frame, 1), _attribute(frame, 2), _attribute(frame, 3) != 0,
+            _attribute(frame, 4) != 0, _attribute(frame, THREADS))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _write_group(ids, dropped, g, per_group, found, lost):
+    """Group g's face ids and dropped counts into the results."""
+    pixels = found.shape[1] * found.shape[2]
+    ids[g * per_group * pixels:(g + 1) * per_group * pixels] = found.reshape(-1)
+    for v in range(per_group):
+        dropped[g * per_group + v] = lost[v]
+
+
+# the soft and the hard search are separate targets, so that a program compiles only the
+# kernel it uses; views of one mesh are searched in one call, else one call per view
+
+
+@numba.njit(cache=True, nogil=True)
+def _search_soft(frame, dtype, face_dtype):
+    (ids, dropped, views, faces, clips, radii, params, width, height, k, cull, perspective,
+     _) = _search_inputs(frame, dtype, face_dtype)
+    per_group = views // faces.shape[0]
+    for g in range(faces.shape[0]):
         chosen = slice(g * per_group, (g + 1) * per_group)
-        if (radii[chosen] > 0.0).any():  # as find_candidates decides
-            found, lost = candidates._search_soft(clips[chosen], faces, width, height, k, cull,
-                                                  radii[chosen], params[chosen], perspective)
-        else:
-            found, lost = candidates._search_hard(clips[chosen], faces, width, height, k,
-                                                  cull, bands)
-        ids[g * per_group * pixels:(g + 1) * per_group * pixels] = found.reshape(-1)
-        for v in range(per_group):
-            dropped[g * per_group + v] = lost[v]
+        found, lost = candidates._search_soft(clips[chosen], faces[g], width, height, k, cull,
+                                              radii[chosen], params[chosen], perspective)
+        _write_group(ids, dropped, g, per_group, found, lost)
 
 
-def _search_f32_i32(address):
+@numba.njit(cache=True, nogil=True)
+def _search_hard(frame, dtype, face_dtype):
+    (ids, dropped, views, faces, clips, _, _, width, height, k, cull, _,
+     threads) = _search_inputs(frame, dtype, face_dtype)
+    per_group = views // faces.shape[0]
+    for g in range(faces.shape[0]):
+        chosen = slice(g * per_group, (g + 1) * per_group)
+        found, lost = candidates._search_hard(clips[chosen], faces[g], width, height, k, cull,
+                                              min(height, 2 * threads))
+        _write_group(ids, dropped, g, per_group, found, lost)
+
+
+def _search_soft_f32_i32(address):
     frame = _words(address, FRAME_WORDS)
     if not _answered_metadata(frame):
-        _search(frame, np.float32, np.int32)
+        _search_soft(frame, np.float32, np.int32)
     return _pointer(0)
 
 
-def _search_f32_i64(address):
+def _search_soft_f32_i64(address):
     frame = _words(address, FRAME_WORDS)
     if not _answered_metadata(frame):
-        _search(frame, np.float32, np.int64)
+        _search_soft(frame, np.float32, np.int64)
     return _pointer(0)
 
 
-def _search_f64_i32(address):
+def _search_soft_f64_i32(address):
     frame = _words(address, FRAME_WORDS)
     if not _answered_metadata(frame):
-        _search(frame, np.float64, np.int32)
+        _search_soft(frame, np.float64, np.int32)
     return _pointer(0)
 
 
-def _search_f64_i64(address):
+def _search_soft_f64_i64(address):
     frame = _words(address, FRAME_WORDS)
     if not _answered_metadata(frame):
-        _search(frame, np.float64, np.int64)
+        _search_soft(frame, np.float64, np.int64)
+    return _pointer(0)
+
+
+def _search_hard_f32_i32(address):
+    frame = _words(address, FRAME_WORDS)
+    if not _answered_metadata(frame):
+        _search_hard(frame, np.float32, np.int32)
+    return _pointer(0)
+
+
+def _search_hard_f32_i64(address):
+    frame = _words(address, FRAME_WORDS)
+    if not _answered_metadata(frame):
+        _search_hard(frame, np.float32, np.int64)
+    return _pointer(0)
+
+
+def _search_hard_f64_i32(address):
+    frame = _words(address, FRAME_WORDS)
+    if not _answered_metadata(frame):
+        _search_hard(frame, np.float64, np.int32)
+    return _pointer(0)
+
+
+def _search_hard_f64_i64(address):
+    frame = _words(address, FRAME_WORDS)
+    if not _answered_metadata(frame):
+        _search_hard(frame, np.float64, np.int64)
     return _pointer(0)
 
 
@@ -394,8 +453,10 @@ def _search_f64_i64(address):
 _HANDLERS = {f"diffshade_{name}": globals()[f"_{name}"] for name in (
     "geometry_forward_f32", "geometry_forward_f64", "geometry_backward_f32",
     "geometry_backward_f64", "interpolate_forward_f32", "interpolate_forward_f64",
-    "interpolate_backward_f32", "interpolate_backward_f64", "search_f32_i32",
-    "search_f32_i64", "search_f64_i32", "search_f64_i64", "active")}
+    "interpolate_backward_f32", "interpolate_backward_f64", "search_soft_f32_i32",
+    "search_soft_f32_i64", "search_soft_f64_i32", "search_soft_f64_i64",
+    "search_hard_f32_i32", "search_hard_f32_i64", "search_hard_f64_i32",
+    "search_hard_f64_i64", "active")}
 _REGISTERED = {}
 
 
@@ -421,11 +482,11 @@ def target_for(base, args):
     width = {np.dtype(np.float32): "f32", np.dtype(np.float64): "f64"}
     if not floats <= set(width):
         return None
-    if base == "search":
+    if base in ("search_soft", "search_hard"):
         ints = {np.dtype(np.int32): "i32", np.dtype(np.int64): "i64"}
         if dtypes[0].kind != "f" or dtypes[1] not in ints:
             return None
-        return f"diffshade_search_{width[dtypes[0]]}_{ints[dtypes[1]]}"
+        return f"diffshade_{base}_{width[dtypes[0]]}_{ints[dtypes[1]]}"
     if base == "active":
         return "diffshade_active" if dtypes == [np.dtype(np.bool_)] else None
     if len(floats) != 1 or not all(d.kind == "f" or d == np.int32 for d in dtypes):

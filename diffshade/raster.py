@@ -107,8 +107,8 @@ def search_faces(clip, faces, camera, k, settings, soft):
                 for c, f, n, r, p, s, g in zip(*batch, strict=True)), strict=True))
         return ids.reshape(lead + ids.shape[1:]), dropped.reshape(lead)
     clip, near, far, radius, sigma, gamma = operands
-    ffi = ("search", (camera.width, camera.height, k, settings.cull_backfaces,
-                                perspective))
+    ffi = ("search_soft" if soft else "search_hard",
+           (camera.width, camera.height, k, settings.cull_backfaces, perspective))
     return host_call(search, shapes, clip, faces, near, far, radius, sigma, gamma,
                      batched=True, ffi=ffi)
 

@@ -125,7 +125,8 @@ def _search(clip, faces, near, far, radius, sigma, gamma, *, k=4, size=16):
     def fallback(*arrays):  # never run under jit on the CPU: the target is
         raise AssertionError("the Python callback ran instead of the FFI target")
     return host_call(fallback, shapes, clip, faces, near, far, radius, sigma, gamma,
-                     batched=True, ffi=("search", (size, size, k, False, True)))
+                     batched=True, ffi=("search_soft" if radius > 0.0 else "search_hard",
+                                        (size, size, k, False, True)))
 
 
 def _direct(clip, faces, near, far, radius, sigma, gamma, k=4, size=16):
@@ -141,14 +142,18 @@ def test_search_target_equals_find_candidates_for_batches(radius):
                          np.float32(1e-3))
     one = jax.jit(lambda c, s: _search(c, faces, *scalars(s)))
     many = jax.jit(jax.vmap(lambda c, s: _search(c, faces, *scalars(s))))
+    mode = "soft" if radius > 0.0 else "hard"
     assert _targets(lambda c: _search(c, faces, *scalars(sigmas[0])), clips[0]) == {
-        "diffshade_search_f32_i32"}
+        f"diffshade_search_{mode}_f32_i32"}
     ids, dropped = many(clips, sigmas)
     for v in range(3):
         want_ids, want_dropped = _direct(clips[v], faces, *scalars(sigmas[v]))
         np.testing.assert_array_equal(np.asarray(ids[v]), want_ids)
         np.testing.assert_array_equal(np.asarray(one(clips[v], sigmas[v])[0]), want_ids)
         assert int(dropped[v]) == int(want_dropped)
+        # outside a trace too (host_call's eager path runs the target, not the callback)
+        np.testing.assert_array_equal(np.asarray(_search(clips[v], faces,
+                                                         *scalars(sigmas[v]))[0]), want_ids)
     # nested batches, one argument batched at the inner level only (broadcast against the
     # outer), and one mesh per view (searched one view at a time)
     grid = jax.jit(jax.vmap(jax.vmap(lambda c, s: _search(c, faces, *scalars(s)),
