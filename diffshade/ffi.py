@@ -159,59 +159,36 @@ def _flat(frame, which, index, dtype):
 # are the gradients of the four per-face arrays.
 
 @numba.njit(cache=True, nogil=True)
-def _geometry_forward(frame, dtype, tiny):
+def _geometry_inputs(frame, dtype):
+    """(ids [P, K], corner_w, corner_z, coeffs, scr, width, height, soft): the kernels'
+    leading arguments."""
     k = _dim(_buffer(frame, FRAME_ARGS, 0), -1)
-    width, height, soft = _attribute(frame, 0), _attribute(frame, 1), _attribute(frame, 2)
+    return (_array2(frame, FRAME_ARGS, 0, k, np.int32), _array2(frame, FRAME_ARGS, 1, 3, dtype),
+            _array2(frame, FRAME_ARGS, 2, 3, dtype), _array3(frame, FRAME_ARGS, 3, 3, 3, dtype),
+            _array3(frame, FRAME_ARGS, 4, 3, 2, dtype), _attribute(frame, 0),
+            _attribute(frame, 1), _attribute(frame, 2) != 0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _geometry_forward(frame, dtype, tiny):
+    ids, corner_w, corner_z, coeffs, scr, width, height, soft = _geometry_inputs(frame, dtype)
+    k = ids.shape[1]
     kernels.geometry_forward_into(
-        _array2(frame, FRAME_ARGS, 0, k, np.int32), _array2(frame, FRAME_ARGS, 1, 3, dtype),
-        _array2(frame, FRAME_ARGS, 2, 3, dtype), _array3(frame, FRAME_ARGS, 3, 3, 3, dtype),
-        _array3(frame, FRAME_ARGS, 4, 3, 2, dtype), width, height, soft != 0,
-        tiny, _attribute(frame, THREADS),
-        _array3(frame, FRAME_RETS, 0, k, 3, dtype), _array2(frame, FRAME_RETS, 1, k, dtype),
-        _array2(frame, FRAME_RETS, 2, k, dtype))
-
-
-def _geometry_forward_f32(address):
-    frame = _words(address, FRAME_WORDS)
-    if not _answered_metadata(frame):
-        _geometry_forward(frame, np.float32, _TINY32)
-    return _pointer(0)
-
-
-def _geometry_forward_f64(address):
-    frame = _words(address, FRAME_WORDS)
-    if not _answered_metadata(frame):
-        _geometry_forward(frame, np.float64, _TINY64)
-    return _pointer(0)
+        ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny,
+        _attribute(frame, THREADS), _array3(frame, FRAME_RETS, 0, k, 3, dtype),
+        _array2(frame, FRAME_RETS, 1, k, dtype), _array2(frame, FRAME_RETS, 2, k, dtype))
 
 
 @numba.njit(cache=True, nogil=True)
 def _geometry_backward(frame, dtype, tiny):
-    k = _dim(_buffer(frame, FRAME_ARGS, 0), -1)
-    width, height, soft = _attribute(frame, 0), _attribute(frame, 1), _attribute(frame, 2)
+    ids, corner_w, corner_z, coeffs, scr, width, height, soft = _geometry_inputs(frame, dtype)
+    k = ids.shape[1]
     kernels.geometry_backward_into(
-        _array2(frame, FRAME_ARGS, 0, k, np.int32), _array2(frame, FRAME_ARGS, 1, 3, dtype),
-        _array2(frame, FRAME_ARGS, 2, 3, dtype), _array3(frame, FRAME_ARGS, 3, 3, 3, dtype),
-        _array3(frame, FRAME_ARGS, 4, 3, 2, dtype), width, height, soft != 0,
-        tiny, _attribute(frame, THREADS),
-        _array3(frame, FRAME_ARGS, 5, k, 3, dtype), _array2(frame, FRAME_ARGS, 6, k, dtype),
-        _array2(frame, FRAME_ARGS, 7, k, dtype),
+        ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny,
+        _attribute(frame, THREADS), _array3(frame, FRAME_ARGS, 5, k, 3, dtype),
+        _array2(frame, FRAME_ARGS, 6, k, dtype), _array2(frame, FRAME_ARGS, 7, k, dtype),
         _array2(frame, FRAME_RETS, 0, 3, dtype), _array2(frame, FRAME_RETS, 1, 3, dtype),
         _array3(frame, FRAME_RETS, 2, 3, 3, dtype), _array3(frame, FRAME_RETS, 3, 3, 2, dtype))
-
-
-def _geometry_backward_f32(address):
-    frame = _words(address, FRAME_WORDS)
-    if not _answered_metadata(frame):
-        _geometry_backward(frame, np.float32, _TINY32)
-    return _pointer(0)
-
-
-def _geometry_backward_f64(address):
-    frame = _words(address, FRAME_WORDS)
-    if not _answered_metadata(frame):
-        _geometry_backward(frame, np.float64, _TINY64)
-    return _pointer(0)
 
 
 # -- interpolation (interpolate.interpolate_corners) ---------------------------------------
@@ -228,20 +205,6 @@ def _interpolate_forward(frame, dtype):
         _array3(frame, FRAME_RETS, 0, k, c, dtype))
 
 
-def _interpolate_forward_f32(address):
-    frame = _words(address, FRAME_WORDS)
-    if not _answered_metadata(frame):
-        _interpolate_forward(frame, np.float32)
-    return _pointer(0)
-
-
-def _interpolate_forward_f64(address):
-    frame = _words(address, FRAME_WORDS)
-    if not _answered_metadata(frame):
-        _interpolate_forward(frame, np.float64)
-    return _pointer(0)
-
-
 @numba.njit(cache=True, nogil=True)
 def _interpolate_backward(frame, dtype):
     k = _dim(_buffer(frame, FRAME_ARGS, 0), -1)
@@ -253,30 +216,14 @@ def _interpolate_backward(frame, dtype):
         _array3(frame, FRAME_RETS, 1, 3, c, dtype))
 
 
-def _interpolate_backward_f32(address):
-    frame = _words(address, FRAME_WORDS)
-    if not _answered_metadata(frame):
-        _interpolate_backward(frame, np.float32)
-    return _pointer(0)
-
-
-def _interpolate_backward_f64(address):
-    frame = _words(address, FRAME_WORDS)
-    if not _answered_metadata(frame):
-        _interpolate_backward(frame, np.float64)
-    return _pointer(0)
-
-
 # -- active slots (compact.active_indices) --------------------------------------------------
 # argument: mask [N] bool; results: indices [capacity] int32, count [] int32
 
-def _active(address):
-    frame = _words(address, FRAME_WORDS)
-    if not _answered_metadata(frame):
-        compact.first_active_into(_flat(frame, FRAME_ARGS, 0, np.bool_),
-                                          _flat(frame, FRAME_RETS, 0, np.int32),
-                                          _flat(frame, FRAME_RETS, 1, np.int32))
-    return _pointer(0)
+@numba.njit(cache=True, nogil=True)
+def _active(frame):
+    compact.first_active_into(_flat(frame, FRAME_ARGS, 0, np.bool_),
+                              _flat(frame, FRAME_RETS, 0, np.int32),
+                              _flat(frame, FRAME_RETS, 1, np.int32))
 
 
 # -- candidate search (raster.search_faces) -------------------------------------------------
@@ -392,71 +339,51 @@ def _search_hard(frame, dtype, face_dtype):
         _write_group(ids, dropped, g, per_group, found, lost)
 
 
-def _search_soft_f32_i32(address):
-    frame = _words(address, FRAME_WORDS)
-    if not _answered_metadata(frame):
-        _search_soft(frame, np.float32, np.int32)
-    return _pointer(0)
+#: the handlers' bodies, by the number a handler is made with (_handler)
+_BODIES = ("active", "geometry_forward", "geometry_backward", "interpolate_forward",
+           "interpolate_backward", "search_soft", "search_hard")
 
 
-def _search_soft_f32_i64(address):
-    frame = _words(address, FRAME_WORDS)
-    if not _answered_metadata(frame):
-        _search_soft(frame, np.float32, np.int64)
-    return _pointer(0)
+def _handler(name, body, dtype=np.float32, other=np.int32):
+    """The FFI handler `name`: answers XLA's metadata query, else runs the body
+    _BODIES[body] on the frame with dtype (and `other`: the geometry's tiny, the
+    search's face dtype). A closure per target over plain constants, which numba freezes:
+    the branches of the other bodies are pruned before compiling, and the constants are
+    part of the cache's key (a closure over the body's dispatcher would not be cached)."""
+    def handler(address):
+        frame = _words(address, FRAME_WORDS)
+        if _answered_metadata(frame):
+            return _pointer(0)
+        if body == 0:
+            _active(frame)
+        elif body == 1:
+            _geometry_forward(frame, dtype, other)
+        elif body == 2:
+            _geometry_backward(frame, dtype, other)
+        elif body == 3:
+            _interpolate_forward(frame, dtype)
+        elif body == 4:
+            _interpolate_backward(frame, dtype)
+        elif body == 5:
+            _search_soft(frame, dtype, other)
+        else:
+            _search_hard(frame, dtype, other)
+        return _pointer(0)
+    handler.__name__ = handler.__qualname__ = f"_handler_{name}"
+    return handler
 
 
-def _search_soft_f64_i32(address):
-    frame = _words(address, FRAME_WORDS)
-    if not _answered_metadata(frame):
-        _search_soft(frame, np.float64, np.int32)
-    return _pointer(0)
-
-
-def _search_soft_f64_i64(address):
-    frame = _words(address, FRAME_WORDS)
-    if not _answered_metadata(frame):
-        _search_soft(frame, np.float64, np.int64)
-    return _pointer(0)
-
-
-def _search_hard_f32_i32(address):
-    frame = _words(address, FRAME_WORDS)
-    if not _answered_metadata(frame):
-        _search_hard(frame, np.float32, np.int32)
-    return _pointer(0)
-
-
-def _search_hard_f32_i64(address):
-    frame = _words(address, FRAME_WORDS)
-    if not _answered_metadata(frame):
-        _search_hard(frame, np.float32, np.int64)
-    return _pointer(0)
-
-
-def _search_hard_f64_i32(address):
-    frame = _words(address, FRAME_WORDS)
-    if not _answered_metadata(frame):
-        _search_hard(frame, np.float64, np.int32)
-    return _pointer(0)
-
-
-def _search_hard_f64_i64(address):
-    frame = _words(address, FRAME_WORDS)
-    if not _answered_metadata(frame):
-        _search_hard(frame, np.float64, np.int64)
-    return _pointer(0)
-
-
-#: target name -> handler (compiled on first use); a target per operand dtype, so that
-#: only the dtypes a program uses are compiled
-_HANDLERS = {f"diffshade_{name}": globals()[f"_{name}"] for name in (
-    "geometry_forward_f32", "geometry_forward_f64", "geometry_backward_f32",
-    "geometry_backward_f64", "interpolate_forward_f32", "interpolate_forward_f64",
-    "interpolate_backward_f32", "interpolate_backward_f64", "search_soft_f32_i32",
-    "search_soft_f32_i64", "search_soft_f64_i32", "search_soft_f64_i64",
-    "search_hard_f32_i32", "search_hard_f32_i64", "search_hard_f64_i32",
-    "search_hard_f64_i64", "active")}
+#: target name -> handler (compiled on first use); a target per operand dtype, so that a
+#: program compiles only the dtypes it uses
+_HANDLERS = {"diffshade_active": _handler("active", 0)}
+for _width, _dtype, _tiny in (("f32", np.float32, _TINY32), ("f64", np.float64, _TINY64)):
+    for _body in range(1, 5):
+        _name = f"{_BODIES[_body]}_{_width}"
+        _HANDLERS[f"diffshade_{_name}"] = _handler(_name, _body, _dtype, _tiny)
+    for _ints, _int in (("i32", np.int32), ("i64", np.int64)):
+        for _body in (5, 6):
+            _name = f"{_BODIES[_body]}_{_width}_{_ints}"
+            _HANDLERS[f"diffshade_{_name}"] = _handler(_name, _body, _dtype, _int)
 _REGISTERED = {}
 
 
