@@ -30,7 +30,8 @@ not decide its bits.
 
 import numba
 import numpy as np
-from numba import prange
+from numba import prange, types
+from numba.extending import intrinsic
 
 EDGES = ((1, 2), (2, 0), (0, 1))
 
@@ -434,21 +435,19 @@ def _bin_faces(box, reach, order, width, height):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _soft_block(face, tile_c0, r0, c0, c1, radius_px, soft, out, lanes):
+def _soft_block(face, tile_c0, r0, c0, c1, radius_px, out, lanes):
     """The fragments of one face at the pixels of `lanes` // TILE_W rows from row r0,
     TILE_W columns from tile_c0 each, without branches (LLVM vectorizes the loop): per
-    pixel out[0] = -zt / gamma (-_depth_logit; +inf where the pixel is out of reach, the
-    depth outside [-1, 1] or the column outside c0..c1), out[1] = the signed squared
-    distance to the triangle in pixels^2 (positive inside) and out[2] = a lower bound of
-    the ranking key -(log D + zt / gamma).
+    pixel out[0] = the NDC depth z (+inf where the pixel is out of reach, the depth outside
+    [-1, 1] or the column outside c0..c1) and out[1] = the signed squared distance to the
+    triangle in pixels^2 (positive inside; -0.0 at a point outside on an edge, so its sign
+    bit tells inside from outside). _soft_keys turns the lanes in reach into keys.
 
     face: _soft_face's scr, edge, inv_len and zndc as 18 scalars (so no load in the loop
     may alias out). Inside, depth is taken at the barycentrics (NDC z is affine in screen
     space); outside, at the clamped ones. The signed distances to the edge lines are the
     cheap test the search once used to skip the segment distances; kept so that the
-    pixels in reach stay exactly the same. The bound: log D <= 0, and outside
-    log D = x - log1p(exp(x)) <= x with x = -d2 / sigma; rounding is monotonic, so
-    out[0] - x computed in float64 is <= the key computed in float64."""
+    pixels in reach stay exactly the same."""
     (s00, s01, s10, s11, s20, s21, e00, e01, e10, e11, e20, e21,
      inv0, inv1, inv2, z0, z1, z2) = face
     inv0_2, inv1_2, inv2_2 = inv0 ** 2, inv1 ** 2, inv2 ** 2
@@ -468,11 +467,64 @@ def _soft_block(face, tile_c0, r0, c0, c1, radius_px, soft, out, lanes):
         z = (w0 * z0 + w1 * z1 + w2 * z2) / (w0 + w1 + w2)
         reach = ((col >= c0) & (col <= c1) & near & (inside | (not d2 > radius_px * radius_px))
                  & (-1.0 <= z) & (z <= 1.0))
-        depth_key = -_depth_logit(z, soft)
-        x = -d2 / soft[0]
-        out[0, lane] = depth_key if reach else np.inf
+        out[0, lane] = z if reach else np.inf
         out[1, lane] = d2 if inside else -d2
-        out[2, lane] = depth_key if inside else depth_key - x
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _soft_keys(depth, signed_d2, bound, key_lo, key_hi, count, soft):
+    """For `count` fragments in reach (gathered from _soft_block's out), without branches
+    (LLVM vectorizes the loop; numpy's error model lets it divide by sigma, which Python's
+    checks for zero): depth[i] (NDC z on entry) becomes -_depth_logit, the depth part of
+    the ranking key; bound[i] a lower bound of the key -(log D + zt / gamma): log D <= 0,
+    and outside log D = x - log1p(exp(x)) <= x with x = -d2 / sigma (= signed_d2 / sigma:
+    the negation is exact), and rounding is monotonic, so depth - x computed in float64 is
+    <= the key computed in float64; key_lo[i], key_hi[i]: the key's _key_bracket."""
+    for i in range(count):
+        depth_key = -_depth_logit(depth[i], soft)
+        inside = np.copysign(1.0, signed_d2[i]) > 0.0
+        depth[i] = depth_key
+        bound[i] = depth_key if inside else depth_key - signed_d2[i] / soft[0]
+        key_lo[i], key_hi[i] = _key_bracket(depth_key, signed_d2[i], soft[0])
+
+
+#: the margin by which _strip_rows grows a footprint: ROW_MARGIN pixels plus
+#: ROW_MARGIN_REL times the triangle's largest screen coordinate, far above the rounding of
+#: _soft_block's and _strip_rows' own sums and products (a few 1e-16 times that coordinate)
+ROW_MARGIN, ROW_MARGIN_REL = 1e-6, 1e-12
+
+
+@numba.njit(cache=True, nogil=True)
+def _strip_rows(scr, c0, c1, radius_px, height):
+    """The rows (first, last; first > last: none) in which a face's footprint may reach a
+    pixel of columns c0..c1: the footprint is the points within radius_px of the triangle
+    scr, so such a pixel lies within radius_px (in y) of a point of the triangle inside the
+    strip of x within radius_px of the columns' centres, and the triangle meets that strip
+    in a convex polygon whose y extent comes from the vertices inside the strip and the
+    edges' crossings of its two sides (all grown by the margin above). The face's rows
+    then cover every pixel _soft_block finds in reach of these columns; rows 0..height - 1
+    where a coordinate is not finite."""
+    largest = max(abs(scr[0, 0]), abs(scr[0, 1]), abs(scr[1, 0]), abs(scr[1, 1]),
+                  abs(scr[2, 0]), abs(scr[2, 1]))
+    if not largest < np.inf:
+        return 0, height - 1
+    reach = radius_px + ROW_MARGIN + ROW_MARGIN_REL * largest
+    x_lo, x_hi = c0 + 0.5 - reach, c1 + 0.5 + reach
+    y_lo, y_hi = np.inf, -np.inf
+    for i in range(3):
+        j = (i + 1) % 3
+        xi, yi, xj, yj = scr[i, 0], scr[i, 1], scr[j, 0], scr[j, 1]
+        if x_lo <= xi <= x_hi:
+            y_lo, y_hi = min(y_lo, yi), max(y_hi, yi)
+        for side in (x_lo, x_hi):
+            if (xi - side) * (xj - side) < 0.0:
+                y = yi + (side - xi) / (xj - xi) * (yj - yi)
+                y_lo, y_hi = min(y_lo, y), max(y_hi, y)
+    if not y_lo <= y_hi:
+        return 0, -1
+    first = np.ceil(y_lo - 0.5 - reach)
+    last = np.floor(y_hi - 0.5 + reach)
+    return int(max(first, 0.0)), int(min(last, height - 1.0))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -481,6 +533,103 @@ def _face_scalars(scr, edge, inv_len, zndc):
     return (scr[0, 0], scr[0, 1], scr[1, 0], scr[1, 1], scr[2, 0], scr[2, 1],
             edge[0, 0], edge[0, 1], edge[1, 0], edge[1, 1], edge[2, 0], edge[2, 1],
             inv_len[0], inv_len[1], inv_len[2], zndc[0], zndc[1], zndc[2])
+
+
+#: a soft search tile's fragments in reach are gathered over its faces until there are at
+#: least this many, then keyed (_soft_keys) and inserted (_insert_group): the keys' loop
+#: runs over a thousand lanes, not the ~30 of one face, whose scalar remainder dominated
+GROUP = 1024
+
+
+@numba.njit(cache=True, nogil=True)
+def _insert_group(ids, keys, filled, worst_key, worst_id, fragments, depth, signed_d2,
+                  bound, key_lo, key_hi, count, sigma, scratch_ids,
+                  scratch_keys):
+    """Insert `count` gathered fragments (fragments[i] = face * TILE_H * TILE_W + pixel;
+    _soft_keys' depth, signed d2, bound and key bracket) in order; returns how many were
+    dropped. A full list whose last entry (worst_key, worst_id: copies, so one cache line
+    holds those of 8 pixels) ranks before the fragment's bound rejects it without its key;
+    the key is the bracket's where its ends agree, else libm's (_fragment_key). A list is
+    appended to unsorted until full, then sorted once (_sort_full) and kept sorted by
+    _insert; the others are sorted at the end of the tile."""
+    k = ids.shape[1]
+    dropped = 0
+    depth_bits = depth.view(np.int64)
+    for i in range(count):
+        pixel, f = fragments[i] % (TILE_H * TILE_W), fragments[i] // (TILE_H * TILE_W)
+        if filled[pixel] == k and _ranks_after(bound[i], f, worst_key[pixel], worst_id[pixel]):
+            dropped += 1
+            continue
+        key = key_lo[i]
+        if key != key_hi[i]:  # the bracket straddles a rounding boundary: libm
+            key = _fragment_key(depth[i], signed_d2[i], bound[i], depth_bits[i], sigma)
+        if filled[pixel] < k:  # appended unsorted; sorted once full
+            ids[pixel, filled[pixel]], keys[pixel, filled[pixel]] = f, key
+            filled[pixel] += 1
+            if filled[pixel] < k:
+                continue
+            _sort_full(ids, keys, pixel, scratch_ids, scratch_keys)
+        else:
+            dropped += _insert(ids, keys, filled, pixel, f, key)
+        worst_key[pixel], worst_id[pixel] = keys[pixel, k - 1], ids[pixel, k - 1]
+    return dropped
+
+
+@intrinsic
+def _select(typingctx, condition, if_true, if_false):
+    """`if_true if condition else if_false` as one LLVM select (a conditional move, no
+    branch: numba's conditional expression becomes a branch that LLVM keeps)."""
+    if not (isinstance(condition, types.Boolean) and if_true == if_false):
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.select(args[0], args[1], args[2])
+    return if_true(condition, if_true, if_false), codegen
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _exchange(key_a, id_a, key_b, id_b):
+    """A compare-exchange: the two entries in (key, face) order, without branches."""
+    swap = (key_a > key_b) | ((key_a == key_b) & (id_a > id_b))  # _ranks_after, no branch
+    return (_select(swap, key_b, key_a), _select(swap, id_b, id_a),
+            _select(swap, key_a, key_b), _select(swap, id_a, id_b))
+
+
+@numba.njit(cache=True, nogil=True)
+def _sort_full(ids, keys, pixel, scratch_ids, scratch_keys):
+    """Sort pixel's full list by (key, face) as _sort_list does: for 8 entries (the soft
+    search's default), by Batcher's odd-even merge network of 19 compare-exchanges in
+    registers, without branches."""
+    if ids.shape[1] != 8:
+        _sort_list(ids, keys, pixel, ids.shape[1], scratch_ids, scratch_keys)
+        return
+    k0, k1, k2, k3 = keys[pixel, 0], keys[pixel, 1], keys[pixel, 2], keys[pixel, 3]
+    k4, k5, k6, k7 = keys[pixel, 4], keys[pixel, 5], keys[pixel, 6], keys[pixel, 7]
+    i0, i1, i2, i3 = ids[pixel, 0], ids[pixel, 1], ids[pixel, 2], ids[pixel, 3]
+    i4, i5, i6, i7 = ids[pixel, 4], ids[pixel, 5], ids[pixel, 6], ids[pixel, 7]
+    k0, i0, k1, i1 = _exchange(k0, i0, k1, i1)
+    k2, i2, k3, i3 = _exchange(k2, i2, k3, i3)
+    k4, i4, k5, i5 = _exchange(k4, i4, k5, i5)
+    k6, i6, k7, i7 = _exchange(k6, i6, k7, i7)
+    k0, i0, k2, i2 = _exchange(k0, i0, k2, i2)
+    k1, i1, k3, i3 = _exchange(k1, i1, k3, i3)
+    k4, i4, k6, i6 = _exchange(k4, i4, k6, i6)
+    k5, i5, k7, i7 = _exchange(k5, i5, k7, i7)
+    k1, i1, k2, i2 = _exchange(k1, i1, k2, i2)
+    k5, i5, k6, i6 = _exchange(k5, i5, k6, i6)
+    k0, i0, k4, i4 = _exchange(k0, i0, k4, i4)
+    k1, i1, k5, i5 = _exchange(k1, i1, k5, i5)
+    k2, i2, k6, i6 = _exchange(k2, i2, k6, i6)
+    k3, i3, k7, i7 = _exchange(k3, i3, k7, i7)
+    k2, i2, k4, i4 = _exchange(k2, i2, k4, i4)
+    k3, i3, k5, i5 = _exchange(k3, i3, k5, i5)
+    k1, i1, k2, i2 = _exchange(k1, i1, k2, i2)
+    k3, i3, k4, i4 = _exchange(k3, i3, k4, i4)
+    k5, i5, k6, i6 = _exchange(k5, i5, k6, i6)
+    keys[pixel, 0], keys[pixel, 1], keys[pixel, 2], keys[pixel, 3] = k0, k1, k2, k3
+    keys[pixel, 4], keys[pixel, 5], keys[pixel, 6], keys[pixel, 7] = k4, k5, k6, k7
+    ids[pixel, 0], ids[pixel, 1], ids[pixel, 2], ids[pixel, 3] = i0, i1, i2, i3
+    ids[pixel, 4], ids[pixel, 5], ids[pixel, 6], ids[pixel, 7] = i4, i5, i6, i7
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
@@ -499,8 +648,11 @@ def _search_soft(clips, faces, width, height, k, cull_backfaces, radii, params, 
     all_ids = np.empty((views, width * height, k), np.int32)
     all_dropped = np.zeros((views, tiles_x * tiles_y), np.int64)
     # one item per (view, tile): the views of a batch share one parallel loop; a tile's
-    # lists are its own until they are copied out (a list is appended to unsorted until
-    # full, then sorted once and kept sorted by _insert; the others are sorted at the end)
+    # lists are its own until they are copied out. A tile's pixel (row, col) is
+    # (row - tile_r0) * TILE_W + col - tile_c0 (TILE_W columns even where the image ends).
+    # Per face: its rows in reach of the tile's columns (_strip_rows), evaluated without
+    # branches (_soft_block), the pixels in reach gathered; per GROUP of those, keys and
+    # insertions.
     for item in prange(views * tiles_x * tiles_y):
         view, t = item // (tiles_x * tiles_y), item % (tiles_x * tiles_y)
         radius_px = radii[view]
@@ -508,56 +660,46 @@ def _search_soft(clips, faces, width, height, k, cull_backfaces, radii, params, 
         tile_r0, tile_c0 = t // tiles_x * TILE_H, t % tiles_x * TILE_W
         tile_r1, tile_c1 = min(tile_r0 + TILE_H, height) - 1, min(tile_c0 + TILE_W, width) - 1
         tile_w = tile_c1 - tile_c0 + 1
-        ids = np.full(((tile_r1 - tile_r0 + 1) * tile_w, k), -1, np.int32)
-        keys = np.full(((tile_r1 - tile_r0 + 1) * tile_w, k), np.inf)
-        filled = np.zeros((tile_r1 - tile_r0 + 1) * tile_w, np.int32)
+        ids = np.full((TILE_H * TILE_W, k), -1, np.int32)
+        keys = np.full((TILE_H * TILE_W, k), np.inf)
+        filled = np.zeros(TILE_H * TILE_W, np.int32)
+        worst_key = np.full(TILE_H * TILE_W, np.inf)
+        worst_id = np.full(TILE_H * TILE_W, -1, np.int64)
         dropped = 0
-        lanes = np.empty(TILE_H * TILE_W, np.int64)
-        out = np.empty((3, TILE_H * TILE_W))
-        key_lo, key_hi = np.empty(TILE_H * TILE_W), np.empty(TILE_H * TILE_W)
+        out = np.empty((2, TILE_H * TILE_W))
+        capacity = GROUP + TILE_H * TILE_W
+        fragments = np.empty(capacity, np.int64)
+        depth, signed_d2, bound = np.empty(capacity), np.empty(capacity), np.empty(capacity)
+        key_lo, key_hi = np.empty(capacity), np.empty(capacity)
         scratch_ids, scratch_keys = np.empty(k, np.int32), np.empty(k)
-        depth_bits = out[0].view(np.int64)
+        count = 0
         for slot in range(start[view, t], start[view, t + 1]):
             f = binned[view, slot]
             fb = box[view, f]
-            r0, r1 = int(max(fb[0], tile_r0)), int(min(fb[1], tile_r1))
             c0, c1 = max(int(fb[2]), tile_c0), min(int(fb[3]), tile_c1)
-            face = _face_scalars(scr[view, f], edge[view, f], inv_len[view, f], zndc[view, f])
-            _soft_block(face, tile_c0, r0, c0, c1, radius_px, soft, out,
-                        (r1 - r0 + 1) * TILE_W)
-            count = 0
-            for lane in range((r1 - r0 + 1) * TILE_W):  # the pixels in reach, no branches
-                lanes[count] = lane
-                key_lo[count], key_hi[count] = out[0, lane], out[1, lane]
-                count += out[0, lane] < np.inf
-            for i in range(count):  # the keys' brackets (vectorized: contiguous, no libm)
-                key_lo[i], key_hi[i] = _key_bracket(key_lo[i], key_hi[i], soft[0])
-            for i in range(count):
-                lane = lanes[i]
-                # a full list whose last entry ranks before the key's lower bound (out[2])
-                # rejects the fragment without the logarithm
-                pixel = (r0 - tile_r0 + lane // TILE_W) * tile_w + lane % TILE_W
-                if filled[pixel] == k and _ranks_after(out[2, lane], f, keys[pixel, k - 1],
-                                                           ids[pixel, k - 1]):
-                    dropped += 1
-                    continue
-                key = key_lo[i]
-                if key != key_hi[i]:  # the bracket straddles a rounding boundary: libm
-                    key = _fragment_key(out[0, lane], out[1, lane], out[2, lane],
-                                        depth_bits[lane], soft[0])
-                if filled[pixel] < k:  # appended unsorted; sorted once full
-                    ids[pixel, filled[pixel]], keys[pixel, filled[pixel]] = f, key
-                    filled[pixel] += 1
-                    if filled[pixel] == k:
-                        _sort_list(ids, keys, pixel, k, scratch_ids, scratch_keys)
-                else:
-                    dropped += _insert(ids, keys, filled, pixel, f, key)
+            r0, r1 = _strip_rows(scr[view, f], c0, c1, radius_px, height)
+            r0, r1 = max(r0, int(max(fb[0], tile_r0))), min(r1, int(min(fb[1], tile_r1)))
+            if r0 <= r1:
+                face = _face_scalars(scr[view, f], edge[view, f], inv_len[view, f],
+                                     zndc[view, f])
+                _soft_block(face, tile_c0, r0, c0, c1, radius_px, out, (r1 - r0 + 1) * TILE_W)
+                first = f * (TILE_H * TILE_W) + (r0 - tile_r0) * TILE_W
+                for lane in range((r1 - r0 + 1) * TILE_W):  # the pixels in reach, no branches
+                    fragments[count] = first + lane
+                    depth[count], signed_d2[count] = out[0, lane], out[1, lane]
+                    count += out[0, lane] < np.inf
+            if count >= GROUP or (slot == start[view, t + 1] - 1 and count > 0):
+                _soft_keys(depth, signed_d2, bound, key_lo, key_hi, count, soft)
+                dropped += _insert_group(ids, keys, filled, worst_key, worst_id, fragments,
+                                         depth, signed_d2, bound, key_lo, key_hi, count,
+                                         soft[0], scratch_ids, scratch_keys)
+                count = 0
         for pixel in range(ids.shape[0]):
             if filled[pixel] < k:
                 _sort_list(ids, keys, pixel, filled[pixel], scratch_ids, scratch_keys)
         for row in range(tile_r0, tile_r1 + 1):
             all_ids[view, row * width + tile_c0:row * width + tile_c1 + 1] = \
-                ids[(row - tile_r0) * tile_w:(row - tile_r0 + 1) * tile_w]
+                ids[(row - tile_r0) * TILE_W:(row - tile_r0) * TILE_W + tile_w]
         all_dropped[view, t] = dropped
     return all_ids, all_dropped.sum(1)
 

@@ -349,3 +349,67 @@ def test_host_soft_key_bracket_holds_the_libm_key():
             far += abs(depth) >= 1e3
     # where the key's spacing (>= 1.1e-13) dwarfs the bracket, it decides nearly every key
     assert exact >= 0.9 * far > 0
+
+
+def test_host_sort_network_orders_lists_by_key_then_face():
+    """The host soft search sorts a full list of 8 by a network of compare-exchanges
+    (candidates._sort_full): against Python's sorted() by (key, face), on every list of
+    0/1 keys (by the 0-1 principle this covers every order of 8 distinct keys), on random
+    lists with tied keys, -0.0 against 0.0 and infinities, and on lists of other lengths
+    (the rank sort it falls back to)."""
+    from diffshade.candidates import _sort_full
+
+    rng = np.random.default_rng(7)
+    cases = [np.array([(m >> b) & 1 for b in range(8)], np.float64) for m in range(256)]
+    pool = np.array([-3.5, -1.0, -0.0, 0.0, 2.0, 2.0 + 2.0 ** -51, np.inf, -np.inf, 1e300])
+    cases += [rng.choice(pool, 8) for _ in range(500)]
+    cases += [rng.normal(size=n) * rng.integers(1, 3, n) for n in (1, 3, 4, 8, 16)
+              for _ in range(40)]
+    for keys in cases:
+        ids = rng.permutation(40)[:len(keys)].astype(np.int32)
+        want = sorted(zip(keys.tolist(), ids.tolist(), strict=True))
+        got_ids, got_keys = ids[None].copy(), keys[None].copy()
+        _sort_full(got_ids, got_keys, 0, np.empty(len(keys), np.int32), np.empty(len(keys)))
+        assert got_ids[0].tolist() == [face for _, face in want], (keys, ids)
+        assert got_keys[0].tolist() == [key for key, _ in want]
+
+
+def test_host_strip_rows_hold_every_pixel_in_reach():
+    """The host soft search evaluates a face only in the rows of a tile's columns that its
+    footprint can reach (candidates._strip_rows, from the triangle clipped to the strip of
+    columns): against every pixel within radius_px of the triangle (the distance to its
+    nearest point, in Python), on random triangles small and large, thin, off-screen and
+    far off-screen, for strips of 1 to 8 columns."""
+    from diffshade.candidates import _strip_rows
+
+    def distance(px, py, tri):
+        ax, ay, bx, by, cx, cy = tri.ravel()
+        d = [(bx - ax) * (py - ay) - (by - ay) * (px - ax),
+             (cx - bx) * (py - by) - (cy - by) * (px - bx),
+             (ax - cx) * (py - cy) - (ay - cy) * (px - cx)]
+        if all(v >= 0 for v in d) or all(v <= 0 for v in d):
+            return 0.0
+        best = np.inf
+        for (x0, y0), (x1, y1) in zip(tri, np.roll(tri, -1, 0), strict=True):
+            ex, ey = x1 - x0, y1 - y0
+            t = min(max(((px - x0) * ex + (py - y0) * ey) / (ex * ex + ey * ey), 0.0), 1.0)
+            best = min(best, np.hypot(px - x0 - t * ex, py - y0 - t * ey))
+        return best
+
+    rng = np.random.default_rng(8)
+    height, checked = 40, 0
+    for case in range(300):
+        scale = [3.0, 15.0, 60.0, 1e4][case % 4]
+        tri = rng.uniform(-10, 50, 2) + rng.normal(0, scale, (3, 2))
+        if case % 7 == 0:
+            tri[2] = tri[0] + rng.normal(0, 1e-3, 2)  # a sliver
+        radius = rng.choice([0.5, 1.5, 3.03])
+        c0 = int(rng.integers(0, 40))
+        c1 = min(c0 + int(rng.integers(0, 8)), 47)
+        first, last = _strip_rows(tri, c0, c1, radius, height)
+        for row in range(height):
+            for col in range(c0, c1 + 1):
+                if distance(col + 0.5, row + 0.5, tri) <= radius:
+                    assert first <= row <= last, (tri, radius, c0, c1, row, col, first, last)
+                    checked += 1
+    assert checked > 1000
