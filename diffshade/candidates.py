@@ -632,8 +632,21 @@ def _sort_full(ids, keys, pixel, scratch_ids, scratch_keys):
     ids[pixel, 4], ids[pixel, 5], ids[pixel, 6], ids[pixel, 7] = i4, i5, i6, i7
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def _search_soft(clips, faces, width, height, k, cull_backfaces, radii, params, perspective):
+    """(ids [views, H * W, k] int32, dropped [views]): _search_soft_into's results in new
+    arrays."""
+    all_ids = np.empty((clips.shape[0], width * height, k), np.int32)
+    dropped = _search_soft_into(clips, faces, width, height, k, cull_backfaces, radii, params,
+                                perspective, all_ids)
+    return all_ids, dropped
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _search_soft_into(clips, faces, width, height, k, cull_backfaces, radii, params,
+                      perspective, all_ids):
+    """The soft search of every view into all_ids [views, H * W, k] (XLA's buffer, ffi.py);
+    returns dropped [views]."""
     views = clips.shape[0]
     scr, edge, inv_len, zndc, box, reach = _soft_setup(clips, faces, width, height,
                                                        cull_backfaces, radii)
@@ -645,7 +658,6 @@ def _search_soft(clips, faces, width, height, k, cull_backfaces, radii, params, 
         order[view] = np.argsort(zndc[view].sum(1))
     start, binned = _bin_faces(box, reach, order, width, height)
     tiles_x, tiles_y = (width + TILE_W - 1) // TILE_W, (height + TILE_H - 1) // TILE_H
-    all_ids = np.empty((views, width * height, k), np.int32)
     all_dropped = np.zeros((views, tiles_x * tiles_y), np.int64)
     # one item per (view, tile): the views of a batch share one parallel loop; a tile's
     # lists are its own until they are copied out. A tile's pixel (row, col) is
@@ -701,7 +713,7 @@ def _search_soft(clips, faces, width, height, k, cull_backfaces, radii, params, 
             all_ids[view, row * width + tile_c0:row * width + tile_c1 + 1] = \
                 ids[(row - tile_r0) * TILE_W:(row - tile_r0) * TILE_W + tile_w]
         all_dropped[view, t] = dropped
-    return all_ids, all_dropped.sum(1)
+    return all_dropped.sum(1)
 
 
 def find_candidates(clip, faces, near=0.1, far=100.0, *, width, height, k,

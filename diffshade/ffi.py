@@ -320,11 +320,15 @@ def _search_soft(frame, dtype, face_dtype):
     (ids, dropped, views, faces, clips, radii, params, width, height, k, cull, perspective,
      _) = _search_inputs(frame, dtype, face_dtype)
     per_group = views // faces.shape[0]
+    pixels = width * height
     for g in range(faces.shape[0]):
         chosen = slice(g * per_group, (g + 1) * per_group)
-        found, lost = candidates._search_soft(clips[chosen], faces[g], width, height, k, cull,
-                                              radii[chosen], params[chosen], perspective)
-        _write_group(ids, dropped, g, per_group, found, lost)
+        found = ids[g * per_group * pixels * k:(g + 1) * per_group * pixels * k]
+        lost = candidates._search_soft_into(clips[chosen], faces[g], width, height, k, cull,
+                                            radii[chosen], params[chosen], perspective,
+                                            found.reshape((per_group, pixels, k)))
+        for v in range(per_group):
+            dropped[g * per_group + v] = lost[v]
 
 
 @numba.njit(cache=True, nogil=True)
