@@ -27,15 +27,14 @@ forward + backward pass of a 256^2 soft render. Its vmap rule is pure_callback's
 it was tested with (NO_COPY_JAX); with any other, host_call is jax.pure_callback itself.
 
 Called outside any trace (every argument a concrete array), host_call runs `fn` at once
-on the NumPy arrays: nothing is compiled; where it has an FFI target on the CPU, that
-target runs instead, in a small jitted program of its own (so that the kernels are
-compiled once, in their handlers). A program that contains a callback cannot be kept in
-JAX's persistent compilation cache (diffshade.compile_cache), so code that runs a host
-kernel on fixed inputs (the fitting cache's candidate search, fitting.cache) calls it
-this way, between jitted programs that have no callback.
+on the NumPy arrays: nothing is compiled (the FFI targets are not used: compiling a
+handler costs about as much again as compiling its kernel, the first time on a machine,
+and a fit's eager search needs only the kernel). A program that contains a callback
+cannot be kept in JAX's persistent compilation cache (diffshade.compile_cache), so code
+that runs a host kernel on fixed inputs (the fitting cache's candidate search,
+fitting.cache) calls it this way, between jitted programs that have no callback.
 """
 
-import functools
 import os
 import threading
 
@@ -110,15 +109,6 @@ def host_call(fn, result_shapes, *args, batched=False, ffi=None):
 
     Called outside a trace, fn runs at once on NumPy arrays: nothing is compiled."""
     if not any(isinstance(a, jax.core.Tracer) for a in args):  # eager: run it now
-        target = None
-        if ffi is not None and jax.default_backend() == "cpu":
-            args = [_canonical(a) for a in args]
-            target = _ffi_target(ffi[0], args)
-        if target is not None:
-            # by the FFI target, in a small program of its own: the kernels are then
-            # compiled once, in their handlers, not also for Python (tens of seconds
-            # each, the first time on a machine)
-            return _eager_ffi(target, tuple(ffi[1]), tuple(result_shapes), batched)(*args)
         with _LOCK:
             results = fn(*[_canonical(a) for a in args])
         return tuple(jax.device_put(np.ascontiguousarray(r, s.dtype).reshape(s.shape))
@@ -155,17 +145,6 @@ def host_call(fn, result_shapes, *args, batched=False, ffi=None):
                                     vmap_method="expand_dims" if batched else "sequential")
     return tuple(jax.lax.bitcast_convert_type(r, jnp.float64) if is64 else r
                  for r, is64 in zip(results, outs_64, strict=True))
-
-
-@functools.cache
-def _eager_ffi(target, attributes, result_shapes, batched):
-    """A jitted call of an FFI target (host_call outside a trace)."""
-    def unused(*arrays):
-        raise AssertionError("an FFI target's program called back into Python")
-
-    return jax.jit(lambda *args: tuple(_host_p.bind(
-        *args, fn=unused, result_shapes=result_shapes, batched=batched,
-        ffi=(target, attributes))))
 
 
 def _locked(fn):
