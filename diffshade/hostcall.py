@@ -115,13 +115,10 @@ def host_call(fn, result_shapes, *args, batched=False, ffi=None):
                      for r, s in zip(results, result_shapes, strict=True))
     args = [jnp.asarray(a) for a in args]
     target = None if ffi is None else _ffi_target(ffi[0], args)
-    if target is not None:
-        # operands and results cross as they are: no bit-casting of float64 (the handler
-        # runs in XLA, whatever the x64 state of its thread)
-        return tuple(_host_p.bind(*args, fn=_locked(fn), result_shapes=tuple(result_shapes),
-                                  batched=batched, ffi=(target, tuple(ffi[1]))))
-    args_64 = [_is64(a.dtype) for a in args]
-    outs_64 = [_is64(s.dtype) for s in result_shapes]
+    # to an FFI target, operands and results cross as they are (the handler runs in XLA,
+    # whatever the x64 state of its thread); to a callback, float64 bit-cast (above)
+    args_64 = [_is64(a.dtype) and target is None for a in args]
+    outs_64 = [_is64(s.dtype) and target is None for s in result_shapes]
     packed = tuple(jax.ShapeDtypeStruct(s.shape + (2,), np.uint32) if is64 else s
                    for s, is64 in zip(result_shapes, outs_64, strict=True))
     ndims = [a.ndim for a in args]
@@ -137,6 +134,9 @@ def host_call(fn, result_shapes, *args, batched=False, ffi=None):
             r = np.ascontiguousarray(r, s.dtype).reshape(lead + s.shape)
             out.append(r.view(np.uint32).reshape(lead + s.shape + (2,)) if is64 else r)
         return tuple(out)
+    if target is not None:
+        return tuple(_host_p.bind(*args, fn=host, result_shapes=tuple(result_shapes),
+                                  batched=batched, ffi=(target, tuple(ffi[1]))))
     if _no_copy():
         results = _host_p.bind(*[_pack(a) for a in args], fn=host, result_shapes=packed,
                                batched=batched, ffi=None)
@@ -147,24 +147,13 @@ def host_call(fn, result_shapes, *args, batched=False, ffi=None):
                  for r, is64 in zip(results, outs_64, strict=True))
 
 
-def _locked(fn):
-    """fn run under the lock, its results as contiguous arrays (for the primitive's eager
-    rule and the Python callback, where an FFI target is not used)."""
-    def run(*arrays):
-        with _LOCK:
-            return tuple(np.ascontiguousarray(r) for r in fn(*arrays))
-    return run
-
-
 _host_p = Primitive("diffshade_host_call")
 _host_p.multiple_results = True
 
 
 @_host_p.def_impl
 def _host_impl(*args, fn, result_shapes, batched, ffi):
-    results = fn(*[np.asarray(a) for a in args])
-    return [jnp.asarray(np.asarray(r, s.dtype).reshape(s.shape))
-            for r, s in zip(results, result_shapes, strict=True)]
+    return [jnp.asarray(r) for r in fn(*[np.asarray(a) for a in args])]
 
 
 @_host_p.def_abstract_eval
