@@ -25,6 +25,8 @@ one this layout was read from (hostcall.NO_COPY_JAX), with numba's workqueue thr
 layer (`available`), and where the environment sets DIFFSHADE_FFI=0.
 """
 
+import threading
+
 import jax
 import numba
 import numpy as np
@@ -389,6 +391,7 @@ for _width, _dtype, _tiny in (("f32", np.float32, _TINY32), ("f64", np.float64, 
             _name = f"{_BODIES[_body]}_{_width}_{_ints}"
             _HANDLERS[f"diffshade_{_name}"] = _handler(_name, _body, _dtype, _int)
 _REGISTERED = {}
+_REGISTERING = threading.Lock()
 
 
 def available() -> bool:
@@ -426,8 +429,11 @@ def target_for(base, args):
 
 
 def _register(target):
-    """Compile (or load from numba's cache) and register a handler, once per process."""
-    if target not in _REGISTERED:
+    """Compile (or load from numba's cache) and register a handler, once per process (a
+    lock: two threads may lower programs at once)."""
+    with _REGISTERING:
+        if target in _REGISTERED:
+            return
         # starts numba's threading layer, which defines the symbols (allocate_sched, ...)
         # that the parallel kernels' code refers to: a cfunc loaded from numba's cache
         # does not start it

@@ -178,3 +178,30 @@ def test_switch_turns_the_targets_off(monkeypatch):
     off = jax.jit(op())(*per_face)
     for a, b in zip(on, off, strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_concurrent_renders_from_two_threads_equal_one_at_a_time():
+    # the FFI targets take no lock (the callbacks do): numba's OpenMP layer runs parallel
+    # kernels started from two threads at once
+    import threading
+
+    import diffshade as ds
+
+    cam = ds.look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), width=32, height=32, fov_y=45.0)
+    scene = ds.make_scene(ds.icosphere(2), cam, [ds.directional_light((-0.3, -0.5, -1.0))],
+                          ds.material(ka=0.1, kd=0.6, ks=0.3, shininess=20.0))
+    settings = ds.RenderSettings(raster="soft", faces_per_pixel=4, shading="phong")
+    render = jax.jit(lambda s: ds.render(s, settings))
+    want = np.asarray(render(scene))
+    got = [None] * 4
+
+    def run(i):
+        got[i] = [np.asarray(render(scene)) for _ in range(5)]
+    threads = [threading.Thread(target=run, args=(i,)) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for images in got:
+        for image in images:
+            np.testing.assert_array_equal(image, want)
