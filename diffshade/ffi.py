@@ -44,8 +44,8 @@ from diffshade.numerics import tiny
 FRAME_WORDS, FRAME_EXTENSION, FRAME_ARGS, FRAME_RETS, FRAME_ATTRS = 21, 1, 9, 14, 20
 # XLA_FFI_Buffer as int64 words: struct_size, extension_start, dtype, data, rank, dims
 BUFFER_DTYPE, BUFFER_DATA, BUFFER_RANK, BUFFER_DIMS = 2, 3, 4, 5
-# XLA_FFI_DataType of the operands the handlers take
-PRED, S32, S64, F32, F64 = 1, 4, 5, 11, 12
+# XLA_FFI_DataType of float64 (the handlers that read a float argument of either width)
+F64 = 12
 # XLA_FFI_Extension_Metadata; the FFI API version the handlers declare (XLA accepts 0.1
 # up to its own, 0.3 in jaxlib 0.10)
 METADATA_EXTENSION, API_MAJOR, API_MINOR = 1, 0, 1
@@ -449,6 +449,7 @@ def lowering(ctx, operands, target, attributes):
     a0, a1, ... = attributes, then numba's thread count (THREADS)."""
     _register(target)
     values = (*attributes, numba.get_num_threads())
+    assert len(values) <= 10, "a10 would sort before a2: the handlers read by position"
     named = {f"a{i}": np.int64(int(value)) for i, value in enumerate(values)}
     return jax.ffi.ffi_lowering(target)(ctx, *operands, **named)
 
