@@ -395,13 +395,10 @@ _REGISTERING = threading.Lock()
 
 
 def available() -> bool:
-    """Whether the handlers may be used: a JAX with the FFI they are written for, and a
-    numba threading layer that runs parallel kernels started from two threads at once
-    (OpenMP or TBB: XLA may run two independent custom calls together, where the host
-    callbacks take a lock; numba's fallback layer, workqueue, aborts on that)."""
-    version = tuple(int(p) for p in jax.__version__.split(".")[:2])
-    if version < (0, 5) or not hasattr(jax, "ffi") or not hasattr(jax.ffi, "ffi_lowering"):
-        return False
+    """Whether the handlers may be used (the JAX version is hostcall's check): a numba
+    threading layer that runs parallel kernels started from two threads at once (OpenMP
+    or TBB: XLA may run two independent custom calls together, where the host callbacks
+    take a lock; numba's fallback layer, workqueue, aborts on that)."""
     numba.get_num_threads()  # starts the threading layer
     return numba.threading_layer() in ("omp", "tbb")
 

@@ -118,13 +118,12 @@ def _clips(views, seed=4):
 
 
 def _search(clip, faces, near, far, radius, sigma, gamma, *, k=4, size=16):
-    from diffshade.raster import host_call
     shapes = (jax.ShapeDtypeStruct((size, size, k), jnp.int32),
               jax.ShapeDtypeStruct((), jnp.int32))
 
     def fallback(*arrays):  # never run under jit on the CPU: the target is
         raise AssertionError("the Python callback ran instead of the FFI target")
-    return host_call(fallback, shapes, clip, faces, near, far, radius, sigma, gamma,
+    return hostcall.host_call(fallback, shapes, clip, faces, near, far, radius, sigma, gamma,
                      batched=True, ffi=("search_soft" if radius > 0.0 else "search_hard",
                                         (size, size, k, False, True)))
 
@@ -166,6 +165,17 @@ def test_search_target_equals_find_candidates_for_batches(radius):
     for v in range(3):
         want = _direct(clips[v], meshes[v], *scalars(sigmas[1]))[0]
         np.testing.assert_array_equal(np.asarray(ids[v]), want)
+
+
+def test_workqueue_threading_layer_keeps_the_callbacks(monkeypatch):
+    # numba's workqueue layer aborts on parallel kernels started from two threads at once:
+    # there the kernels go through the (locked) callbacks
+    import numba
+
+    ids, *per_face = _fragment_inputs(np.float32)
+    op = lambda *a: fragment_geometry(ids, *a, host=True, width=W, height=H, soft=True)
+    monkeypatch.setattr(numba, "threading_layer", lambda: "workqueue")
+    assert _targets(op, *per_face) == set()
 
 
 def test_switch_turns_the_targets_off(monkeypatch):
