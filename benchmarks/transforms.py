@@ -40,6 +40,8 @@ from raster import measure  # benchmarks/raster.py, beside this script
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 BASELINE = "48d2648"
+#: set in a worker's environment: run it on one CPU (the work a batch has to do)
+ONE_CPU = "DIFFSHADE_BENCH_ONE_CPU"
 
 
 def sphere_scene(size, eye=(0.0, 0.0, 3.0)):
@@ -79,16 +81,22 @@ def judged(path, repeats):
 
 
 def interleaved(fns, args, repeats, jit=True):
-    """Compile each fn (jit=True), warm it up, then time them in turns (one call of each
-    per round), so that a changing load on the machine hits all of them alike. Per fn:
-    compile seconds, median wall and CPU seconds (process_time: all threads); and per
-    round the wall and CPU times, from which main() takes the medians of the ratios."""
+    """Compile each fn (jit=True; a name starting with "python" is called as it is: its
+    compile seconds are those of its first call), warm it up, then time them in turns (one
+    call of each per round), so that a changing load on the machine hits all of them
+    alike. Per fn: compile seconds, median wall and CPU seconds (process_time: all
+    threads); and per round the wall and CPU times, from which main() takes the medians
+    of the ratios."""
     import jax
 
     compiled, out = {}, {}
     for name, fn in fns.items():
         t0 = time.perf_counter()
-        compiled[name] = jax.jit(fn).lower(*args).compile() if jit else fn
+        if jit and not name.startswith("python"):
+            compiled[name] = jax.jit(fn).lower(*args).compile()
+        else:
+            compiled[name] = fn
+            jax.block_until_ready(fn(*args))
         out[name] = {"compile_s": time.perf_counter() - t0, "times_s": [], "cpu_s": []}
         for _ in range(2):
             jax.block_until_ready(compiled[name](*args))
@@ -139,7 +147,10 @@ def search(repeats):
 
 
 def views(repeats):
-    """render_views against a loop of render, 4 views at 128^2, timed in turns."""
+    """render_views against a loop of render, 4 views at 128^2, timed in turns: `loop`, the
+    views' renders in one jit (XLA may run them concurrently); `python_loop`, a Python loop
+    of one jitted single-view call per view (gradients summed: what a user's loop does);
+    `batched`, one render_views call."""
     import jax
     import jax.numpy as jnp
 
@@ -155,33 +166,48 @@ def views(repeats):
     def batched(s):
         return ds.render_views(s, stacked, settings)
 
-    def loss_of(render_all, names):
-        def loss(params):
-            s = ds.replace(scene, mesh=ds.replace(scene.mesh, **{
-                n: v for n, v in params.items() if n == "vertices"}),
-                material=ds.replace(scene.material, **{
-                    n: v for n, v in params.items() if n != "vertices"}))
-            return jnp.mean(render_all(s) ** 2)
-        return jax.value_and_grad(loss)
+    one = jax.jit(lambda s, c: ds.render(ds.replace(s, camera=c), settings))
+
+    def python_loop(s):
+        return [one(s, c) for c in cams]
+
+    def moved(params):
+        return ds.replace(scene, mesh=ds.replace(scene.mesh, **{
+            n: v for n, v in params.items() if n == "vertices"}),
+            material=ds.replace(scene.material, **{
+                n: v for n, v in params.items() if n != "vertices"}))
+
+    def loss_of(render_all):
+        return jax.value_and_grad(lambda params: jnp.mean(render_all(moved(params)) ** 2))
+
+    # the loss of one view: its share of the mean over all views
+    one_loss = jax.jit(jax.value_and_grad(lambda params, c: jnp.mean(
+        ds.render(ds.replace(moved(params), camera=c), settings) ** 2) / len(cams)))
+
+    def python_loop_grad(params):
+        parts = [one_loss(params, c) for c in cams]
+        return (sum(v for v, _ in parts),
+                jax.tree.map(lambda *g: sum(g[1:], g[0]), *[g for _, g in parts]))
+
     geometry = {"vertices": scene.mesh.vertices, "kd": scene.material.kd}
     material = {"kd": scene.material.kd, "ks": scene.material.ks}
-    parts = {"forward": ({"loop": loop, "batched": batched}, (scene,)),
-             "forward_backward": ({name: loss_of(fn, geometry) for name, fn in
-                                   (("loop", loop), ("batched", batched))}, (geometry,)),
-             "material_forward_backward": ({name: loss_of(fn, material) for name, fn in
-                                            (("loop", loop), ("batched", batched))},
-                                           (material,))}
-    out = {"loop": {}, "batched": {}}
+    gradients = {"loop": loss_of(loop), "python_loop": python_loop_grad,
+                 "batched": loss_of(batched)}
+    parts = {"forward": ({"loop": loop, "python_loop": python_loop, "batched": batched},
+                         (scene,)),
+             "forward_backward": (gradients, (geometry,)),
+             "material_forward_backward": (gradients, (material,))}
+    out = {"loop": {}, "python_loop": {}, "batched": {}}
     for part, (fns, args) in parts.items():
         for name, r in interleaved(fns, args, repeats).items():
             out[name][part] = r
     return out
 
 
-def spawn(task, args, pythonpath=None):
+def spawn(task, args, pythonpath=None, extra_env=None):
     cmd = [sys.executable, os.path.abspath(__file__), "--worker", task,
            "--repeats", str(args.repeats)]
-    env = dict(os.environ)
+    env = dict(os.environ, **(extra_env or {}))
     if pythonpath:
         env["PYTHONPATH"] = pythonpath
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=pythonpath or ROOT, env=env)
@@ -218,6 +244,8 @@ def main():
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
+        if os.environ.get(ONE_CPU):  # the work measurement: one CPU, one numba thread
+            os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
         kind, _, path = args.worker.partition(":")
         result = (judged(path, args.repeats) if kind == "judged" else
                   search(args.repeats) if kind == "search" else views(args.repeats))
@@ -258,7 +286,10 @@ def judged_part(args, results):
 
 def views_part(args, results, kind):
     """The batched-views part: `views` (render_views against a loop of render) or `search`
-    (the host face search alone; OMP_WAIT_POLICY etc. are passed on to the worker)."""
+    (the host face search alone; OMP_WAIT_POLICY etc. are passed on to the worker). For
+    `views`, the same worker runs again on one CPU with one numba thread: its batched
+    times are the work of the batch, and the loop's wall time on all CPUs over that work
+    shared perfectly between them is the most batching could gain (the ceiling)."""
     key = kind if kind == "views" else f"search_{os.environ.get('OMP_WAIT_POLICY', 'default')}"
     print(f"4 views of 5,120 faces at 128^2, soft Phong, K = 8 (default path): {kind}, "
           f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', '(unset)')}")
@@ -266,19 +297,43 @@ def views_part(args, results, kind):
     if "error" in results[key]:
         print(line(kind, results[key]))
         return
+    cpus = len(os.sched_getaffinity(0))
+    if kind == "views":
+        results["views_one_cpu"] = spawn(kind, args, extra_env={ONE_CPU: "1",
+                                                                "NUMBA_NUM_THREADS": "1"})
+        if "error" in results["views_one_cpu"]:
+            print(line("one CPU", results["views_one_cpu"]))
+            return
     results[key]["speedup"] = {}
-    for part in results[key]["loop"]:
-        loop, batched = results[key]["loop"][part], results[key]["batched"][part]
-        ratios = {measure_kind: statistics.median(a / b for a, b in zip(
-            loop[field], batched[field], strict=True))
-            for measure_kind, field in (("wall", "times_s"), ("cpu", "cpu_s"))}
-        results[key]["speedup"][part] = ratios
-        print(f"batched speed-up, {part:26s} median of per-round ratios: wall "
-              f"{ratios['wall']:.2f}x, CPU {ratios['cpu']:.2f}x  (medians: loop "
-              f"{loop['median_s'] * 1e3:.0f} ms / {loop['cpu_median_s'] * 1e3:.0f} ms "
-              f"CPU, batched {batched['median_s'] * 1e3:.0f} ms / "
-              f"{batched['cpu_median_s'] * 1e3:.0f} ms CPU; compile "
-              f"{loop['compile_s']:.1f} s / {batched['compile_s']:.1f} s)")
+    for part in results[key]["batched"]:
+        batched = results[key]["batched"][part]
+        results[key]["speedup"][part] = {}
+        for name in [n for n in results[key] if n not in ("batched", "speedup")]:
+            loop = results[key][name][part]
+            ratios = {measure_kind: statistics.median(a / b for a, b in zip(
+                loop[field], batched[field], strict=True))
+                for measure_kind, field in (("wall", "times_s"), ("cpu", "cpu_s"))}
+            results[key]["speedup"][part][name] = ratios
+            print(f"batched against {name:12s} {part:26s} median of per-round ratios: wall "
+                  f"{ratios['wall']:.2f}x, CPU {ratios['cpu']:.2f}x  (medians: "
+                  f"{loop['median_s'] * 1e3:.0f} ms / {loop['cpu_median_s'] * 1e3:.0f} ms "
+                  f"CPU, batched {batched['median_s'] * 1e3:.0f} ms / "
+                  f"{batched['cpu_median_s'] * 1e3:.0f} ms CPU; compile "
+                  f"{loop['compile_s']:.1f} s / {batched['compile_s']:.1f} s)")
+        if kind == "views":
+            # the work: the least one-CPU time of the three forms (all but a few thousand
+            # values of it depend on the camera: no form can skip it)
+            one = results["views_one_cpu"]
+            work = min(one[name][part]["median_s"] for name in ("loop", "python_loop",
+                                                                 "batched"))
+            python_loop = results[key]["python_loop"][part]["median_s"]
+            ceiling = python_loop / (work / cpus)
+            results[key]["speedup"][part]["ceiling"] = ceiling
+            print(f"  on one CPU: python_loop {one['python_loop'][part]['median_s'] * 1e3:.0f}"
+                  f" ms, loop {one['loop'][part]['median_s'] * 1e3:.0f} ms, batched "
+                  f"{one['batched'][part]['median_s'] * 1e3:.0f} ms; ceiling on {cpus} CPUs: "
+                  f"python_loop {python_loop * 1e3:.0f} ms / ({work * 1e3:.0f} ms / {cpus}) "
+                  f"= {ceiling:.2f}x")
 
 
 if __name__ == "__main__":

@@ -140,26 +140,24 @@ def _covered_depth(coeffs, tri, f, x, y):
     return z if -1.0 <= z <= 1.0 else np.inf
 
 
-@numba.njit(cache=True, nogil=True)
-def _batch_outputs(views, pixels, k, bands):
-    """Per view: the K nearest ids (-1: none) and keys (inf) per pixel, the number of
-    entries of each pixel's list (_insert) and the count of candidates each row band
-    dropped."""
-    return (np.full((views, pixels, k), -1, np.int32), np.full((views, pixels, k), np.inf),
-            np.zeros((views, pixels), np.int32), np.zeros((views, bands), np.int64))
+#: faces per item of the setups' parallel loops (_hard_setup, _soft_setup)
+SETUP_CHUNK = 512
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _hard_setup(clips, faces, width, height, cull_backfaces):
     """Per view and face, once (not once per band): tri [B, F, 3, 4], coeffs [B, F, 3, 3],
     the pixel box [B, F, 4] = (first column, last column, first row, last row) of the face
-    clipped to the near plane, and reach [B, F] (False: culled, degenerate or behind)."""
+    clipped to the near plane, and reach [B, F] (False: culled, degenerate or behind); in
+    parallel over chunks of SETUP_CHUNK faces of every view."""
     views, count = clips.shape[0], faces.shape[0]
     tri, coeffs = np.empty((views, count, 3, 4)), np.empty((views, count, 3, 3))
     pixels, reach = np.empty((views, count, 4), np.int64), np.zeros((views, count), np.bool_)
-    box = np.empty(4)
-    for view in range(views):
-        for f in range(count):
+    chunks = (count + SETUP_CHUNK - 1) // SETUP_CHUNK
+    for item in prange(views * chunks):
+        view, chunk = item // chunks, item % chunks
+        box = np.empty(4)
+        for f in range(chunk * SETUP_CHUNK, min(count, (chunk + 1) * SETUP_CHUNK)):
             det = _face_setup(clips[view], faces, f, tri[view, f], coeffs[view, f])
             if not np.isfinite(det) or det == 0.0 or (cull_backfaces and det < 0.0):
                 continue
@@ -175,9 +173,14 @@ def _hard_setup(clips, faces, width, height, cull_backfaces):
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _search_hard(clips, faces, width, height, k, cull_backfaces, bands):
-    views = clips.shape[0]
-    all_ids, all_keys, all_filled, all_dropped = _batch_outputs(views, width * height, k,
-                                                                bands)
+    """(ids [views, H * W, k] int32, dropped [views]) of the hard search: per view and
+    pixel the k nearest covering faces (-1: none), and the count of covering fragments
+    beyond them."""
+    views, n_pixels = clips.shape[0], width * height
+    all_ids = np.empty((views, n_pixels, k), np.int32)
+    all_keys = np.empty((views, n_pixels, k))
+    all_filled = np.empty((views, n_pixels), np.int32)
+    all_dropped = np.zeros((views, bands), np.int64)
     tri, coeffs, pixels, reach = _hard_setup(clips, faces, width, height, cull_backfaces)
     # one item per (view, band): the views of a batch share one parallel loop
     for item in prange(views * bands):
@@ -186,6 +189,10 @@ def _search_hard(clips, faces, width, height, k, cull_backfaces, bands):
         dropped = all_dropped[view]
         view_tri, view_coeffs = tri[view], coeffs[view]
         band_r0, band_r1 = _band_rows(band, bands, height)
+        # the band's lists start empty (filled here, in parallel, not before the loop)
+        ids[band_r0 * width:(band_r1 + 1) * width] = -1
+        keys[band_r0 * width:(band_r1 + 1) * width] = np.inf
+        filled[band_r0 * width:(band_r1 + 1) * width] = 0
         for f in range(faces.shape[0]):
             if not reach[view, f]:
                 continue
@@ -377,19 +384,20 @@ def _soft_face(clip, faces, f, width, height, cull_backfaces, radius_px, tri, co
     return box[2] <= box[3]
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _soft_setup(clips, faces, width, height, cull_backfaces, radii):
     """_soft_face for every face of every view: scr [B, F, 3, 2], edge [B, F, 3, 2],
     inv_len [B, F, 3], zndc [B, F, 3], box [B, F, 4] and reach [B, F] (False: the face
-    reaches no pixel). Serial: a second parallel region would cost more (threads spinning
-    between regions) than the ~1 ms it takes."""
+    reaches no pixel), in parallel over chunks of SETUP_CHUNK faces of every view."""
     views, count = clips.shape[0], faces.shape[0]
     scr, edge = np.empty((views, count, 3, 2)), np.empty((views, count, 3, 2))
     inv_len, zndc = np.empty((views, count, 3)), np.empty((views, count, 3))
     box, reach = np.empty((views, count, 4)), np.empty((views, count), np.bool_)
-    tri, coeffs = np.empty((3, 4)), np.empty((3, 3))
-    for view in range(views):
-        for f in range(count):
+    chunks = (count + SETUP_CHUNK - 1) // SETUP_CHUNK
+    for item in prange(views * chunks):
+        view, chunk = item // chunks, item % chunks
+        tri, coeffs = np.empty((3, 4)), np.empty((3, 3))
+        for f in range(chunk * SETUP_CHUNK, min(count, (chunk + 1) * SETUP_CHUNK)):
             reach[view, f] = _soft_face(clips[view], faces, f, width, height, cull_backfaces,
                                         radii[view], tri, coeffs, scr[view, f], edge[view, f],
                                         inv_len[view, f], zndc[view, f], box[view, f])
@@ -404,15 +412,20 @@ def _face_tiles(box, height):
     return r0 // TILE_H, r1 // TILE_H, int(box[2]) // TILE_W, int(box[3]) // TILE_W
 
 
-@numba.njit(cache=True, nogil=True)
-def _bin_faces(box, reach, order, width, height):
-    """Per view, the faces whose box touches each tile, in the order order[view] lists
-    them: (start [B, T + 1], binned [B, N]) with tile t's faces
-    binned[v, start[v, t]:start[v, t + 1]]."""
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _bin_faces(box, reach, zndc, width, height):
+    """Per view, the faces whose box touches each tile, front to back (by the sum of their
+    vertices' NDC depths): (start [B, T + 1], binned [B, N]) with tile t's faces
+    binned[v, start[v, t]:start[v, t + 1]]. The views are binned in parallel; their depth
+    sorts run one after another (inside the parallel loop, numba took ~5 s longer to
+    compile this function the first time)."""
     views, count = reach.shape
     tiles_x, tiles_y = (width + TILE_W - 1) // TILE_W, (height + TILE_H - 1) // TILE_H
     start = np.zeros((views, tiles_x * tiles_y + 1), np.int64)
+    order = np.empty((views, count), np.int64)
     for view in range(views):
+        order[view] = np.argsort(zndc[view].sum(1))
+    for view in prange(views):
         for f in order[view]:
             if reach[view, f]:
                 ty0, ty1, tx0, tx1 = _face_tiles(box[view, f], height)
@@ -422,7 +435,7 @@ def _bin_faces(box, reach, order, width, height):
         for t in range(tiles_x * tiles_y):
             start[view, t + 1] += start[view, t]
     binned = np.empty((views, start[:, -1].max()), np.int64)
-    for view in range(views):
+    for view in prange(views):
         fill = start[view, :-1].copy()
         for f in order[view]:
             if reach[view, f]:
@@ -653,10 +666,7 @@ def _search_soft_into(clips, faces, width, height, k, cull_backfaces, radii, par
     # faces front to back: the lists fill with the best fragments first, and the bound
     # then rejects most of the rest without the logarithm (the lists are ordered by
     # (key, face), so the result does not depend on this order)
-    order = np.empty((views, faces.shape[0]), np.int64)
-    for view in range(views):
-        order[view] = np.argsort(zndc[view].sum(1))
-    start, binned = _bin_faces(box, reach, order, width, height)
+    start, binned = _bin_faces(box, reach, zndc, width, height)
     tiles_x, tiles_y = (width + TILE_W - 1) // TILE_W, (height + TILE_H - 1) // TILE_H
     all_dropped = np.zeros((views, tiles_x * tiles_y), np.int64)
     # one item per (view, tile): the views of a batch share one parallel loop; a tile's
