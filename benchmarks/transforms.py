@@ -10,17 +10,21 @@
      (default 48d2648, before this change: custom_vjp ops, reverse mode only), so that
      today's and the earlier figures come from one run on one machine.
 2. Batched views: 4 views of icosphere(4) at 128^2, soft Phong, K = 8: one
-   `render_views` call against a Python loop of `render` inside one `jit`: forward,
-   forward + backward with respect to vertices and kd, and with respect to the material
-   only (kd, ks), each summed over the views. Loop and batch run in one process, in
-   turns (one call of each per round), so that the load of a shared machine hits both
-   alike; printed are the medians of the per-round ratios, of wall and of CPU time.
+   `render_views` call against a Python loop of a jitted single-view `render` (what a
+   user's loop does; gradients summed) and against the 4 renders inside one `jit`:
+   forward, forward + backward with respect to vertices and kd, and with respect to the
+   material only (kd, ks), each summed over the views. The three forms run in one
+   process, in turns (one call of each per round), so that the load of a shared machine
+   hits them alike; printed are the medians of the per-round ratios, of wall and of CPU
+   time, per process (--processes, default 2). As many processes again run on one CPU
+   with one numba thread: their least time is the work of the 4 views, and the fastest
+   Python loop over half that work (on 2 CPUs) bounds what batching could gain.
 
-Each path of 1. runs in its own process, 2. in one more. Printed: compile seconds (lower +
-compile) and the median of --repeats calls after warm-up.
+Each path of 1. runs in its own process. Printed: compile seconds (lower + compile; for
+the Python loop, its first call) and the median of --repeats calls after warm-up.
 
     .venv/bin/python benchmarks/transforms.py [--repeats 20] [--baseline 48d2648]
-        [--only judged|views|search]
+        [--only judged|views|search] [--processes 2]
 
 `--only search` times the host face search of the 4 views alone (numba, no JAX): 4 calls
 of find_candidates against one call of its batch form; run it with and without
@@ -241,6 +245,8 @@ def main():
     parser.add_argument("--out", default=os.path.join(ROOT, "benchmarks/results/transforms.json"))
     parser.add_argument("--only", choices=("judged", "views", "search"),
                         help="run one of the two parts (default: both)")
+    parser.add_argument("--processes", type=int, default=2,
+                        help="worker processes for the views part (and as many on one CPU)")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
@@ -285,55 +291,55 @@ def judged_part(args, results):
 
 
 def views_part(args, results, kind):
-    """The batched-views part: `views` (render_views against a loop of render) or `search`
-    (the host face search alone; OMP_WAIT_POLICY etc. are passed on to the worker). For
-    `views`, the same worker runs again on one CPU with one numba thread: its batched
-    times are the work of the batch, and the loop's wall time on all CPUs over that work
-    shared perfectly between them is the most batching could gain (the ceiling)."""
+    """The batched-views part: `views` (render_views against the loops) or `search` (the
+    host face search alone; OMP_WAIT_POLICY etc. are passed on to the worker), in
+    --processes worker processes (this machine runs some processes 15-100% slower than
+    others: the ratios, taken within a process, do not care; absolute times do). For
+    `views`, as many workers again run on one CPU with one numba thread, in turns with
+    the others: the least one-CPU time of the three forms is the work of the 4 views, and
+    the fastest Python loop on all CPUs over that work shared perfectly between them is
+    the most any batching could gain (the ceiling)."""
     key = kind if kind == "views" else f"search_{os.environ.get('OMP_WAIT_POLICY', 'default')}"
     print(f"4 views of 5,120 faces at 128^2, soft Phong, K = 8 (default path): {kind}, "
           f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', '(unset)')}")
-    results[key] = spawn(kind, args)
-    if "error" in results[key]:
-        print(line(kind, results[key]))
-        return
-    cpus = len(os.sched_getaffinity(0))
-    if kind == "views":
-        results["views_one_cpu"] = spawn(kind, args, extra_env={ONE_CPU: "1",
-                                                                "NUMBA_NUM_THREADS": "1"})
-        if "error" in results["views_one_cpu"]:
-            print(line("one CPU", results["views_one_cpu"]))
-            return
-    results[key]["speedup"] = {}
-    for part in results[key]["batched"]:
-        batched = results[key]["batched"][part]
-        results[key]["speedup"][part] = {}
-        for name in [n for n in results[key] if n not in ("batched", "speedup")]:
-            loop = results[key][name][part]
-            ratios = {measure_kind: statistics.median(a / b for a, b in zip(
-                loop[field], batched[field], strict=True))
-                for measure_kind, field in (("wall", "times_s"), ("cpu", "cpu_s"))}
-            results[key]["speedup"][part][name] = ratios
-            print(f"batched against {name:12s} {part:26s} median of per-round ratios: wall "
-                  f"{ratios['wall']:.2f}x, CPU {ratios['cpu']:.2f}x  (medians: "
-                  f"{loop['median_s'] * 1e3:.0f} ms / {loop['cpu_median_s'] * 1e3:.0f} ms "
-                  f"CPU, batched {batched['median_s'] * 1e3:.0f} ms / "
-                  f"{batched['cpu_median_s'] * 1e3:.0f} ms CPU; compile "
-                  f"{loop['compile_s']:.1f} s / {batched['compile_s']:.1f} s)")
+    runs, one_cpu = [], []
+    for _ in range(args.processes):
+        runs.append(spawn(kind, args))
         if kind == "views":
-            # the work: the least one-CPU time of the three forms (all but a few thousand
-            # values of it depend on the camera: no form can skip it)
-            one = results["views_one_cpu"]
-            work = min(one[name][part]["median_s"] for name in ("loop", "python_loop",
-                                                                 "batched"))
-            python_loop = results[key]["python_loop"][part]["median_s"]
-            ceiling = python_loop / (work / cpus)
-            results[key]["speedup"][part]["ceiling"] = ceiling
-            print(f"  on one CPU: python_loop {one['python_loop'][part]['median_s'] * 1e3:.0f}"
-                  f" ms, loop {one['loop'][part]['median_s'] * 1e3:.0f} ms, batched "
-                  f"{one['batched'][part]['median_s'] * 1e3:.0f} ms; ceiling on {cpus} CPUs: "
-                  f"python_loop {python_loop * 1e3:.0f} ms / ({work * 1e3:.0f} ms / {cpus}) "
-                  f"= {ceiling:.2f}x")
+            one_cpu.append(spawn(kind, args, extra_env={ONE_CPU: "1", "NUMBA_NUM_THREADS": "1"}))
+    for r in runs + one_cpu:
+        if "error" in r:
+            print(line(kind, r))
+            return
+    results[key] = {"runs": runs, "one_cpu_runs": one_cpu, "speedup": {}}
+    cpus = len(os.sched_getaffinity(0))
+    for part in runs[0]["batched"]:
+        speedup = results[key]["speedup"][part] = {}
+        for name in [n for n in runs[0] if n != "batched"]:
+            per_run = []
+            for r in runs:
+                loop, batched = r[name][part], r["batched"][part]
+                per_run.append({measure_kind: statistics.median(a / b for a, b in zip(
+                    loop[field], batched[field], strict=True))
+                    for measure_kind, field in (("wall", "times_s"), ("cpu", "cpu_s"))})
+                print(f"batched against {name:12s} {part:26s} median of per-round ratios: "
+                      f"wall {per_run[-1]['wall']:.2f}x, CPU {per_run[-1]['cpu']:.2f}x  "
+                      f"(medians: {loop['median_s'] * 1e3:.0f} ms / "
+                      f"{loop['cpu_median_s'] * 1e3:.0f} ms CPU, batched "
+                      f"{batched['median_s'] * 1e3:.0f} ms / "
+                      f"{batched['cpu_median_s'] * 1e3:.0f} ms CPU; compile "
+                      f"{loop['compile_s']:.1f} s / {batched['compile_s']:.1f} s)")
+            speedup[name] = per_run
+        if kind == "views":
+            works = {name: min(r[name][part]["median_s"] for r in one_cpu)
+                     for name in ("python_loop", "loop", "batched")}
+            work = min(works.values())
+            python_loop = min(r["python_loop"][part]["median_s"] for r in runs)
+            speedup["ceiling"] = python_loop / (work / cpus)
+            print("  fastest on one CPU: " + ", ".join(
+                f"{name} {t * 1e3:.0f} ms" for name, t in works.items()) +
+                f"; ceiling on {cpus} CPUs: fastest python_loop {python_loop * 1e3:.0f} ms "
+                f"/ ({work * 1e3:.0f} ms / {cpus}) = {speedup['ceiling']:.2f}x")
 
 
 if __name__ == "__main__":
