@@ -152,9 +152,9 @@ def search(repeats):
 
 def views(repeats):
     """render_views against a loop of render, 4 views at 128^2, timed in turns: `loop`, the
-    views' renders in one jit (XLA may run them concurrently); `python_loop`, a Python loop
-    of one jitted single-view call per view (gradients summed: what a user's loop does);
-    `batched`, one render_views call."""
+    views' renders in one jit (independent, yet XLA runs them one after another);
+    `python_loop`, a Python loop of one jitted single-view call per view (gradients
+    summed: what a user's loop does); `batched`, one render_views call."""
     import jax
     import jax.numpy as jnp
 
@@ -246,7 +246,8 @@ def main():
     parser.add_argument("--only", choices=("judged", "views", "search"),
                         help="run one of the two parts (default: both)")
     parser.add_argument("--processes", type=int, default=2,
-                        help="worker processes for the views part (and as many on one CPU)")
+                        help="worker processes for the views and search parts (for views, as "
+                        "many again on one CPU)")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
