@@ -45,7 +45,7 @@ def print_table(rows, columns):
 
 def write_results(path, payload):
     """Write the benchmark JSON (with machine info) atomically."""
-    from diffshade.io import write_json
+    from diffshade.io.images import write_json
     payload = {"machine": machine_info(), **payload}
     write_json(path, payload)
     print(f"wrote {path}")

@@ -38,7 +38,7 @@ import warnings
 import numpy as np
 
 from data_synth import SHAPES, make_dataset, random_material
-from diffshade.io import read_image, write_png
+from diffshade.io.images import read_image, write_png
 from fitting import DEFAULT_INIT, fit, value_names
 
 BARS = {"float": (0.005, 0.02), "8-bit": (None, 0.03)}

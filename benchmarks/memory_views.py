@@ -2,13 +2,13 @@
 
 Each point is one fresh process: a synthetic dataset of N views (data_synth.make_dataset:
 an icosphere(3), one directional light per view, targets of SIZE^2 held in host memory),
-then the fit as `fitting.fit` runs it (build_cache, fitting.distribute.for_options,
+then the fit as `fitting.fit` runs it (build_cache, fitting.solve.distribute.for_options,
 start_run, advance, finish, fit_result), --method 'adam' or 'linear' (the default
 method: a closed-form start, then Levenberg-Marquardt) for --steps steps, then the
 report (standard errors and the misfit check), float32, on the CPU's one device:
 - chunk 'none': today's path (one compiled loss over every view's cached pixels, a
   program that grows with the number of views);
-- chunk 'all': the views stacked (fitting.distribute) and taken in one chunk: all at
+- chunk 'all': the views stacked (fitting.solve.distribute) and taken in one chunk: all at
   once through one batched program;
 - chunk C: the views streamed through that program C at a time, each chunk stacked
   from its own views when it is used, the gradient summed over chunks, then one update.
@@ -58,9 +58,9 @@ def point(views, size, chunk, steps, method="adam"):
     import diffshade as ds
     from data_synth import make_dataset
     from fitting import FitOptions, FitSpec, build_cache, fit_result
-    from fitting.distribute import fit_data, for_options
-    from fitting.params import DEFAULT_INIT
     from fitting.run import advance, finish, start_run
+    from fitting.solve.distribute import fit_data, for_options
+    from fitting.spec.params import DEFAULT_INIT
 
     truth = ds.material(ka=0.15, kd=(0.55, 0.35, 0.25), ks=0.35, shininess=25.0)
     dataset = make_dataset(ds.icosphere(3), truth, n_views=views, n_lights=1, size=size)

@@ -220,7 +220,7 @@ def mitsuba_worker(args):
 def camera_check(diffshade_image, mitsuba_image):
     """(IoU of the coverage masks, largest |colour difference| inside both masks, eroded
     by 2 pixels so that no pixel cut by the outline counts)."""
-    from fitting.cache import erode
+    from fitting.model.cache import erode
 
     ours, theirs = diffshade_image[..., 3] > 0.5, mitsuba_image[..., 3] > 0.5
     iou = (ours & theirs).sum() / max(int((ours | theirs).sum()), 1)

@@ -52,14 +52,14 @@ def stages(size):
     from peers import SOFT_K, judged_scene, mse_grad
 
     import diffshade as ds
-    from diffshade import fragment_kernels as kernels
-    from diffshade import raster
-    from diffshade.candidates import find_candidates
-    from diffshade.compact import active_indices
-    from diffshade.project import project
-    from diffshade.raster import fragments_from_ids
+    from diffshade.host import fragment_kernels as kernels
+    from diffshade.host.candidates import find_candidates
+    from diffshade.raster import fragments as raster
+    from diffshade.raster.fragments import fragments_from_ids
+    from diffshade.raster.project import project
+    from diffshade.shade.compact import active_indices
 
-    render_module = importlib.import_module("diffshade.render")
+    render_module = importlib.import_module("diffshade.pipeline.render")
     scene = judged_scene(size, 4)
     soft = ds.RenderSettings(raster="soft", faces_per_pixel=SOFT_K, shading="phong")
     hard = ds.RenderSettings(raster="hard", shading="phong")

@@ -20,10 +20,10 @@ import numpy as np
 from common import machine_info, time_call
 
 import diffshade as ds
-from diffshade.candidates import find_candidates
-from diffshade.raster import soft_radius
+from diffshade.host.candidates import find_candidates
+from diffshade.raster.fragments import soft_radius
+from diffshade.raster.tile_search import search_tiles
 from diffshade.settings import RenderSettings
-from diffshade.tile_search import search_tiles
 
 SIZE, K = 256, 8
 

@@ -24,9 +24,9 @@ and writing the result files), read from JAX's compile log (JAX_LOG_COMPILES). T
 of a jitted function nested in another is counted in both, so the tracing figure is an
 upper bound; in the cold run, "rest" includes numba compiling the host kernels. It also
 counts the programs loaded from the cache, the programs in diffshade's program store
-(diffshade.compile_cache.stored_jit: a warm run loads them whole, so they are not in
+(diffshade.io.compile_cache.stored_jit: a warm run loads them whole, so they are not in
 JAX's log, and their tracing and lowering are gone from the breakdown), and those JAX refuses to
-cache because they contain host callbacks (diffshade.compile_cache explains why), and
+cache because they contain host callbacks (diffshade.io.compile_cache explains why), and
 lists the seconds per program (by its name in the log; wall seconds, so they grow with
 the machine's load).
 Writes JSON (default benchmarks/results/time_to_first_result.json).

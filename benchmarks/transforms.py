@@ -131,8 +131,8 @@ def search(repeats):
     import numpy as np
 
     import diffshade as ds
-    from diffshade.candidates import find_candidates
-    from diffshade.raster import soft_radius
+    from diffshade.host.candidates import find_candidates
+    from diffshade.raster.fragments import soft_radius
 
     settings = settings_for("host")
     scene, cams = views_setup()

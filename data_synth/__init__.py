@@ -2,7 +2,7 @@
 
 `make_dataset` renders a built-in shape (or any mesh file) with a given or random
 material from several cameras and lights through `diffshade.render`. The dataset folder
-format (`save_dataset`, `load_dataset`) lives in fitting.dataset; both are re-exported
+format (`save_dataset`, `load_dataset`) lives in fitting.data.folder; both are re-exported
 here. See data_synth/scenes.py for the layout of cameras and lights.
 """
 
@@ -17,7 +17,7 @@ from data_synth.scenes import (
     shape_mesh,
     view_lights,
 )
-from fitting.dataset import load_dataset, save_dataset
+from fitting.data.folder import load_dataset, save_dataset
 
 __all__ = [
     "COEFFICIENT_RANGES", "GLOBAL_AMBIENT", "LIGHT_INTENSITY", "SHAPES", "SHININESS_RANGE",

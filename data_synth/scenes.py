@@ -27,8 +27,8 @@ import numpy as np
 import diffshade as ds
 from data_synth.materials import random_material
 from diffshade.numerics import float_dtype
-from diffshade.project import transform_points
-from fitting.data import Dataset, View, view_scene
+from diffshade.raster.project import transform_points
+from fitting.data.views import Dataset, View, view_scene
 
 SHAPES = ("icosphere", "torus", "box")
 GLOBAL_AMBIENT = 0.4

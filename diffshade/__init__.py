@@ -3,21 +3,40 @@
 Pipeline: project -> rasterize -> interpolate -> shade -> blend; `render` composes them.
 """
 
-from diffshade import cputune
+from diffshade.host import cputune
 
-#: what diffshade.cputune changed in this process (see its docstring; before any import of
+#: what diffshade.host.cputune changed in this process (see its docstring; before any import of
 #: a module that could start XLA)
 CPU_TUNING = cputune.apply()
 
-from diffshade.area_lights import area_light, sphere_light
-from diffshade.builtin import BUILTIN_SCENES, builtin_scene
-from diffshade.camera import Camera, look_at
-from diffshade.color import linear_to_srgb, srgb_to_linear
-from diffshade.interpolate import interpolate
-from diffshade.io import read_image, write_npy, write_png
-from diffshade.lights import ambient_light, directional_light, point_light, spot_light
-from diffshade.material import Material, material
-from diffshade.mesh import (
+from diffshade.io.color import linear_to_srgb, srgb_to_linear
+from diffshade.io.images import read_image, write_npy, write_png
+from diffshade.io.scenefile import (
+    SceneFileError,
+    load_scene,
+    load_scenes,
+    save_scene,
+    scene_from_dict,
+    scenes_from_dict,
+)
+from diffshade.pipeline.render import (
+    blend,
+    rasterize_scene,
+    render,
+    render_fragments,
+    render_parts,
+    render_views,
+    stack_cameras,
+)
+from diffshade.pipeline.shading_cache import ShadingCache, cache_shading, render_cached
+from diffshade.raster.fragments import Fragments, rasterize
+from diffshade.raster.interpolate import interpolate
+from diffshade.raster.project import project
+from diffshade.scene.builtin import BUILTIN_SCENES, builtin_scene
+from diffshade.scene.camera import Camera, look_at
+from diffshade.scene.lights import ambient_light, directional_light, point_light, spot_light
+from diffshade.scene.material import Material, material
+from diffshade.scene.mesh import (
     Mesh,
     box,
     icosphere,
@@ -27,29 +46,10 @@ from diffshade.mesh import (
     model_matrix,
     torus,
 )
-from diffshade.project import project
-from diffshade.raster import Fragments, rasterize
-from diffshade.render import (
-    blend,
-    rasterize_scene,
-    render,
-    render_fragments,
-    render_parts,
-    render_views,
-    stack_cameras,
-)
-from diffshade.scene import Scene, SceneObject, make_scene, replace, scene_object
-from diffshade.scenefile import (
-    SceneFileError,
-    load_scene,
-    load_scenes,
-    save_scene,
-    scene_from_dict,
-    scenes_from_dict,
-)
+from diffshade.scene.scene import Scene, SceneObject, make_scene, replace, scene_object
 from diffshade.settings import RenderSettings
-from diffshade.shading import shade
-from diffshade.shading_cache import ShadingCache, cache_shading, render_cached
+from diffshade.shade.area import area_light, sphere_light
+from diffshade.shade.lighting import shade
 
 # What users call. Everything else (light classes, blend variants, mesh utilities, the
 # scene-file dict writer, io helpers) stays importable from its module.

@@ -18,10 +18,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffshade.camera import Camera, view_dir_infinite
-from diffshade.mesh import icosphere, mesh_from_arrays
 from diffshade.numerics import clamp01, dot, safe_normalize, safe_sqrt
-from diffshade.shading import shade
+from diffshade.scene.camera import Camera, view_dir_infinite
+from diffshade.scene.mesh import icosphere, mesh_from_arrays
+from diffshade.shade.lighting import shade
 
 
 def _sample_ndc(width, height, supersample, dtype):

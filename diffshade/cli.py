@@ -13,7 +13,7 @@ fn(args) -> int exit status. `render` is registered here.
 A user error (ValueError, including SceneFileError, or OSError such as a missing or
 unwritable file) prints one line `diffshade: error: <message>` on stderr and returns 2,
 never a traceback; so do command-line usage errors. Success prints each written path and
-returns 0. Output files are written atomically (diffshade.io).
+returns 0. Output files are written atomically (diffshade.io.images).
 """
 
 import argparse
@@ -24,13 +24,13 @@ import sys
 import numpy as np
 
 from data_synth.cli import register as register_synth
-from diffshade import compile_cache
-from diffshade.builtin import BUILTIN_SCENES, builtin_scene
-from diffshade.camera import MAX_IMAGE_SIZE
-from diffshade.io import write_npy, write_png
-from diffshade.render import render, render_parts
-from diffshade.scene import replace
-from diffshade.scenefile import load_scene
+from diffshade.io import compile_cache
+from diffshade.io.images import write_npy, write_png
+from diffshade.io.scenefile import load_scene
+from diffshade.pipeline.render import render, render_parts
+from diffshade.scene.builtin import BUILTIN_SCENES, builtin_scene
+from diffshade.scene.camera import MAX_IMAGE_SIZE
+from diffshade.scene.scene import replace
 from diffshade.settings import SHADING_MODES, RenderSettings
 from fitting.cli import register as register_fit
 

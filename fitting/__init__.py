@@ -3,19 +3,30 @@
 The forward model is diffshade's lighting core: targets are rendered with
 `diffshade.render`, and a fit evaluates `diffshade.shade` on cached pixels. Start with
 `fit(dataset, FitSpec())`; see docs/fitting.md. `fit` and `diffshade fit` run the same
-driver (fitting.run) with the same options (fitting.options).
+driver (fitting.run) with the same options (fitting.solve.options).
 """
 
-from fitting.cache import FitData, ViewSamples, build_cache, pixel_parts, predict
-from fitting.data import Dataset, View, view_scene
-from fitting.dataset import load_dataset, save_dataset
+from fitting.data.folder import load_dataset, save_dataset
+from fitting.data.views import Dataset, View, view_scene
 from fitting.fit import FitResult, fit, fit_result, relative_errors
-from fitting.gauss_newton import levenberg_marquardt, lm_step
-from fitting.linear import box_least_squares, normal_equations, solve_linear
-from fitting.loss import LOSSES, RenderData, make_loss, make_render_loss, render_data, residuals
-from fitting.misfit import Misfit, misfit
-from fitting.options import FIT_METHODS, METHODS, FitOptions
-from fitting.params import (
+from fitting.model.cache import FitData, ViewSamples, build_cache, pixel_parts, predict
+from fitting.model.loss import (
+    LOSSES,
+    RenderData,
+    make_loss,
+    make_render_loss,
+    render_data,
+    residuals,
+)
+from fitting.report.misfit import Misfit, misfit
+from fitting.report.result import comparison_table
+from fitting.report.uncertainty import IdentifiabilityWarning, UncertaintyReport, uncertainty
+from fitting.run import RunState, advance, finish, start_run
+from fitting.solve.gauss_newton import levenberg_marquardt, lm_step
+from fitting.solve.linear import box_least_squares, normal_equations, solve_linear
+from fitting.solve.options import FIT_METHODS, METHODS, FitOptions
+from fitting.solve.step import make_optimizer, make_step
+from fitting.spec.params import (
     DEFAULT_INIT,
     KINDS,
     FitSpec,
@@ -31,10 +42,6 @@ from fitting.params import (
     values_to_lights,
     values_to_material,
 )
-from fitting.report import comparison_table
-from fitting.run import RunState, advance, finish, start_run
-from fitting.step import make_optimizer, make_step
-from fitting.uncertainty import IdentifiabilityWarning, UncertaintyReport, uncertainty
 
 __all__ = [
     "DEFAULT_INIT", "FIT_METHODS", "KINDS", "LOSSES", "METHODS", "Dataset", "FitData",

@@ -4,7 +4,7 @@
     state = load_checkpoint(path, lights=[v.lights for v in dataset.views])
 
 A checkpoint is JSON: the run's spec, initial material and every option
-(fitting.options.FitOptions, so a resumed run continues with the settings it started
+(fitting.solve.options.FitOptions, so a resumed run continues with the settings it started
 with), the params, the optimizer state (every leaf; non-finite numbers as the strings
 'nan', 'inf', '-inf'), the step, the history, the best params and the caller's `meta`.
 `read_checkpoint` gives the checked JSON (a caller can learn the options and meta before
@@ -20,12 +20,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffshade.io import write_json
-from fitting.dataset import material_dict, material_from_dict
-from fitting.gains import GAIN_NAMES
-from fitting.options import FitOptions
-from fitting.params import FitSpec
+from diffshade.io.images import write_json
+from fitting.data.folder import material_dict, material_from_dict
 from fitting.run import RunState, check_run, initial_opt_state, start_params
+from fitting.solve.options import FitOptions
+from fitting.spec.gains import GAIN_NAMES
+from fitting.spec.params import FitSpec
 
 FORMAT = "diffshade-fit-checkpoint"
 VERSION = 2
@@ -77,7 +77,7 @@ def save_checkpoint(path, state: RunState) -> str:
 
 
 def _n_views(params):
-    """The views the per-view gains (fitting.gains) of params cover, or None."""
+    """The views the per-view gains (fitting.spec.gains) of params cover, or None."""
     gains = [params[name] for name in GAIN_NAMES if name in params]
     return int(np.shape(gains[0])[0]) + 1 if gains else None
 

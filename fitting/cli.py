@@ -9,17 +9,17 @@
         [--quiet]
 
 The fit is fitting.run's, the driver `fitting.fit` uses, with the same options: one flag
-per field of fitting.options.FitOptions. A dataset of several objects (scene files with
+per field of fitting.solve.options.FitOptions. A dataset of several objects (scene files with
 "objects") has every object's material fitted at once: --init is every object's start
-(KA,KD,KS,N) or one per object (a file {"objects": ...}, fitting.data.material_for), and
-the table, material.mtl and result.json have each object's part (fitting.report).
+(KA,KD,KS,N) or one per object (a file {"objects": ...}, fitting.data.views.material_for), and
+the table, material.mtl and result.json have each object's part (fitting.report.result).
 
 Everything that can be wrong with the input (options, the dataset folder, its targets,
 the output path, the checkpoint to resume; fitting.plan, fitting.inputs) is checked
 before anything is written; such an error is raised as ValueError or OSError, which
 diffshade.cli prints as one line (exit 2). Then the fit runs with a progress bar on a
 terminal, writing RESULT/checkpoint.json every --checkpoint-every steps, and at its end
-the result files (fitting.report) and the true-versus-recovered table. On --resume every
+the result files (fitting.report.result) and the true-versus-recovered table. On --resume every
 option left out comes from the checkpoint, so the run continues with the settings it
 started with.
 
@@ -44,18 +44,18 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from diffshade.color import COLOR_SPACES
-from fitting.cache import build_cache
+from diffshade.io.color import COLOR_SPACES
 from fitting.checkpoint import save_checkpoint
-from fitting.distribute import fit_data, for_options
 from fitting.fit import fit_result
 from fitting.inputs import non_negative_float, non_negative_int, positive_float, positive_int
-from fitting.loss import LOSSES
-from fitting.options import FIT_METHODS, OPTIONS, FitOptions
-from fitting.params import to_values
+from fitting.model.cache import build_cache
+from fitting.model.loss import LOSSES
 from fitting.plan import CHECKPOINT, flag, prepare
-from fitting.report import STATUS_LABELS, comparison_table, write_result
+from fitting.report.result import STATUS_LABELS, comparison_table, write_result
 from fitting.run import advance, finish, start_run
+from fitting.solve.distribute import fit_data, for_options
+from fitting.solve.options import FIT_METHODS, OPTIONS, FitOptions
+from fitting.spec.params import to_values
 
 RESULT_FORMAT = "diffshade-fit-result"
 EXIT_NON_FINITE = 3

@@ -4,11 +4,11 @@
     result.material, result.errors, result.uncertainty.table(), print(result.summary())
 
 `fit` is the Python face of the one fit driver (fitting.run), the same loop, options
-(fitting.options.FitOptions, as keywords) and result as `diffshade fit`. Methods (all on
-the cached pixels, see fitting.cache):
+(fitting.solve.options.FitOptions, as keywords) and result as `diffshade fit`. Methods (all on
+the cached pixels, see fitting.model.cache):
 - 'linear' (default): variable projection — closed-form coefficients inside a 1-D search
-  on log-shininess (fitting.linear) — then Levenberg-Marquardt on every fitted quantity
-  with the exact clamped model and the chosen loss (fitting.gauss_newton). Independent of
+  on log-shininess (fitting.solve.linear) — then Levenberg-Marquardt on every fitted quantity
+  with the exact clamped model and the chosen loss (fitting.solve.gauss_newton). Independent of
   the initial guess for the material; the most accurate and the fastest.
 - 'adam': Adam on the unconstrained parameters with per-group learning rates.
 - 'lbfgs': optax.lbfgs with a zoom line search.
@@ -19,7 +19,7 @@ can stall on the ks-shininess ridge from a poor start (see docs/fitting.md).
 `fit_result` reports a run at its best params: the values, the relative error of every
 fitted value when the truth is known (per channel), standard errors, the values that
 ended at a bound (no standard error), and whether the model explains the images
-(fitting.misfit).
+(fitting.report.misfit).
 """
 
 import dataclasses
@@ -28,13 +28,16 @@ import time
 import jax
 import numpy as np
 
-from diffshade.material import Material
-from fitting.cache import build_cache
-from fitting.data import Dataset, material_for
-from fitting.distribute import device_list, fit_data, for_options
-from fitting.misfit import Misfit, misfit
-from fitting.options import FitOptions
-from fitting.params import (
+from diffshade.scene.material import Material
+from fitting.data.views import Dataset, material_for
+from fitting.model.cache import build_cache
+from fitting.report.misfit import Misfit, misfit
+from fitting.report.result import comparison_table
+from fitting.report.uncertainty import UncertaintyReport, uncertainty
+from fitting.run import advance, finish, start_run
+from fitting.solve.distribute import device_list, fit_data, for_options
+from fitting.solve.options import FitOptions
+from fitting.spec.params import (
     DEFAULT_INIT,
     MODED,
     FitSpec,
@@ -46,21 +49,18 @@ from fitting.params import (
     values_to_lights,
     values_to_material,
 )
-from fitting.report import comparison_table
-from fitting.run import advance, finish, start_run
-from fitting.uncertainty import UncertaintyReport, uncertainty
 
 
 @dataclasses.dataclass(frozen=True)
 class FitResult:
     """material: the fitted Material; lights: tuple of LightGroups per view (fitted or
-    given); values: physical fitted values (fitting.params); params: unconstrained;
+    given); values: physical fitted values (fitting.spec.params); params: unconstrained;
     loss: the lowest loss seen (the values are where it was reached); loss_history:
     [steps + 1]; converged; n_steps; wall_time (s); method; errors: {name: relative error
     per channel} against `truth`, or None; uncertainty: UncertaintyReport or None;
     warnings: tuple of messages; truth: the true Material, or None; status: 'converged',
     'budget', 'stopped' or 'non-finite' (fitting.run); stop_message: why it stopped on
-    non-finite values; at_bound: names of the values at a bound; misfit: fitting.misfit
+    non-finite values; at_bound: names of the values at a bound; misfit: fitting.report.misfit
     .Misfit or None; object_names: the names of the dataset's objects when they are named
     (scene files' "name", diffshade.scene_object's name), else None."""
 
@@ -155,10 +155,10 @@ def _bound_warning(names, values, spec):
 def fit_result(state, dataset, data, *, with_uncertainty=True, warn=False, truth=None,
                status="converged", stop_message="") -> FitResult:
     """A FitResult at the state's best params (fitting.run.RunState): values, standard
-    errors and warnings (fitting.uncertainty; raised as warnings when `warn`), the values
+    errors and warnings (fitting.report.uncertainty; raised as warnings when `warn`), the values
     at a bound, the misfit check, relative errors against `truth` (default the dataset's)
     when known; loss is the best loss, loss_history the whole history. data: the cached
-    data, or its ShardedViews (fitting.distribute: the report's sums a chunk at a time)."""
+    data, or its ShardedViews (fitting.solve.distribute: the report's sums a chunk at a time)."""
     if state.best_params is None:
         raise ValueError("state: no step had a finite loss; there is no result to report")
     spec, truth = state.spec, dataset.truth if truth is None else truth
@@ -195,7 +195,7 @@ def _check_fit_args(dataset, spec, init, truth, options, settings):
         named = name == "init" and isinstance(value, dict)  # {object name: Material}
         if value is not None and not isinstance(value, Material) and not named:
             raise TypeError(f"{name}: got {type(value).__name__}; expected a Material "
-                            "(diffshade.material(...)) or None")
+                            "(diffshade.scene.material(...)) or None")
     if options is not None and not isinstance(options, FitOptions):
         raise TypeError(f"options: got {type(options).__name__}; expected FitOptions")
     unknown = sorted(set(settings) - {f.name for f in dataclasses.fields(FitOptions)})
@@ -222,7 +222,7 @@ def fit(dataset: Dataset, spec: FitSpec | None = None, init=None, *, options=Non
     `dataset`, starting from (and holding fixed the rest of) `init` (a Material; default
     DEFAULT_INIT; kt, when fitted and `init` has none, starts at KT_START; with several
     objects one Material for all, a stacked one or {object name: Material},
-    fitting.data.material_for).
+    fitting.data.views.material_for).
 
     options: a FitOptions; settings: any of its fields as keywords (method='linear' |
     'adam' | 'lbfgs', steps, loss, tol, atol, patience, gtol, lr, lr_shininess,

@@ -3,7 +3,7 @@
 argparse types (`positive_int`, `non_negative_float`), materials from text or a JSON file
 (`parse_material`), the FitSpec from --fit and --grey names (`fit_spec`), the output
 folder (`check_output`), and the dataset folder (`load_checked_dataset`:
-fitting.dataset.load_dataset, which checks the folder and names the file at fault).
+fitting.data.folder.load_dataset, which checks the folder and names the file at fault).
 Every problem is a ValueError or an OSError whose message names the option or the file,
 the value and what was expected; diffshade.cli prints it as one line.
 """
@@ -13,10 +13,10 @@ import os
 
 import numpy as np
 
-from diffshade.material import material
-from diffshade.scenefile import read_json
-from fitting.dataset import fingerprint, load_dataset, material_from_dict
-from fitting.params import FIT_NAMES, MODED, FitSpec
+from diffshade.io.scenefile import read_json
+from diffshade.scene.material import material
+from fitting.data.folder import fingerprint, load_dataset, material_from_dict
+from fitting.spec.params import FIT_NAMES, MODED, FitSpec
 
 DEFAULT_FIT = tuple(name for name, value in FitSpec().fitted.items() if value)
 
@@ -63,7 +63,7 @@ def parse_material(text, option):
     """'KA,KD,KS,N' (grey coefficients and the shininess) or a JSON file with keys ka, kd,
     ks, shininess, emission (a dataset's truth.json; a result.json's 'material') ->
     Material; a file of several objects' materials ({"objects": [...]} or {"objects":
-    {name: ...}}, fitting.dataset.material_from_dict) gives a stacked Material or a dict
+    {name: ...}}, fitting.data.folder.material_from_dict) gives a stacked Material or a dict
     {name: Material}. Raises ValueError (or FileNotFoundError) naming `option`."""
     if "," in text:
         parts = text.split(",")
@@ -90,7 +90,7 @@ def _names(text, option, allowed):
 
 
 def fit_spec(fit_text=None, grey_text=None) -> FitSpec:
-    """FitSpec from --fit (names among fitting.params.FIT_NAMES, the per-view gains
+    """FitSpec from --fit (names among fitting.spec.params.FIT_NAMES, the per-view gains
     exposure and white_balance included; default: ka, kd, ks, shininess) and --grey (fitted
     coefficients that get one value for all channels)."""
     fitted = _names(fit_text, "--fit", FIT_NAMES) if fit_text is not None else DEFAULT_FIT
@@ -117,7 +117,7 @@ def check_output(path):
 
 
 def load_checked_dataset(path, color_space=None):
-    """fitting.dataset.load_dataset, after checking that DATASET is a folder.
+    """fitting.data.folder.load_dataset, after checking that DATASET is a folder.
     color_space: 'srgb' or 'linear' decodes every image target so (--color-space)."""
     if not os.path.exists(path):
         raise FileNotFoundError(f"DATASET: folder not found: {path!r}")

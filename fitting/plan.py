@@ -11,8 +11,7 @@ import os
 from typing import NamedTuple
 
 from fitting.checkpoint import checkpoint_run, load_checkpoint, material_dict, read_checkpoint
-from fitting.data import material_for
-from fitting.distribute import device_list
+from fitting.data.views import material_for
 from fitting.inputs import (
     check_output,
     dataset_fingerprint,
@@ -20,8 +19,9 @@ from fitting.inputs import (
     load_checked_dataset,
     parse_material,
 )
-from fitting.options import PLACEMENT, FitOptions
-from fitting.params import DEFAULT_INIT, FitSpec, start_material
+from fitting.solve.distribute import device_list
+from fitting.solve.options import PLACEMENT, FitOptions
+from fitting.spec.params import DEFAULT_INIT, FitSpec, start_material
 
 CHECKPOINT = "checkpoint.json"
 

@@ -8,17 +8,17 @@
 
 `RunState` is a plain, mutable record that `advance` updates in place after every step,
 so it is a consistent snapshot whenever `should_stop`, `on_step` or `save` sees it: the
-spec, the initial material and every option (fitting.options) — what is run — and the
-params (unconstrained, fitting.params), the optimizer state, the steps taken, the loss
+spec, the initial material and every option (fitting.solve.options) — what is run — and the
+params (unconstrained, fitting.spec.params), the optimizer state, the steps taken, the loss
 history (history[j] = loss after j steps; for the optax methods the loss of the current
 params is known only after the next step, or after `finish`) and the best params seen.
 
-Methods (fitting.options.METHODS): 'adam' and 'lbfgs' take fitting.step's jitted optax
+Methods (fitting.solve.options.METHODS): 'adam' and 'lbfgs' take fitting.solve.step's jitted optax
 steps, guarded by optax.apply_if_finite: a step with a non-finite loss or gradient leaves
 the params and the inner state unchanged and is not counted; `max_bad` of them in a row
 stop the run with status 'non-finite' and a message naming the parameters whose gradient
 is not finite. 'linear' solves the coefficients in closed form at the start (step 0) and
-then takes Levenberg-Marquardt iterations (fitting.gauss_newton.lm_step), whose state is
+then takes Levenberg-Marquardt iterations (fitting.solve.gauss_newton.lm_step), whose state is
 the damping. Statuses: 'budget' (the step budget reached), 'converged', 'stopped'
 (should_stop() returned True), 'non-finite'.
 """
@@ -32,15 +32,15 @@ import jax
 import numpy as np
 import optax
 
-from diffshade.material import Material
-from fitting.batch import batched
-from fitting.distribute import ShardedViews, fit_data
-from fitting.gauss_newton import lm_step, loss_at
-from fitting.linear import solve_linear
-from fitting.loss import make_loss
-from fitting.options import METHODS, FitOptions
-from fitting.params import FitSpec, from_values, material_values, to_values, value_names
-from fitting.step import make_optimizer, make_step
+from diffshade.scene.material import Material
+from fitting.model.batch import batched
+from fitting.model.loss import make_loss
+from fitting.solve.distribute import ShardedViews, fit_data
+from fitting.solve.gauss_newton import lm_step, loss_at
+from fitting.solve.linear import solve_linear
+from fitting.solve.options import METHODS, FitOptions
+from fitting.solve.step import make_optimizer, make_step
+from fitting.spec.params import FitSpec, from_values, material_values, to_values, value_names
 
 LM_DAMPING = 1e-3
 
@@ -90,7 +90,7 @@ def optax_step(spec, kind, method, lr, lr_shininess, lr_position):
 
 
 def _optax_step_of(spec, options, data=None):
-    if isinstance(data, ShardedViews):  # fitting.distribute: sharded, chunked views
+    if isinstance(data, ShardedViews):  # fitting.solve.distribute: sharded, chunked views
         optimizer = _optax_step_of(spec, options)[1]
         return data.step_fn(spec, options, optimizer), optimizer
     return optax_step(spec, options.loss, options.method, options.lr, options.lr_shininess,
@@ -126,7 +126,7 @@ def start_run(data, spec: FitSpec, init: Material, options: FitOptions | None = 
               meta=None) -> RunState:
     """A fresh RunState at `init` (for 'linear' with one object: at the closed-form
     solution) on the cached `data` (fitting.build_cache(dataset, init), or its
-    fitting.distribute.ShardedViews); options default FitOptions()."""
+    fitting.solve.distribute.ShardedViews); options default FitOptions()."""
     options = FitOptions() if options is None else options
     check_run(spec, init, options)
     params = start_params(spec, init, fit_data(data).lights)
@@ -134,7 +134,7 @@ def start_run(data, spec: FitSpec, init: Material, options: FitOptions | None = 
     # solves one material); kt, not linear, starts from `init` too
     linear = bool(spec.coefficients) or spec.shininess
     if options.method == "linear" and linear and "objects" not in params:
-        # sharded views: their sums a chunk at a time (fitting.linear.fold_parts)
+        # sharded views: their sums a chunk at a time (fitting.solve.linear.fold_parts)
         solved = solve_linear(data, spec, shininess_range=options.shininess_range)
         params = {**params, **from_values(solved, spec)}
     return RunState(spec, init, options, params, initial_opt_state(spec, options, params),
@@ -151,12 +151,12 @@ def gradients(params, data, spec, kind):
 
 def _stacked(data):
     """The data a compiled step reads: sharded views as they are, a FitData with its views
-    stacked once (fitting.batch.batched), not in every step."""
+    stacked once (fitting.model.batch.batched), not in every step."""
     return data if isinstance(data, ShardedViews) else batched(data)
 
 
 def _gradients_at(state, data):
-    if isinstance(data, ShardedViews):  # fitting.distribute
+    if isinstance(data, ShardedViews):  # fitting.solve.distribute
         return data.value_and_grad(state.params, state.spec, state.kind)[1]
     return gradients(state.params, _stacked(data), state.spec, state.kind)
 

@@ -46,10 +46,10 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from diffshade.mesh import Mesh  # noqa: E402
 from diffshade.numerics import float_dtype  # noqa: E402
+from diffshade.scene.mesh import Mesh  # noqa: E402
 
-# The command line turns JAX's persistent compilation cache on (diffshade.compile_cache).
+# The command line turns JAX's persistent compilation cache on (diffshade.io.compile_cache).
 # Tests run it in-process and in subprocesses; they must not write into the user's cache
 # folder, nor switch the cache on for the rest of the session.
 os.environ["DIFFSHADE_COMPILE_CACHE"] = "0"

@@ -2,7 +2,7 @@
 
 For every pixel centre and EVERY face (an O(pixels x faces) computation, no candidate
 search, no K) it redoes, in plain jax.numpy (differentiable, float64 under x64):
-- projection: model matrix, then diffshade.camera.view_matrix / projection_matrix (tested
+- projection: model matrix, then diffshade.scene.camera.view_matrix / projection_matrix (tested
   elsewhere); pixel coordinates x = (X/W + 1) width/2, y = (1 - Y/W) height/2, pixel
   centres at (col + 0.5, row + 0.5);
 - screen-space barycentrics lam_i = area(p, s_j, s_k) / area(s_0, s_1, s_2); inside when
@@ -14,7 +14,7 @@ search, no K) it redoes, in plain jax.numpy (differentiable, float64 under x64):
 - reach: |d2| <= r^2 = sigma ln((1 - t) / t) or inside, NDC depth in [-1, 1], and the
   face not culled: no vertex behind the near plane (Z + W < 0), non-zero screen area,
   back faces (clockwise on screen) only when cull_backfaces is off;
-- colours with diffshade.shading.shade (the lighting core is tested elsewhere): Phong at
+- colours with diffshade.shade.lighting.shade (the lighting core is tested elsewhere): Phong at
   the interpolated point and normal, Gouraud from clamped vertex colours, flat at the
   centroid with the face normal, flat_last from the last vertex; OpenGL's two-sided rule;
 - aggregation written out literally, with the largest exponent m factored out:
@@ -25,7 +25,7 @@ search, no K) it redoes, in plain jax.numpy (differentiable, float64 under x64):
 Optionally only the `k` reached faces of largest weight log D + zt / gamma are kept, as
 the real implementation does when K is too small (for small gamma: the nearest).
 
-Nothing from diffshade.raster, candidates, interpolate, blend or render is used.
+Nothing from diffshade.raster.fragments, candidates, interpolate, blend or render is used.
 """
 
 import math
@@ -33,8 +33,8 @@ import math
 import jax
 import jax.numpy as jnp
 
-from diffshade.camera import projection_matrix, view_matrix
-from diffshade.shading import shade
+from diffshade.scene.camera import projection_matrix, view_matrix
+from diffshade.shade.lighting import shade
 
 BACKGROUND_EPS = 1e-3
 

@@ -33,9 +33,9 @@ from diffshade import (
     sphere_light,
     spot_light,
 )
-from diffshade.area_lights import orthonormal_frame, rect_irradiance, sample_incidence, terms
-from diffshade.scenefile import SceneFileError, scene_to_dict
-from diffshade.shading import _light_terms
+from diffshade.io.scenefile import SceneFileError, scene_to_dict
+from diffshade.shade.area import orthonormal_frame, rect_irradiance, sample_incidence, terms
+from diffshade.shade.lighting import _light_terms
 
 pytestmark = pytest.mark.usefixtures("x64")
 

@@ -10,8 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffshade.blend import BACKGROUND_EPS, soft_alpha, soft_blend, soft_weights
-from diffshade.raster import Fragments
+from diffshade.composite.blend import BACKGROUND_EPS, soft_alpha, soft_blend, soft_weights
+from diffshade.raster.fragments import Fragments
 
 pytestmark = pytest.mark.usefixtures("x64")
 

@@ -1,4 +1,4 @@
-"""Tests for the command line (diffshade.cli) and the atomic writers it uses (diffshade.io).
+"""Tests for the command line (diffshade.cli) and the atomic writers it uses (diffshade.io.images).
 
 References: the same scenes rendered through the API and quantized with numpy, PNG
 bytes decoded by imageio directly, and the files left in the output folder after a
@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 import diffshade as ds
-import diffshade.io as dio
+import diffshade.io.images as dio
 from diffshade import cli
-from diffshade.builtin import BUILTIN_SCENES, builtin_scene
+from diffshade.scene.builtin import BUILTIN_SCENES, builtin_scene
 
 
 def quantized(rgb):

@@ -14,8 +14,8 @@ import pytest
 
 import diffshade as ds
 from diffshade import cli
-from diffshade.project import transform_points
-from fitting.dataset import load_dataset
+from diffshade.raster.project import transform_points
+from fitting.data.folder import load_dataset
 
 SIZE = 32
 TRUTH = {"table": {"ka": [0.1, 0.15, 0.2], "kd": [0.2, 0.35, 0.7], "ks": [0.3, 0.3, 0.35],

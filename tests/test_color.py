@@ -1,5 +1,5 @@
-"""Colour encoding: the sRGB transfer functions (diffshade.color), image files decoded to
-linear on read and encoded on write (diffshade.io, diffshade.png), the dataset's
+"""Colour encoding: the sRGB transfer functions (diffshade.io.color), image files decoded to
+linear on read and encoded on write (diffshade.io.images, diffshade.io.png), the dataset's
 "color_space" key and `diffshade fit --color-space`, and the 8-bit sRGB rounding bound.
 
 References: the IEC 61966-2-1 closed form evaluated with Python's math per element,
@@ -20,13 +20,13 @@ import pytest
 import trimesh
 
 import diffshade as ds
-import diffshade.io as dio
+import diffshade.io.images as dio
 from data_synth import load_dataset, make_dataset, save_dataset
 from diffshade import cli
-from diffshade.color import decode, encode, linear_to_srgb, srgb_to_linear
-from diffshade.png import SIGNATURE, decode_png16, encode_png
+from diffshade.io.color import decode, encode, linear_to_srgb, srgb_to_linear
+from diffshade.io.png import SIGNATURE, decode_png16, encode_png
 from fitting import fit
-from fitting.uncertainty import rounding_steps
+from fitting.report.uncertainty import rounding_steps
 
 # ---- the transfer functions ----
 

@@ -1,4 +1,4 @@
-"""The command line's persistent compilation cache (diffshade.compile_cache).
+"""The command line's persistent compilation cache (diffshade.io.compile_cache).
 
 JAX decides once per process whether it uses a cache, at the first compilation, so each
 behaviour is checked in a fresh interpreter: the files that appear in the cache folder,
@@ -17,7 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffshade import cli, compile_cache
+from diffshade import cli
+from diffshade.io import compile_cache
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -235,7 +236,9 @@ def test_compiler_options_are_in_the_key(store, monkeypatch):
 
 
 def test_the_fit_compiles_its_run_once_programs_fast():
-    from fitting import cache, gauss_newton, linear, report
+    from fitting.model import cache
+    from fitting.report import result as report
+    from fitting.solve import gauss_newton, linear
 
     fast = tuple(sorted(compile_cache.FAST_COMPILE.items()))
     for program in (cache._project, cache._fragments, report._render_fragments):
@@ -276,9 +279,9 @@ def test_the_key_follows_the_package_source(monkeypatch):
 def test_a_fit_program_from_the_store_equals_jit(store, monkeypatch):
     from data_synth import make_dataset
     from fitting import DEFAULT_INIT, FitSpec, build_cache
-    from fitting.batch import batched
-    from fitting.gauss_newton import normal_system
-    from fitting.params import material_values
+    from fitting.model.batch import batched
+    from fitting.solve.gauss_newton import normal_system
+    from fitting.spec.params import material_values
 
     dataset = make_dataset(size=16, n_views=2, n_lights=1)
     data = build_cache(dataset, DEFAULT_INIT)  # its geometry programs are stored too

@@ -1,4 +1,4 @@
-"""diffshade.cputune (process settings applied on import) and hostcall (float64 callbacks)."""
+"""diffshade.host.cputune (process settings applied on import) and hostcall (float64 callbacks)."""
 
 import os
 import subprocess
@@ -8,8 +8,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffshade import cputune
-from diffshade.hostcall import host_call
+from diffshade.host import cputune
+from diffshade.host.hostcall import host_call
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

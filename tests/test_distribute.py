@@ -1,9 +1,9 @@
-"""Views sharded over devices and streamed in chunks (fitting.distribute).
+"""Views sharded over devices and streamed in chunks (fitting.solve.distribute).
 
 In this process (one CPU device, float64): the loss, its gradient and Levenberg-Marquardt's
 J^T W J summed over chunks of views equal the all-at-once values of the plain cached path
-(fitting.loss.make_loss, fitting.gauss_newton), for the material, per-view gains and light
-colours; views lit by different kinds of light are padded with dark lights. In a
+(fitting.model.loss.make_loss, fitting.solve.gauss_newton), for the material, per-view gains
+and light colours; views lit by different kinds of light are padded with dark lights. In a
 subprocess with four CPU devices (XLA_FLAGS=--xla_force_host_platform_device_count=4, set
 before JAX starts): an Adam fit whose views are sharded over the four devices, streamed
 in chunks, equals the one-device fit to float32 rounding, and each device holds its own
@@ -12,7 +12,7 @@ test_fit_effects): the chunked sums equal the plain ones to 1e-10, and Adam fits
 devices or in chunks equal the one-device fit to 1e-10 (float64). Views of two sample
 layouts (shadow visibility in one only) go into chunks of their own, with the same sums.
 Streamed chunks are stacked one at a time, each from its own views only (a spy on
-fitting.batch.stack_views counts the stacked views alive at once). The closed-form start
+fitting.model.batch.stack_views counts the stacked views alive at once). The closed-form start
 of 'linear', the standard errors and the misfit check on chunked views equal the
 plain path's to 1e-10 and stack one chunk at a time too, through a whole fit."""
 
@@ -30,27 +30,26 @@ from test_fit_effects import box_on_table, perturbed
 
 import diffshade as ds
 from data_synth import make_dataset
-from diffshade.lights import group_lights
+from diffshade.scene.lights import group_lights
 from fitting import (
     DEFAULT_INIT,
     FitOptions,
     FitSpec,
     advance,
-    batch,
     build_cache,
-    distribute,
     fit,
-    linear,
     make_loss,
     start_run,
     to_unconstrained,
 )
-from fitting.distribute import common_lights, for_options, shard_views
-from fitting.gauss_newton import _linearize
-from fitting.linear import normal_equations, solve_linear
-from fitting.misfit import misfit
-from fitting.params import from_values as to_unconstrained_values
-from fitting.uncertainty import uncertainty
+from fitting.model import batch
+from fitting.report.misfit import misfit
+from fitting.report.uncertainty import uncertainty
+from fitting.solve import distribute, linear
+from fitting.solve.distribute import common_lights, for_options, shard_views
+from fitting.solve.gauss_newton import _linearize
+from fitting.solve.linear import normal_equations, solve_linear
+from fitting.spec.params import from_values as to_unconstrained_values
 
 TRUTH = dict(ka=0.15, kd=(0.55, 0.35, 0.25), ks=0.35, shininess=25.0)
 GUESS = ds.material(ka=0.3, kd=0.4, ks=0.2, shininess=10.0)
@@ -174,7 +173,7 @@ def test_views_of_two_sample_layouts_go_into_chunks_of_their_own():
 
 def test_streamed_chunks_are_stacked_one_at_a_time(monkeypatch):
     """6 views in chunks of 2, through shard_views, the loss, its gradient and J^T W J:
-    every stacking (fitting.batch.stack_views, spied on) holds the 2 views of one chunk,
+    every stacking (fitting.model.batch.stack_views, spied on) holds the 2 views of one chunk,
     each pass stacks each view once, and at no time are the stacked arrays of more than
     2 chunks (4 views: the one in use and the next) alive; keeping every chunk, or
     stacking all views and cutting them, would hold 6. Counted with weakrefs on the
@@ -281,7 +280,7 @@ def test_linear_start_uncertainty_and_misfit_in_chunks_equal_the_plain_values():
 
 def test_linear_start_uncertainty_and_misfit_stack_one_chunk_at_a_time(monkeypatch):
     """5 views in chunks of 2: the closed-form start (a shininess search with gains),
-    the standard errors and the misfit check on the sharded views stack (fitting.batch
+    the standard errors and the misfit check on the sharded views stack (fitting.model.batch
     .stack_views, spied on both where the chunks and where the plain path's batch are
     stacked) at most the 2 views of one chunk per call, and at no time more than 4 (the
     chunk in use and the next); on the plain cache they stack all 5 at once (so the spy
@@ -347,9 +346,9 @@ FOUR_DEVICES = """
 import jax, numpy as np
 import diffshade as ds
 from data_synth import make_dataset
-from diffshade.lights import group_lights
+from diffshade.scene.lights import group_lights
 from fitting import DEFAULT_INIT, FitSpec, build_cache, fit
-from fitting.distribute import shard_views
+from fitting.solve.distribute import shard_views
 assert jax.device_count() == 4, jax.devices()
 dataset = make_dataset(ds.icosphere(1), ds.material(ka=0.15, kd=(0.55, 0.35, 0.25), ks=0.35,
                        shininess=25.0), n_views=4, n_lights=2, size=16, noise_std=0.01,
@@ -401,7 +400,7 @@ jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, "tests")
 from test_fit_effects import box_on_table, perturbed
 from fitting import FitSpec, build_cache, fit
-from fitting.distribute import shard_views
+from fitting.solve.distribute import shard_views
 assert jax.device_count() == 4, jax.devices()
 for glass, names in ((False, ["kd", "ks"]), (True, ["kd", "kt"])):
     dataset = box_on_table(16, glass=glass, shadows=not glass)      # 2 views

@@ -18,8 +18,8 @@ from jax.test_util import check_grads
 
 import diffshade as ds
 from data_synth import load_dataset, make_dataset, save_dataset
-from diffshade.mesh import check_mesh, transform_mesh, vertex_normals
-from diffshade.scenefile import scene_to_dict
+from diffshade.io.scenefile import scene_to_dict
+from diffshade.scene.mesh import check_mesh, transform_mesh, vertex_normals
 
 F32, F64 = np.dtype(np.float32), np.dtype(np.float64)
 # 0.1 and 1/3 are not float32 numbers: float32 storage would change them.

@@ -1,4 +1,4 @@
-"""The host kernels as XLA FFI targets (diffshade/ffi.py): under jit on the CPU, XLA calls
+"""The host kernels as XLA FFI targets (diffshade/host/ffi.py): under jit on the CPU, XLA calls
 the compiled handlers with its own buffers. Each target against the kernel called directly
 from NumPy (fragment_kernels, candidates, the reference search loop of compact's test:
 np.flatnonzero), bit for bit, in float32 and float64, batched and not; and the lowered
@@ -11,11 +11,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffshade import candidates, compact, hostcall
-from diffshade import fragment_kernels as kernels
-from diffshade.interpolate import interpolate_corners
+from diffshade.host import candidates, hostcall
+from diffshade.host import fragment_kernels as kernels
 from diffshade.numerics import tiny
-from diffshade.raster import fragment_geometry
+from diffshade.raster.fragments import fragment_geometry
+from diffshade.raster.interpolate import interpolate_corners
+from diffshade.shade import compact
 
 H, W, K, F = 6, 5, 3, 7
 

@@ -1,11 +1,11 @@
-"""The fit's views as one batch (fitting.batch): every program shades one view per light
+"""The fit's views as one batch (fitting.model.batch): every program shades one view per light
 layout under jax.vmap over the views padded and stacked, and gives what shading the
 views one by one gives.
 
 References, float64, 3 views x 2 lights of a 16 px icosphere (the views lit by a
 directional or a point light: two light layouts, two vmapped groups), one view masked
 out entirely (0 kept pixels: padded from another view): the
-residuals of `fitting.cache.predict` called view by view in a Python loop, their
+residuals of `fitting.model.cache.predict` called view by view in a Python loop, their
 Jacobian by jax.jacfwd of that loop, the linear solve's normal equations summed from
 `pixel_parts` view by view; and a whole 'linear' fit with stacking switched off (every
 program then shades the views one by one), whose fitted values the batched fit
@@ -22,15 +22,15 @@ import pytest
 from jax.flatten_util import ravel_pytree
 
 import diffshade as ds
-import fitting.batch as batch
+import fitting.model.batch as batch
 from data_synth import make_dataset
 from fitting import DEFAULT_INIT, FitSpec, build_cache, fit, make_loss, to_unconstrained
-from fitting.batch import batched, light_layout, view_map
-from fitting.cache import pixel_parts, predict
-from fitting.gauss_newton import _linearize
-from fitting.linear import normal_equations
-from fitting.loss import values_residuals
-from fitting.params import to_values, values_to_material
+from fitting.model.batch import batched, light_layout, view_map
+from fitting.model.cache import pixel_parts, predict
+from fitting.model.loss import values_residuals
+from fitting.solve.gauss_newton import _linearize
+from fitting.solve.linear import normal_equations
+from fitting.spec.params import to_values, values_to_material
 
 TRUTH = dict(ka=0.15, kd=(0.55, 0.35, 0.25), ks=0.35, shininess=25.0)
 GUESS = ds.material(ka=0.3, kd=0.4, ks=0.2, shininess=10.0)

@@ -1,5 +1,5 @@
 """Tests for `diffshade synth` and `diffshade fit` (data_synth.cli, fitting.cli) and the
-files they write (fitting.report, fitting.checkpoint).
+files they write (fitting.report.result, fitting.checkpoint).
 
 References: datasets made through the API (make_dataset), the known true material,
 relative errors and panels recomputed with numpy from the files, an uninterrupted run
@@ -25,11 +25,11 @@ import diffshade as ds
 import fitting.run as run_module
 from data_synth import load_dataset, make_dataset, save_dataset
 from diffshade import cli
-from diffshade.io import image_transfer
+from diffshade.io.images import image_transfer
 from fitting import FitOptions, FitSpec, fit
 from fitting.cli import _progress
 from fitting.inputs import fit_spec, parse_material
-from fitting.report import (
+from fitting.report.result import (
     CURVE_COLOR,
     CURVE_SIZE,
     ERROR_GAIN,
@@ -484,7 +484,7 @@ def test_transient_non_finite_losses_are_skipped(data_root, tmp_path, capsys, mo
 
         def step_fn(params, state, data):
             calls.append(1)
-            if len(calls) in (4, 5):  # the steps read the views stacked (fitting.batch)
+            if len(calls) in (4, 5):  # the steps read the views stacked (fitting.model.batch)
                 views = data.views
                 data = dataclasses.replace(data, views=dataclasses.replace(views, samples=tuple(
                     dataclasses.replace(v, target=v.target * jnp.nan) for v in views.samples)))
@@ -588,7 +588,7 @@ def test_resume_rejects_other_options_or_data(data_root, tmp_path, capsys):
         code, _, err = run_cli(["fit", argv[0], "-o", out, "--resume", *argv[1:]], capsys)
         assert code == 2 and message in one_error_line(err)
     assert (out / "result.json").read_bytes() == before
-    # where the fit runs may change: views streamed in chunks of one (fitting.distribute)
+    # where the fit runs may change: views streamed in chunks of one (fitting.solve.distribute)
     code, _, err = run_cli(["fit", data_root / "clean", "-o", out, "--resume", "--steps",
                             "5", "--chunk", "1"], capsys)
     assert code == 0 and "error" not in err  # (a warning: 5 Adam steps do not converge)

@@ -1,4 +1,4 @@
-"""Fitting with shadows and transparency (fitting.cache's shadow visibility and layers).
+"""Fitting with shadows and transparency (fitting.model.cache's shadow visibility and layers).
 
 References: the targets and the float64 comparisons are full renders (`diffshade.render`,
 which builds its shadow maps and composites its layers itself); the recovered values
@@ -19,10 +19,10 @@ import pytest
 from jax.test_util import check_grads
 
 import diffshade as ds
-from diffshade.lights import group_lights
-from diffshade.objects import unstack_material
+from diffshade.scene.lights import group_lights
+from diffshade.scene.objects import unstack_material
 from fitting import FitSpec, View, build_cache, fit, make_loss, predict, to_unconstrained
-from fitting.data import dataset_of_scene, view_scene
+from fitting.data.views import dataset_of_scene, view_scene
 
 # (built in the tests, in the float dtype of each)
 BOX = dict(ka=(0.25, 0.2, 0.15), kd=(0.6, 0.3, 0.2), ks=(0.4, 0.35, 0.3), shininess=30.0)
@@ -113,9 +113,9 @@ def test_fit_recovers_kd_and_kt_of_a_glass_box_over_a_table_from_shadowed_target
 
 
 def test_kt_is_one_row_of_the_table_and_the_files_carry_it():
-    from fitting.dataset import material_dict, material_from_dict
+    from fitting.data.folder import material_dict, material_from_dict
     from fitting.inputs import fit_spec
-    from fitting.params import KINDS, TRANSFORMS, at_bound
+    from fitting.spec.params import KINDS, TRANSFORMS, at_bound
     assert TRANSFORMS[KINDS["kt"].transform].bounds(3.0) == (0.0, 1.0)  # whatever `upper`
     spec = fit_spec("kd,kt", "kt")  # --fit kd,kt --grey kt
     assert spec == FitSpec(ka=None, ks=None, shininess=False, kt="grey")

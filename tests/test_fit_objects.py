@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 import diffshade as ds
-from diffshade.lights import group_lights
-from diffshade.objects import unstack_material
+from diffshade.scene.lights import group_lights
+from diffshade.scene.objects import unstack_material
 from fitting import FitSpec, View, build_cache, fit, make_loss, to_unconstrained, view_scene
-from fitting.data import dataset_of_scene
-from fitting.report import mtl_text
+from fitting.data.views import dataset_of_scene
+from fitting.report.result import mtl_text
 
 TRUTH = [ds.material(ka=(0.25, 0.2, 0.15), kd=(0.6, 0.3, 0.2), ks=(0.5, 0.45, 0.4),
                      shininess=30.0),
@@ -95,7 +95,7 @@ def test_fit_recovers_both_materials_with_a_report_and_a_newmtl_each(dataset):
 
 
 def test_dataset_folder_of_several_objects_round_trips(dataset, tmp_path):
-    from fitting.dataset import load_dataset, save_dataset
+    from fitting.data.folder import load_dataset, save_dataset
     loaded = load_dataset(save_dataset(dataset, tmp_path / "data"))
     np.testing.assert_array_equal(loaded.mesh.vertices, dataset.mesh.vertices)
     for field in ("faces", "vertices"):

@@ -13,7 +13,7 @@ import pytest
 
 import diffshade as ds
 from data_synth import make_dataset
-from diffshade.lights import group_lights
+from diffshade.scene.lights import group_lights
 from fitting import (
     DEFAULT_INIT,
     Dataset,
@@ -37,9 +37,9 @@ from fitting import (
     value_names,
     view_scene,
 )
-from fitting.loss import mean_rho
-from fitting.misfit import _neighbour_squares
-from fitting.report import _render_rgb
+from fitting.model.loss import mean_rho
+from fitting.report.misfit import _neighbour_squares
+from fitting.report.result import _render_rgb
 
 TRUTH = dict(ka=(0.35, 0.3, 0.5), kd=(0.6, 0.45, 0.3), ks=(0.4, 0.5, 0.3), shininess=35.0)
 SPHERE = ds.icosphere(2)

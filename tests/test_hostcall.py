@@ -1,4 +1,4 @@
-"""host_call (diffshade/hostcall.py) on both of its paths: its own no-copy primitive (JAX
+"""host_call (diffshade/host/hostcall.py) on both of its paths: its own no-copy primitive (JAX
 versions it was tested with) and jax.pure_callback (any other JAX), against the same maths
 in jax.numpy, under jit and vmap (one call per member, and one batched call)."""
 
@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffshade import hostcall
+from diffshade.host import hostcall
 
 
 def _twice_sin(x, y):

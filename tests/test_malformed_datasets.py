@@ -20,7 +20,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import diffshade as ds
-from diffshade.camera import MAX_IMAGE_SIZE
+from diffshade.scene.camera import MAX_IMAGE_SIZE
 from fitting import load_dataset
 
 PROPERTY_SETTINGS = settings(max_examples=60, deadline=None, derandomize=True, database=None,

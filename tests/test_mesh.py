@@ -1,4 +1,4 @@
-"""Tests for diffshade.mesh against independent references: closed forms, hand-computed
+"""Tests for diffshade.scene.mesh against independent references: closed forms, hand-computed
 weighted sums, numpy re-derivations and trimesh's own primitives and file formats."""
 
 import math
@@ -11,7 +11,7 @@ import pytest
 import trimesh
 from jax.test_util import check_grads
 
-from diffshade.mesh import (
+from diffshade.scene.mesh import (
     Mesh,
     box,
     face_areas,

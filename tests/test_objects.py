@@ -1,4 +1,4 @@
-"""Scenes of several objects (diffshade.objects, make_scene(objects=...)).
+"""Scenes of several objects (diffshade.scene.objects, make_scene(objects=...)).
 
 References: each object rendered alone as a single-object scene (the code path that has
 no object ids), composited by hand (hard raster: the nearer surface per pixel, from each
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import diffshade as ds
-from diffshade.objects import unstack_material
+from diffshade.scene.objects import unstack_material
 
 pytestmark = pytest.mark.usefixtures("x64")
 

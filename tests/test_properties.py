@@ -33,7 +33,7 @@ from diffshade import (
     replace,
     spot_light,
 )
-from diffshade.mesh import vertex_normals
+from diffshade.scene.mesh import vertex_normals
 
 SIZE = 16
 SPHERE = icosphere(1)

@@ -1,4 +1,4 @@
-"""Fitting what photographs contain (fitting.gains, fitting.dataset): per-view exposure and
+"""Fitting what photographs contain (fitting.spec.gains, fitting.data.folder): per-view exposure and
 white balance, pixels outside a mask or saturated, and a dataset made by hand from a mesh
 file and one scene file with several cameras, fitted by `diffshade fit`.
 

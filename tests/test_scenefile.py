@@ -1,4 +1,4 @@
-"""Tests for diffshade.scenefile. References: the same scene built directly through the
+"""Tests for diffshade.io.scenefile. References: the same scene built directly through the
 public API (an independent construction path), closed-form normals of a regular
 tetrahedron, and hand-written error messages naming each key path."""
 
@@ -12,8 +12,7 @@ import numpy as np
 import pytest
 
 import diffshade as ds
-from diffshade.builtin import builtin_scene
-from diffshade.scenefile import (
+from diffshade.io.scenefile import (
     SceneFileError,
     load_scene,
     load_scenes,
@@ -22,6 +21,7 @@ from diffshade.scenefile import (
     scene_to_dict,
     scenes_from_dict,
 )
+from diffshade.scene.builtin import builtin_scene
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 

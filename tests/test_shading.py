@@ -1,4 +1,4 @@
-"""Closed forms for the lighting core, `diffshade.shading.shade`, and the same laws seen
+"""Closed forms for the lighting core, `diffshade.shade.lighting.shade`, and the same laws seen
 through `render_parts` (OpenGL 1.x spec 2.14.1 semantics; all in float64).
 
 Geometry used throughout: the surface normal N = +z at the origin, so that a light or a
@@ -27,8 +27,8 @@ from diffshade import (
     shade,
     spot_light,
 )
-from diffshade.lights import group_lights
 from diffshade.numerics import float_dtype
+from diffshade.scene.lights import group_lights
 
 pytestmark = pytest.mark.usefixtures("x64")
 

@@ -1,4 +1,4 @@
-"""Shadow maps (diffshade/shadows.py) against the exact shadow of a sphere over a floor.
+"""Shadow maps (diffshade/shade/shadows.py) against the exact shadow of a sphere over a floor.
 
 - One scene, three shadowed lights of different types, each lighting one colour channel
   only (a point light red, a spot green, a directional light blue): each channel of the
@@ -27,7 +27,7 @@ from test_structure import primitive_counts, scene_with
 
 import diffshade as ds
 from diffshade.analytic import SphereOverPlane, pixel_rays
-from diffshade.scenefile import scene_from_dict, scene_to_dict
+from diffshade.io.scenefile import scene_from_dict, scene_to_dict
 
 GEOMETRY = SphereOverPlane()
 SIZE = 48

@@ -35,7 +35,7 @@ from diffshade import (
     spot_light,
 )
 from diffshade.numerics import float_dtype
-from diffshade.shading_cache import cache_shading, render_cached
+from diffshade.pipeline.shading_cache import cache_shading, render_cached
 
 pytestmark = pytest.mark.usefixtures("x64")
 

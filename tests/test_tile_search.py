@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 from diffshade import Mesh, icosphere, look_at, make_scene, model_matrix, project, torus
-from diffshade.candidates import find_candidates
-from diffshade.raster import search_faces
+from diffshade.host.candidates import find_candidates
+from diffshade.raster.fragments import search_faces
+from diffshade.raster.tile_search import search_tiles
 from diffshade.settings import RenderSettings
-from diffshade.tile_search import search_tiles
 
 pytestmark = pytest.mark.usefixtures("x64")
 
@@ -285,7 +285,7 @@ def test_host_soft_key_shortcut_is_bit_exact():
     around both thresholds."""
     import math
 
-    from diffshade.candidates import _fragment_key
+    from diffshade.host.candidates import _fragment_key
 
     rng = np.random.default_rng(5)
     depths = np.concatenate([[0.0, -0.0, -5e-324, -1e-310, -1e-300, -1e-12, -0.5, -1.0],
@@ -318,7 +318,7 @@ def test_host_soft_key_bracket_holds_the_libm_key():
 
     import numba
 
-    from diffshade.candidates import KEY_SLACK, _key_bracket, _softplus_neg
+    from diffshade.host.candidates import KEY_SLACK, _key_bracket, _softplus_neg
 
     @numba.njit
     def worst(a):
@@ -357,7 +357,7 @@ def test_host_sort_network_orders_lists_by_key_then_face():
     0/1 keys (by the 0-1 principle this covers every order of 8 distinct keys), on random
     lists with tied keys, -0.0 against 0.0 and infinities, and on lists of other lengths
     (the rank sort it falls back to)."""
-    from diffshade.candidates import _sort_full
+    from diffshade.host.candidates import _sort_full
 
     rng = np.random.default_rng(7)
     cases = [np.array([(m >> b) & 1 for b in range(8)], np.float64) for m in range(256)]
@@ -380,7 +380,7 @@ def test_host_strip_rows_hold_every_pixel_in_reach():
     columns): against every pixel within radius_px of the triangle (the distance to its
     nearest point, in Python), on random triangles small and large, thin, off-screen and
     far off-screen, for strips of 1 to 8 columns."""
-    from diffshade.candidates import _strip_rows
+    from diffshade.host.candidates import _strip_rows
 
     def distance(px, py, tri):
         ax, ay, bx, by, cx, cy = tri.ravel()

@@ -1,7 +1,7 @@
 """Every JAX transform through the renderer, on both kernel paths (RenderSettings.kernels).
 
 Default settings on this CPU run the fragment ops as host kernels behind JAX primitives
-with their own jvp, transpose and batching rules (diffshade/hostop.py); kernels='jax'
+with their own jvp, transpose and batching rules (diffshade/host/hostop.py); kernels='jax'
 runs them in jax.numpy. Checked in float64 on a tiny scene (the one of
 test_gradients.py, lit by every light type):
 - jax.test_util.check_grads, forward and reverse mode, against central finite
@@ -116,7 +116,7 @@ SECOND_ORDER_NAMES = tuple(n for n in NAMES if not n.startswith(("point", "ambie
 
 
 # flat_last's samples are Gouraud's (per vertex and side) read as flat's are (one sample
-# per fragment, unweighted: diffshade.samples), so the modes below run each of its parts
+# per fragment, unweighted: diffshade.shade.samples), so the modes below run each of its parts
 # in both rasters; its first-order gradients are checked above with every other mode
 SECOND_ORDER_MODES = [(raster, shading) for raster, shading in MODES if shading != "flat_last"]
 

@@ -28,10 +28,10 @@ from diffshade import (
     render,
     replace,
 )
-from diffshade.project import project
-from diffshade.render import shade_fragments
-from diffshade.transparency import soft_composite
-from fitting.report import mtl_text
+from diffshade.composite.transparency import soft_composite
+from diffshade.pipeline.render import shade_fragments
+from diffshade.raster.project import project
+from fitting.report.result import mtl_text
 
 pytestmark = pytest.mark.usefixtures("x64")
 

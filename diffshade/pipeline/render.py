@@ -1,0 +1,283 @@
+"""render: project -> rasterize -> weights -> shade what counts -> blend, each once.
+
+Shading modes (RenderSettings.shading) follow OpenGL 1.x; where each mode lights the
+surface and how fragments read the lit colours is diffshade.shade.samples (shared with the
+fitting cache):
+- 'phong': normals interpolated perspective-correctly and renormalized, lit per fragment;
+  the final colour is clamped (when clamping is on).
+- 'gouraud': lit per vertex, each vertex colour clamped, then interpolated.
+- 'flat': one evaluation per face, at the centroid with the face normal.
+- 'flat_last': OpenGL's flat shading: the whole face takes the lit colour of its last
+  vertex (the provoking vertex), computed with that vertex's normal.
+Two-sided lighting (scene.two_sided) flips the normal on faces that are clockwise on
+screen and lights them with the back material, when the scene has one, as OpenGL does.
+In a scene of several objects each sample takes its object's (front or back) material.
+
+In soft mode the blend weights are computed once, before shading: Phong shading then
+lights only the fragments whose weight is not 0 (diffshade.shade.compact).
+
+A scene with a transparent material (kt) keeps K layers in hard mode too and composites
+them (diffshade.composite.transparency); an opaque scene compiles none of that.
+"""
+
+import dataclasses
+import functools
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+
+from diffshade.composite.blend import hard_blend, soft_blend, soft_weights
+from diffshade.composite.transparency import (
+    fragment_kt,
+    hard_composite,
+    layers_needed,
+    soft_composite,
+)
+from diffshade.numerics import clamp01, safe_normalize
+from diffshade.raster.fragments import Fragments, rasterize
+from diffshade.raster.project import Projected, project
+from diffshade.scene.camera import Camera, view_dir_infinite
+from diffshade.scene.objects import take_material
+from diffshade.scene.scene import Scene
+from diffshade.settings import RenderSettings
+from diffshade.shade.compact import on_active
+from diffshade.shade.lighting import ShadingParts, shade
+from diffshade.shade.samples import Samples, phong_samples, read, shading_samples
+from diffshade.shade.shadows import shadow_maps
+
+DEFAULT_SETTINGS = RenderSettings()
+
+#: Phong shading of a soft render lights at most this many slots per pixel on average
+#: when only that many have a non-zero blend weight (diffshade.shade.compact); else all of them
+ACTIVE_SLOTS_PER_PIXEL = 4
+
+
+def view_dirs(scene, points):
+    """Unit directions towards the viewer, [..., 3] for points [..., 3]: local (to the eye)
+    or infinite (the camera's +z axis)."""
+    if scene.local_viewer:
+        return safe_normalize(scene.camera.eye - points)
+    return jnp.broadcast_to(view_dir_infinite(scene.camera), points.shape).astype(points.dtype)
+
+
+def _fill_absent(material, other):
+    """`material` with each absent optional term (ks, emission) set to zeros shaped like
+    `other`'s, so that front and back materials share one structure."""
+    changes = {name: jnp.zeros_like(getattr(other, name)) for name in ("ks", "emission", "kt")
+               if getattr(material, name) is None and getattr(other, name) is not None}
+    shininess = material.shininess if material.shininess is not None else other.shininess
+    return dataclasses.replace(material, shininess=shininess, **changes)
+
+
+def _material_at(scene, front, objects=None):
+    """The material of each sample: the front one, or the back material where `front` is
+    False when the scene has one; front: [...] bool; objects: [...] int32 object ids in a
+    scene of several objects (its materials are stacked), else None."""
+    material, back_material = scene.material, scene.back_material
+    if objects is not None:
+        material = take_material(material, objects)
+    if not scene.two_sided or back_material is None:
+        return material
+    if objects is not None:
+        back_material = take_material(back_material, objects)
+    front_mat = _fill_absent(material, back_material)
+    back = _fill_absent(back_material, material)
+
+    # a leaf's own axes ([3], or none for shininess) follow the samples' axes
+    per_sample = 0 if objects is None else front.ndim
+
+    def pick(f, b):
+        return jnp.where(front.reshape(front.shape + (1,) * (jnp.ndim(f) - per_sample)), f, b)
+    return jax.tree.map(pick, front_mat, back)
+
+
+def shade_samples(scene, samples: Samples, settings, maps=None):
+    """(ShadingParts, colour) of each sample, [..., 3] each; colour clamped as OpenGL
+    clamps (per sample) when settings.clamp. maps: the scene's shadow_maps (None: none)."""
+    material = _material_at(scene, samples.front, samples.objects)
+    parts = shade(material, scene.lights, scene.global_ambient,
+                  samples.points, samples.normals, view_dirs(scene, samples.points), settings,
+                  maps)
+    return parts, clamp01(parts.total) if settings.clamp else parts.total
+
+
+def shade_fragments(scene, proj: Projected, frags: Fragments, settings, active=None,
+                    axis_name=None):
+    """(ShadingParts, colour) per fragment, each [H, W, K, 3], by settings.shading.
+
+    active: optional [H, W, K] bool, the fragments whose colour matters; Phong shading
+    then interpolates and lights only those (the others' values are 0 or unspecified;
+    see _shade_active, and diffshade.shade.compact's axis_name for a batch of views)."""
+    host = settings.use_host_kernels()
+    maps = shadow_maps(scene, settings)
+    light = lambda samples: shade_samples(scene, samples, settings, maps)
+    if active is not None and settings.shading == "phong":
+        parts, colour = _shade_active(scene, proj, frags, active, light, axis_name, host)
+    else:
+        samples, reader = shading_samples(scene, proj, frags, settings.shading, host)
+        parts, colour = read(light(samples), reader, host)
+    # interpolated clamped colours can exceed 1 by a rounding error; keep [0, 1] exact
+    return parts, clamp01(colour) if settings.clamp else colour
+
+
+def _shade_active(scene, proj, frags, active, light, axis_name, host):
+    """Phong shading of the active fragments (active [H, W, K] bool): on_active gathers
+    their face ids, barycentrics and sides, and only those are interpolated and lit;
+    light(Samples) -> (ShadingParts, colour). The other slots' face ids are masked to -1,
+    which the interpolation kernels skip, should on_active process every slot."""
+    height, width, k = frags.face_ids.shape
+    capacity = height * width * min(k, ACTIVE_SLOTS_PER_PIXEL)
+
+    def lit(face_ids, bary, front):
+        # N fragments ([N], [N, 3], [N]) as N pixels of one slot each
+        samples = phong_samples(scene, proj, face_ids[:, None], bary[:, None], front[:, None],
+                                host)
+        return jax.tree.map(lambda a: a[:, 0], light(samples))
+    face_ids = jnp.where(active, frags.face_ids, -1)
+    return on_active(lit, active, capacity, face_ids, frags.bary, frags.front,
+                     axis_name=axis_name, host=host)
+
+
+def check_arguments(scene, settings):
+    """Raise a clear TypeError unless scene is a Scene and settings a RenderSettings
+    (checked before jit, at the API boundary)."""
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene: got {type(scene).__name__}; expected Scene "
+                        "(diffshade.make_scene)")
+    if not isinstance(settings, RenderSettings):
+        raise TypeError(f"settings: got {type(settings).__name__}; expected RenderSettings")
+    settings.validate()
+
+
+def _checked(jitted):
+    """The public entry point of a jitted renderer: arguments checked, then the call."""
+    @functools.wraps(jitted)
+    def entry(scene, settings=DEFAULT_SETTINGS, *args, **kwargs):
+        check_arguments(scene, settings)
+        return jitted(scene, settings, *args, **kwargs)
+    entry._cache_size = jitted._cache_size
+    return entry
+
+
+@jax.jit
+def _rasterize_scene(scene, settings=DEFAULT_SETTINGS) -> Fragments:
+    """Project and rasterize the scene's mesh (cache the result when geometry is fixed)."""
+    return rasterize(project(scene), scene.mesh.faces, scene.camera, settings,
+                     layers=layers_needed(scene, settings))
+
+
+def blend_weights(scene, frags: Fragments, settings):
+    """Soft mode's aggregation weights (per slot [H, W, K], the background's [H, W];
+    blend.soft_weights), or None in hard mode."""
+    if settings.raster == "hard":
+        return None
+    cam = scene.camera
+    return soft_weights(frags, cam.near, cam.far, settings.sigma, settings.gamma)
+
+
+def _composite(scene, colours, frags, settings, kt):
+    """blend for a transparent scene: the layers composited (diffshade.composite.transparency)."""
+    if settings.raster == "hard":
+        return hard_composite(colours, kt, frags, scene.background)
+    cam = scene.camera
+    return soft_composite(colours, kt, frags, scene.background, cam.near, cam.far,
+                          settings.sigma, settings.gamma)
+
+
+def blend(scene, colours, frags: Fragments, settings, weights=None, kt=None):
+    """Hard (nearest fragment) or soft (SoftRas) blending by settings.raster: [H, W, 4].
+    weights: blend_weights, when the caller has them already. kt: [H, W, K, 3] per-fragment
+    transparency (transparency.fragment_kt) composites the layers instead."""
+    if settings.raster == "hard" and kt is None:
+        return hard_blend(colours, frags, scene.background)
+    cam = scene.camera
+    image = (_composite(scene, colours, frags, settings, kt) if kt is not None else
+             soft_blend(colours, frags, scene.background, cam.near, cam.far, settings.sigma,
+                        settings.gamma, weights))
+    if not settings.clamp:
+        return image
+    # the weights sum to 1 only up to rounding: keep a blend of clamped colours in [0, 1]
+    return jnp.concatenate([clamp01(image[..., :3]), image[..., 3:]], -1)
+
+
+def render_fragments(scene, frags: Fragments, settings=DEFAULT_SETTINGS, axis_name=None,
+                     proj: Projected | None = None):
+    """Shade and blend cached fragments: [H, W, 4] RGBA. In soft mode only the fragments
+    with a non-zero blend weight need a colour (shade_fragments' `active`); transparent
+    layers behind them may show, so a transparent scene shades every fragment. proj: the
+    scene's Projected when the caller has it (fixed geometry), else projected here."""
+    kt = fragment_kt(scene, frags)
+    weights = None if kt is not None else blend_weights(scene, frags, settings)
+    active = None if weights is None else weights[0] > 0.0
+    proj = project(scene) if proj is None else proj
+    _, colours = shade_fragments(scene, proj, frags, settings, active, axis_name)
+    return blend(scene, colours, frags, settings, weights, kt)
+
+
+@jax.jit
+def _render(scene, settings=DEFAULT_SETTINGS):
+    """Render the scene: [H, W, 4] RGBA (alpha = coverage) over scene.background."""
+    return render_fragments(scene, _rasterize_scene(scene, settings), settings)
+
+
+@jax.jit
+def _render_parts(scene, settings=DEFAULT_SETTINGS) -> ShadingParts:
+    """The unclamped ambient, diffuse, specular and emission images, each [H, W, 3]
+    (zero where no face covers the pixel)."""
+    frags = _rasterize_scene(scene, settings)
+    parts, _ = shade_fragments(scene, project(scene), frags, settings)
+    return parts.map(lambda a: jnp.where(frags.valid[..., 0, None], a[..., 0, :], 0.0))
+
+
+def stack_cameras(cameras) -> Camera:
+    """One Camera whose array fields have a leading view axis [N, ...], from a sequence of
+    cameras of one image size and projection (or such a stacked Camera, returned as is)."""
+    if isinstance(cameras, Camera):
+        return cameras
+    cameras = list(cameras)
+    if not cameras or not all(isinstance(c, Camera) for c in cameras):
+        raise TypeError(f"cameras: got {cameras!r}; expected a non-empty sequence of Camera")
+    static = {(c.width, c.height, c.projection) for c in cameras}
+    if len(static) > 1:
+        raise ValueError(f"cameras: got image sizes / projections {sorted(static)}; expected "
+                         "one (a batched render has one image shape)")
+    return jax.tree.map(lambda *leaves: jnp.stack(leaves), *cameras)
+
+
+@jax.jit
+def _render_views(scene, cameras, settings=DEFAULT_SETTINGS):
+    def one(cam):
+        view = dataclasses.replace(scene, camera=cam)
+        return render_fragments(view, _rasterize_scene(view, settings), settings, "views")
+    return jax.vmap(one, axis_name="views")(cameras)
+
+
+def render_views(scene, cameras, settings=DEFAULT_SETTINGS):
+    """Render one scene from N cameras as one batched call: [N, H, W, 4]. cameras: a
+    sequence of Camera of one image size (or a stacked Camera, see stack_cameras); the
+    scene's own camera is ignored."""
+    check_arguments(scene, settings)
+    return _render_views(scene, stack_cameras(cameras), settings)
+
+
+def downsample(image, factor: int):
+    """Box-filter an [H*f, W*f, C] image to [H, W, C]."""
+    h, w, c = image.shape
+    return image.reshape(h // factor, factor, w // factor, factor, c).mean(axis=(1, 3))
+
+
+@partial(jax.jit, static_argnames=("factor",))
+def _render_supersampled(scene, settings=DEFAULT_SETTINGS, factor: int = 2):
+    """Anti-aliased render: render at factor x the camera's resolution, then box-filter
+    down: [H, W, 4]."""
+    cam = dataclasses.replace(scene.camera, width=scene.camera.width * factor,
+                              height=scene.camera.height * factor)
+    big = _render(dataclasses.replace(scene, camera=cam), settings)
+    return downsample(big, factor)
+
+
+rasterize_scene = _checked(_rasterize_scene)
+render = _checked(_render)
+render_parts = _checked(_render_parts)
+render_supersampled = _checked(_render_supersampled)

@@ -1,0 +1,120 @@
+"""Re-shading fixed geometry: everything of a render that material and lights leave alone.
+
+When geometry and camera are fixed (fitting material or light parameters), a render's
+fragments, blend weights and coverage are the same on every step; only the colours
+change. `cache_shading(scene, frags, settings)` computes, once, the fragments whose blend
+weight is not 0 (the *active* ones: in soft mode with a small gamma, about a third of the
+H x W x K slots; in hard mode the nearest fragment of each covered pixel), their
+shading samples (diffshade.shade.samples: the interpolated points and normals for Phong, the
+vertices or faces the other modes light), their weights, the background's weight and the
+alpha channel. `render_cached(scene, cache, settings)` then lights the samples, reads the
+active fragments' colours and sums them into the pixels: the image of `render_fragments`
+(to rounding), with gradients with respect to everything but geometry and camera.
+
+The number of active fragments is data, so `cache_shading` runs eagerly (not under
+`jit`; it jits its parts); `render_cached` compiles once per cache size.
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from diffshade.composite.blend import soft_alpha
+from diffshade.composite.transparency import is_transparent
+from diffshade.numerics import clamp01
+from diffshade.pipeline.render import blend_weights, check_arguments, shade_samples
+from diffshade.raster.fragments import Fragments
+from diffshade.raster.project import project
+from diffshade.shade.samples import Reader, Samples, read, shading_samples
+from diffshade.shade.shadows import shadow_maps
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ShadingCache:
+    """samples: the Samples the active fragments read; reader: how they read them
+    (diffshade.shade.samples.Reader, ids [C, 1, 1]: one row per active fragment); pixels: [C]
+    int32 flat pixel index (row * width + column) of each active fragment, ascending;
+    weights: [C] its blend weight; background: [H, W] the background's weight; alpha:
+    [H, W] coverage."""
+
+    samples: Samples
+    reader: Reader
+    pixels: jax.Array
+    weights: jax.Array
+    background: jax.Array
+    alpha: jax.Array
+
+
+@jax.jit
+def _fixed_parts(scene, frags, settings):
+    """Per slot: blend weight [H, W, K]; per pixel: background weight and alpha [H, W];
+    and the mode's shading samples and reader for the slots (Phong: active slots only)."""
+    if settings.raster == "hard":
+        alpha = frags.valid[..., 0].astype(frags.bary.dtype)
+        slot = jnp.zeros(frags.face_ids.shape, alpha.dtype).at[..., 0].set(alpha)
+        background = 1.0 - alpha
+    else:
+        slot, background = blend_weights(scene, frags, settings)
+        alpha = soft_alpha(frags, settings.sigma)
+    active = slot > 0.0
+    if settings.shading == "phong":
+        frags = dataclasses.replace(frags, face_ids=jnp.where(active, frags.face_ids, -1))
+    samples, reader = shading_samples(scene, project(scene), frags, settings.shading,
+                                      settings.use_host_kernels())
+    return slot, background, alpha, active, samples, reader
+
+
+def cache_shading(scene, frags: Fragments, settings) -> ShadingCache:
+    """The fixed part of rendering `frags` (rasterize_scene(scene, settings)) of `scene`
+    (module docstring). Raises ValueError for a scene with a transparent material (its
+    layers are composited, not blended)."""
+    check_arguments(scene, settings)
+    if not isinstance(frags, Fragments):
+        raise TypeError(f"frags: got {type(frags).__name__}; expected Fragments "
+                        "(diffshade.rasterize_scene)")
+    if is_transparent(scene):
+        raise ValueError("scene: has a transparent material (kt); cache_shading blends "
+                         "opaque fragments only (use render_fragments)")
+    slot, background, alpha, active, samples, reader = _fixed_parts(scene, frags, settings)
+    k = slot.shape[-1]
+    index = np.flatnonzero(np.asarray(active)).astype(np.int32)
+    rows = index[:, None, None]
+    if reader.table is None:  # Phong: one sample per fragment, keep the active ones
+        samples = jax.tree.map(lambda a: jnp.take(a.reshape((-1,) + a.shape[3:]), index, 0),
+                               samples)
+        reader = Reader(jnp.arange(index.size, dtype=jnp.int32).reshape(-1, 1, 1))
+    else:
+        weights = (None if reader.weights is None else jnp.take(
+            reader.weights.reshape(-1, reader.weights.shape[-1]), rows, 0))
+        reader = Reader(jnp.take(reader.ids.reshape(-1), rows, 0), weights, reader.table)
+    return ShadingCache(samples, reader, jnp.asarray(index // k),
+                        jnp.take(slot.reshape(-1), index), background, alpha)
+
+
+@jax.jit
+def _render_cached(scene, cache: ShadingCache, settings):
+    lit = shade_samples(scene, cache.samples, settings, shadow_maps(scene, settings))
+    _, colour = read(lit, cache.reader, host=False)
+    colour = colour.reshape(-1, 3)
+    if settings.clamp:
+        colour = clamp01(colour)
+    height, width = cache.alpha.shape
+    rgb = jax.ops.segment_sum(cache.weights[:, None] * colour, cache.pixels,
+                              num_segments=height * width, indices_are_sorted=True)
+    rgb = rgb.reshape(height, width, 3) + cache.background[..., None] * scene.background
+    if settings.clamp:
+        rgb = clamp01(rgb)
+    return jnp.concatenate([rgb, cache.alpha[..., None]], -1)
+
+
+def render_cached(scene, cache: ShadingCache, settings):
+    """[H, W, 4] RGBA of `scene` (its material and lights) on the fixed geometry of
+    `cache` (cache_shading of the same scene's geometry and settings)."""
+    check_arguments(scene, settings)
+    if not isinstance(cache, ShadingCache):
+        raise TypeError(f"cache: got {type(cache).__name__}; expected ShadingCache "
+                        "(diffshade.cache_shading)")
+    return _render_cached(scene, cache, settings)

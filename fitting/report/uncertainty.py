@@ -1,0 +1,312 @@
+"""What the data determine: standard errors at the optimum and identifiability warnings.
+
+Standard errors come from the Gauss-Newton approximation of least squares at the optimum:
+J = d residuals / d physical values (`jax.jacfwd` over the kept pixels' residuals, every
+pixel and channel one residual), and
+
+    covariance = sigma^2 (J^T J)^-1,   sigma^2 = RSS / (n - p)
+
+(n residuals, p fitted scalars). This assumes the residuals are independent with equal
+variance (e.g. sensor or quantization noise), that the model is right, and that the
+values are the least-squares optimum. A value at a bound of its kind (fitting.spec.params.
+at_bound: a coefficient at 0 or `upper`) has no Gaussian error: it gets none (NaN, listed
+in `at_bound`), and the others' are computed with it held where it is. A near-singular
+J^T J (condition number of its unit-diagonal scaling above `max_condition`) is reported
+with the parameters that move together in its weakest directions; those directions get a
+huge (not infinite) variance.
+
+Two warnings look at the data rather than at J, because they hold for any noise level:
+- ka and kd are confounded when (almost) no kept pixel is unlit by every light of its
+  view (N.L <= 0): then the ambient term is never seen alone;
+- ks and shininess are not determined when (almost) no kept pixel has a specular part
+  above `highlight_threshold` at the fitted values: there is no highlight to fit.
+Warnings are listed in the report and raised with `warnings.warn` (IdentifiabilityWarning).
+"""
+
+import dataclasses
+import warnings
+
+import jax
+import numpy as np
+
+from diffshade.io.color import decode, encode
+from fitting.model.batch import batched, unpadded
+from fitting.model.cache import FitData
+from fitting.solve.distribute import ShardedViews, fit_data
+from fitting.solve.gauss_newton import normal_system
+from fitting.solve.linear import fold_parts
+from fitting.spec.params import FitSpec, at_bound, value_names, values_to_lights, values_to_material
+
+
+class IdentifiabilityWarning(UserWarning):
+    """The data cannot separate some fitted parameters."""
+
+
+@dataclasses.dataclass(frozen=True)
+class UncertaintyReport:
+    """names: [p] readable parameter names; values, std_errors: [p]; covariance: [p, p];
+    sigma2: residual variance; n_residuals, dof (= n - p); condition: of the scaled J^T J;
+    warnings: identifiability messages; rounding_bound: [p] worst-case shift from 8-bit
+    rounding of the targets, or None when they are not 8-bit; notes: other caveats;
+    at_bound: names of the values at a bound (their std_errors, rounding_bound and
+    covariance entries are NaN)."""
+
+    names: tuple
+    values: np.ndarray
+    std_errors: np.ndarray
+    covariance: np.ndarray
+    sigma2: float
+    n_residuals: int
+    dof: int
+    condition: float
+    warnings: tuple
+    rounding_bound: np.ndarray | None = None
+    notes: tuple = ()
+    at_bound: tuple = ()
+
+    def as_dict(self) -> dict:
+        """{name: (value, standard error, or None at a bound)}."""
+        return {n: (float(v), None if n in self.at_bound else float(s))
+                for n, v, s in zip(self.names, self.values, self.std_errors, strict=True)}
+
+    def select(self, prefix: str) -> "UncertaintyReport":
+        """The report of the parameters whose names start with `prefix` (e.g. one
+        object's, 'objects[1].'): their values, standard errors and covariance block;
+        warnings naming none of them are left out."""
+        keep = [i for i, n in enumerate(self.names) if n.startswith(prefix)]
+        pick = lambda a: None if a is None else np.asarray(a)[keep]
+        return dataclasses.replace(
+            self, names=tuple(self.names[i] for i in keep), values=pick(self.values),
+            std_errors=pick(self.std_errors),
+            covariance=self.covariance[np.ix_(keep, keep)],
+            warnings=tuple(w for w in self.warnings if prefix in w or "objects[" not in w),
+            rounding_bound=pick(self.rounding_bound))
+
+    def table(self) -> str:
+        """One line per parameter: name, value, standard error (and rounding bound)."""
+        bound = self.rounding_bound
+        lines = [f"{'parameter':<12} {'value':>12} {'std. error':>12}"
+                 + ("" if bound is None else f" {'rounding':>10}")]
+        for i, (n, (v, s)) in enumerate(self.as_dict().items()):
+            lines.append(f"{n:<12} {v:>12.6g} {'at bound' if s is None else f'{s:.3g}':>12}"
+                         + ("" if bound is None else f" {bound[i]:>10.3g}"))
+        return "\n".join(lines + [f"warning: {w}" for w in self.warnings]
+                         + [f"note: {n}" for n in self.notes])
+
+
+def _system_at(values, data, spec):
+    """Levenberg-Marquardt's program (gauss_newton.normal_system) at the physical values,
+    with respect to them (slopes 1): one compiled program serves the fit, the standard
+    errors and the misfit check."""
+    leaves = jax.tree.leaves(values)
+    ones = np.ones(sum(np.size(x) for x in leaves), np.asarray(leaves[0]).dtype)
+    return normal_system(values, ones, batched(data), spec, "mse")
+
+
+def values_jacobian(values, data: FitData, spec: FitSpec):
+    """Residuals [M] and their Jacobian [M, p] with respect to the physical values, on
+    the host (the kept pixels' rows of _system_at)."""
+    *_, r, jac, weight = _system_at(values, data, spec)
+    keep = np.asarray(weight) > 0
+    return np.asarray(r)[keep], np.asarray(jac)[keep]
+
+
+def view_residuals(values, data: FitData, spec: FitSpec) -> tuple:
+    """Residuals (rendered - target) of every view at the physical values, on the host in
+    float64: tuple of [N_v, 3] (the rows of _system_at)."""
+    r = np.asarray(_system_at(values, data, spec)[3], np.float64)
+    return unpadded(r.reshape(len(data.views), -1, 3), data.views)
+
+
+def rows_fold(values, data, spec: FitSpec):
+    """fold(fn, total) -> total = fn(total, (r [V, N, 3], d r / d values [V, N, 3, p]),
+    weight [V, N], view [V], target [V, N, 3]) over blocks of `data`'s views, in host
+    memory (float64; a FitData's Jacobian in its own dtype), 0 in the padding. A FitData
+    is one block, _system_at on every view (computed once here, whatever the number of
+    folds); sharded views (fitting.solve.distribute.ShardedViews) are taken a chunk at a time,
+    computed per fold (ShardedViews.rows_fold), so that a chunked fit's report holds one
+    chunk's rows."""
+    if isinstance(data, ShardedViews) and data.local:
+        return lambda fn, total: data.rows_fold(values, spec, fn, total)
+    data = fit_data(data)  # (several processes: every view at once, as each holds all)
+    *_, r, jac, weight = _system_at(values, data, spec)
+    n = len(data.views)
+    r = np.asarray(r, np.float64).reshape(n, -1, 3)
+    block = ((r, np.asarray(jac).reshape(*r.shape, -1)),  # float64 once its rows are kept
+             np.asarray(weight).reshape(r.shape)[..., 0], np.arange(n), np.zeros(r.shape))
+    for i, view in enumerate(data.views):
+        block[3][i, :view.target.shape[0]] = np.asarray(view.target, np.float64)
+    return lambda fn, total: fn(total, *block)
+
+
+def _kept(weight, rows):
+    """[V * N * 3] bool: the kept pixel-channels of a block's rows."""
+    return np.broadcast_to(weight[..., None] > 0, rows.shape[:3]).reshape(-1)
+
+
+def _pixel_counts(values, data, spec: FitSpec, highlight_threshold):
+    """(kept pixels unlit by every light of their view, kept pixels whose specular part at
+    the values exceeds highlight_threshold in some channel), from the linear solve's
+    program (fitting.solve.linear.view_parts, a chunk at a time for sharded views)."""
+    base = fit_data(data)
+    material = values_to_material(values, spec, base.material)
+    unit_kd = dataclasses.replace(material, kd=np.ones(np.shape(material.kd),
+                                                       np.asarray(material.kd).dtype))
+    lights = values_to_lights(values, spec, base.lights) if "lights" in values else None
+
+    def add(total, parts, weight, view, target):
+        kept = weight > 0
+        return (total[0] + int(np.sum(kept & (np.max(parts.diffuse, -1) <= 1e-9))),
+                total[1] + int(np.sum(kept & (np.max(parts.specular, -1) > highlight_threshold))))
+
+    return fold_parts(unit_kd, lights, data, spec, add, (0, 0))
+
+
+def _data_warnings(values, data, spec, highlight_threshold, min_pixels):
+    unlit, bright = _pixel_counts(values, data, spec, highlight_threshold)
+    found = []
+    if spec.ka is not None and spec.kd is not None and unlit < min_pixels:
+        found.append(f"ka and kd are confounded: {unlit} kept pixels are unlit by every "
+                     "light (N.L <= 0), so the ambient term is never seen alone; add a "
+                     "light or view that leaves part of the object in shadow")
+    has_specular = spec.ks is not None or fit_data(data).material.ks is not None
+    if has_specular and (spec.ks is not None or spec.shininess) and bright < min_pixels:
+        found.append(f"ks and shininess are not determined: {bright} kept pixels have a "
+                     f"specular part above {highlight_threshold}; add lights or views "
+                     "whose highlights fall on the object (or the surface is not shiny)")
+    return found
+
+
+def _scaled_inverse(jtj, max_condition):
+    """(J^T J)^-1 through its unit-diagonal scaling, with eigenvalues floored so that
+    confounded directions get a huge variance; returns (inverse, condition, eigen pairs)."""
+    if len(jtj) == 0:
+        return np.zeros((0, 0)), 1.0, []
+    scale = np.sqrt(np.diag(jtj))
+    scale = np.where(scale > 0, scale, 1.0)
+    corr = jtj / np.outer(scale, scale)
+    eigval, eigvec = np.linalg.eigh(corr)
+    top = max(eigval[-1], 1e-300)
+    condition = top / max(eigval[0], 1e-300 * top)
+    floored = np.maximum(eigval, top * 1e-15)
+    inverse = (eigvec / floored) @ eigvec.T / np.outer(scale, scale)
+    weak = [eigvec[:, i] for i in range(len(eigval)) if eigval[i] * max_condition < top]
+    return inverse, condition, weak
+
+
+def _conditioning_warnings(jtj, names, condition, weak):
+    found = []
+    dead = [n for n, d in zip(names, np.diag(jtj), strict=True) if d <= 0]
+    if dead:
+        found.append(f"{', '.join(dead)} have no effect on any kept pixel")
+    for vec in weak:
+        involved = [n for n, c in zip(names, vec, strict=True) if abs(c) > 0.3 and n not in dead]
+        if len(involved) > 1:
+            found.append(f"J^T J is near-singular (condition {condition:.2e}): the data do "
+                         f"not separate {', '.join(involved)}")
+    return found
+
+
+def uncertainty(values: dict, data, spec: FitSpec, *, highlight_threshold=0.01,
+                min_pixels=10, max_condition=1e6, warn=True) -> UncertaintyReport:
+    """Standard errors of the physical `values` (the optimum of a fit on `data`, a
+    FitData or its ShardedViews: then J^T J and the rounding bound are summed a chunk of
+    views at a time) and identifiability warnings (see module docstring)."""
+    fold = rows_fold(values, data, spec)
+    names = tuple(value_names(values))
+    free = ~at_bound(values, spec)
+
+    def add(total, rows, weight, view, target):
+        r, jac = rows
+        keep = _kept(weight, r)
+        r, jac = r.reshape(-1)[keep], np.asarray(jac.reshape(-1, jac.shape[-1])[keep],
+                                                 np.float64)
+        return total[0] + jac.T @ jac, total[1] + float(r @ r), total[2] + r.size
+
+    full, rss, n = fold(add, (np.zeros((len(names), len(names))), 0.0, 0))
+    p = int(free.sum())
+    dof = max(n - p, 1)
+    sigma2 = rss / dof
+    jtj = full[np.ix_(free, free)]
+    inverse, condition, weak = _scaled_inverse(jtj, max_condition)
+    covariance = np.full((len(names), len(names)), np.nan)
+    covariance[np.ix_(free, free)] = sigma2 * inverse
+    found = _data_warnings(values, data, spec, highlight_threshold, min_pixels)
+    found += _conditioning_warnings(jtj, tuple(np.array(names)[free]), condition, weak)
+    if warn:
+        for message in found:
+            warnings.warn(message, IdentifiabilityWarning, stacklevel=2)
+    flat = np.concatenate([np.ravel(np.asarray(x, np.float64))
+                           for x in jax.tree.leaves(values)])
+    bound, notes = _rounding(fit_data(data), fold, free, inverse)
+    if bound is not None:
+        bound = _scatter(bound, free)
+    return UncertaintyReport(names, flat, np.sqrt(np.diag(covariance)), covariance, sigma2,
+                             n, dof, float(condition), tuple(found), bound, notes,
+                             tuple(np.array(names)[~free]))
+
+
+def _scatter(free_values, free):
+    out = np.full(free.shape, np.nan)
+    out[free] = free_values
+    return out
+
+
+def _codes_8bit(values, encoding):
+    """values' 8-bit codes under `encoding`, or None when they are not all 8-bit codes."""
+    codes = encode(values, encoding) * 255.0
+    return np.round(codes) if np.all(np.abs(codes - np.round(codes)) < 1e-3) else None
+
+
+def rounding_encoding(targets):
+    """The encoding in which every array of `targets` (linear values, e.g. each view's)
+    holds 8-bit codes: 'linear', else 'srgb', else None (rounding_steps)."""
+    targets = list(targets)  # each converted in turn: one array's float64 copy at a time
+    for encoding in ("linear", "srgb"):
+        if all(_codes_8bit(np.asarray(t, np.float64), encoding) is not None
+               for t in targets):
+            return encoding
+    return None
+
+
+def steps_in(targets, encoding):
+    """rounding_steps of 8-bit `targets` (float64) in a known encoding (rounding_encoding)."""
+    if encoding == "linear":
+        return np.full(targets.shape, 0.5 / 255.0)
+    codes = np.round(encode(targets, encoding) * 255.0)
+    centre = decode(codes / 255.0, "srgb")
+    above = decode(np.minimum(codes + 0.5, 255.0) / 255.0, "srgb") - centre
+    below = centre - decode(np.maximum(codes - 0.5, 0.0) / 255.0, "srgb")
+    return np.maximum(above, below)
+
+
+def rounding_steps(targets):
+    """Worst-case |linear target - the value before 8-bit rounding| per value of `targets`
+    (linear, [...]), or (None, None) when they are not 8-bit codes; with the encoding the
+    codes were found in: 'linear' (0.5 / 255 everywhere) or 'srgb' (half a code step,
+    mapped through the sRGB curve: from 0.5 / 255 / 12.92 in the darks to ~0.0044 at 1)."""
+    targets = np.asarray(targets, np.float64)
+    encoding = rounding_encoding([targets])
+    return (None, None) if encoding is None else (steps_in(targets, encoding), encoding)
+
+
+def _rounding(data, fold, free, inverse):
+    """8-bit targets: rounding is no independent noise (a flat region rounds one way), so
+    bound its effect instead: the linearized estimate moves by (J^T J)^-1 J^T delta for
+    target errors |delta_i| <= step_i (`rounding_steps`), at most |(J^T J)^-1 J^T| @ step,
+    summed over the rows of `fold` (rows_fold; a second pass over a sharded fit's chunks,
+    once (J^T J)^-1 is known)."""
+    encoding = rounding_encoding(v.target for v in data.views)
+    if encoding is None:
+        return None, ()
+
+    def add(total, rows, weight, view, target):
+        jac = rows[1]
+        keep = _kept(weight, jac)
+        jac = np.asarray(jac.reshape(-1, jac.shape[-1])[keep][:, free], np.float64)
+        return total + np.abs(inverse @ jac.T) @ steps_in(target.reshape(-1)[keep], encoding)
+
+    bound = fold(add, np.zeros(int(free.sum())))
+    return bound, (f"targets are 8-bit ({encoding}-encoded): rounding errors are not "
+                   "independent (a flat region rounds one way), so the standard errors "
+                   "understate the error; rounding_bound is the worst-case shift it can cause",)
