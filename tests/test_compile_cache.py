@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parent.parent
 # times it was traced (0: loaded from the program store).
 SCRIPT = """
 import jax
-from diffshade import compile_cache
+from diffshade.io import compile_cache
 print(compile_cache.enable())
 jax.jit(lambda x: x * 2.0 + 1.0)(jax.numpy.arange(3.0)).block_until_ready()
 traced = []
@@ -265,8 +265,8 @@ def test_switched_off_or_inside_a_trace_it_is_plain_jit(tmp_path, monkeypatch):
 
 def test_the_key_follows_the_package_source(monkeypatch):
     paths = [path for path, _ in compile_cache._package_sources()]
-    assert os.path.join("fitting", "linear.py") in paths
-    assert os.path.join("diffshade", "compile_cache.py") in paths
+    assert os.path.join("fitting", "solve", "linear.py") in paths
+    assert os.path.join("diffshade", "io", "compile_cache.py") in paths
     monkeypatch.setattr(compile_cache, "_environment", None)
     before = compile_cache.environment_key()
     edited = [(p, t + b"\n# edited" if p.endswith("linear.py") else t)

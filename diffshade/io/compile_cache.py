@@ -104,7 +104,8 @@ def store_dir() -> str | None:
 
 def _package_sources():
     """(relative path, bytes) of every .py file of diffshade and fitting, sorted."""
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    # this file is diffshade/io/compile_cache.py: the root holds diffshade/ and fitting/
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     found = []
     for package in ("diffshade", "fitting"):
         folder = os.path.join(root, package)
