@@ -5,10 +5,11 @@
 
     diffshade synth ... (data_synth.cli),  diffshade fit ... (fitting.cli)
 
-`COMMANDS` is the table of commands: name -> register(subparsers), a callable imported
-directly from its module, which adds the command's parser with
-`subparsers.add_parser(name, help=...)` and sets `parser.set_defaults(run=fn)`,
-fn(args) -> int exit status. `render` is registered here.
+`COMMANDS` is the table of commands: name -> register(subparsers), a callable which adds
+the command's parser with `subparsers.add_parser(name, help=...)` and sets
+`parser.set_defaults(run=fn)`, fn(args) -> int exit status. `render` is registered here;
+the applications built on the renderer (synth, fit) come in as entry points of the group
+`diffshade.commands` (pyproject.toml), so that the library never imports its applications.
 
 A user error (ValueError, including SceneFileError, or OSError such as a missing or
 unwritable file) prints one line `diffshade: error: <message>` on stderr and returns 2,
@@ -18,12 +19,12 @@ returns 0. Output files are written atomically (diffshade.io.images).
 
 import argparse
 import dataclasses
+import importlib.metadata
 import os
 import sys
 
 import numpy as np
 
-from data_synth.cli import register as register_synth
 from diffshade.io import compile_cache
 from diffshade.io.images import write_npy, write_png
 from diffshade.io.scenefile import load_scene
@@ -32,7 +33,6 @@ from diffshade.scene.builtin import BUILTIN_SCENES, builtin_scene
 from diffshade.scene.camera import MAX_IMAGE_SIZE
 from diffshade.scene.scene import replace
 from diffshade.settings import SHADING_MODES, RenderSettings
-from fitting.cli import register as register_fit
 
 __all__ = ["COMMANDS", "build_parser", "main"]
 
@@ -121,7 +121,24 @@ def _run_render(args):
     return 0
 
 
-COMMANDS = {"render": _register_render, "synth": register_synth, "fit": register_fit}
+#: the entry-point group through which applications add commands
+COMMAND_GROUP = "diffshade.commands"
+
+
+def _deferred(entry_point):
+    """register(subparsers) that imports the entry point's module only when called."""
+    def register(subparsers):
+        return entry_point.load()(subparsers)
+    register.entry_point = entry_point
+    return register
+
+
+def _installed_commands():
+    points = importlib.metadata.entry_points(group=COMMAND_GROUP)
+    return {point.name: _deferred(point) for point in sorted(points, key=lambda p: p.name)}
+
+
+COMMANDS = {"render": _register_render, **_installed_commands()}
 
 
 def build_parser():

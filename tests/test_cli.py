@@ -174,11 +174,13 @@ def hello_command(subparsers):
     parser.set_defaults(run=lambda args: print("hello", args.name) or 7)
 
 
-def test_commands_are_a_table_of_imported_callables():
+def test_commands_are_render_and_the_installed_entry_points():
     from data_synth.cli import register as register_synth
     from fitting.cli import register as register_fit
-    assert cli.COMMANDS == {"render": cli._register_render, "synth": register_synth,
-                            "fit": register_fit}
+    assert list(cli.COMMANDS) == ["render", "fit", "synth"]
+    assert cli.COMMANDS["render"] is cli._register_render
+    loaded = {name: cli.COMMANDS[name].entry_point.load() for name in ("fit", "synth")}
+    assert loaded == {"fit": register_fit, "synth": register_synth}
 
 
 def test_a_command_in_the_table_is_dispatched(monkeypatch, capsys):
