@@ -57,6 +57,7 @@ def stages(size):
     from diffshade.raster import fragments as raster
     from diffshade.raster.fragments import fragments_from_ids
     from diffshade.raster.project import project
+    from diffshade.raster.search import soft_radius
     from diffshade.shade.compact import active_indices
 
     render_module = importlib.import_module("diffshade.pipeline.render")
@@ -67,7 +68,7 @@ def stages(size):
     proj = jax.jit(project)(scene)
     faces = scene.mesh.faces
     clip = np.asarray(proj.clip, np.float64)
-    radius = float(raster.soft_radius(soft))
+    radius = float(soft_radius(soft))
     ids = np.asarray(frags.face_ids).reshape(-1, SOFT_K)
     coeffs = np.asarray(raster.face_edge_coefficients(proj.clip, faces)[0])
     corner_w = np.asarray(jnp.take(proj.clip[:, 3], faces))

@@ -21,7 +21,7 @@ from common import machine_info, time_call
 
 import diffshade as ds
 from diffshade.host.candidates import find_candidates
-from diffshade.raster.fragments import soft_radius
+from diffshade.raster.search import soft_radius
 from diffshade.raster.tile_search import search_tiles
 from diffshade.settings import RenderSettings
 

@@ -132,7 +132,7 @@ def search(repeats):
 
     import diffshade as ds
     from diffshade.host.candidates import find_candidates
-    from diffshade.raster.fragments import soft_radius
+    from diffshade.raster.search import soft_radius
 
     settings = settings_for("host")
     scene, cams = views_setup()

@@ -32,6 +32,7 @@ from diffshade.pipeline.shading_cache import ShadingCache, cache_shading, render
 from diffshade.raster.fragments import Fragments, rasterize
 from diffshade.raster.interpolate import interpolate
 from diffshade.raster.project import project
+from diffshade.scene.area_lights import area_light, sphere_light
 from diffshade.scene.builtin import BUILTIN_SCENES, builtin_scene
 from diffshade.scene.camera import Camera, look_at
 from diffshade.scene.lights import ambient_light, directional_light, point_light, spot_light
@@ -48,7 +49,6 @@ from diffshade.scene.mesh import (
 )
 from diffshade.scene.scene import Scene, SceneObject, make_scene, replace, scene_object
 from diffshade.settings import RenderSettings
-from diffshade.shade.area import area_light, sphere_light
 from diffshade.shade.lighting import shade
 
 # What users call. Everything else (light classes, blend variants, mesh utilities, the

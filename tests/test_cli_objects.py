@@ -14,7 +14,7 @@ import pytest
 
 import diffshade as ds
 from diffshade import cli
-from diffshade.raster.project import transform_points
+from diffshade.scene.transform import transform_points
 from fitting.data.folder import load_dataset
 
 SIZE = 32

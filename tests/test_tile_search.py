@@ -17,7 +17,7 @@ import pytest
 
 from diffshade import Mesh, icosphere, look_at, make_scene, model_matrix, project, torus
 from diffshade.host.candidates import find_candidates
-from diffshade.raster.fragments import search_faces
+from diffshade.raster.search import search_faces
 from diffshade.raster.tile_search import search_tiles
 from diffshade.settings import RenderSettings
 

@@ -34,10 +34,9 @@ from numba import carray, cfunc, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from diffshade.host import candidates
+from diffshade.host import active_kernel, candidates
 from diffshade.host import fragment_kernels as kernels
 from diffshade.numerics import tiny
-from diffshade.shade import compact
 
 # XLA_FFI_CallFrame as int64 words: struct_size, extension_start, api, ctx, stage; then
 # XLA_FFI_Args (struct_size, extension_start, size, types, args), XLA_FFI_Rets (same,
@@ -224,12 +223,12 @@ def _interpolate_backward(frame, dtype):
 
 @numba.njit(cache=True, nogil=True)
 def _active(frame):
-    compact.first_active_into(_flat(frame, FRAME_ARGS, 0, np.bool_),
-                              _flat(frame, FRAME_RETS, 0, np.int32),
-                              _flat(frame, FRAME_RETS, 1, np.int32))
+    active_kernel.first_active_into(_flat(frame, FRAME_ARGS, 0, np.bool_),
+                                    _flat(frame, FRAME_RETS, 0, np.int32),
+                                    _flat(frame, FRAME_RETS, 1, np.int32))
 
 
-# -- candidate search (raster.search_faces) -------------------------------------------------
+# -- candidate search (raster.search.search_faces) ------------------------------------------
 # arguments: clip [*B, V, 4], faces [*B, F, 3] int32 or int64, near, far, radius, sigma and
 # gamma [*B] (each broadcast against the batch shape B); attributes: width, height, k,
 # cull_backfaces, perspective. Results: face ids [*B, H, W, k] int32, dropped [*B] int32.

@@ -31,6 +31,7 @@ import jax
 import numpy as np
 
 from diffshade.io.images import write_json
+from diffshade.scene.area_lights import area_light, sphere_light
 from diffshade.scene.camera import PROJECTIONS, look_at
 from diffshade.scene.lights import (
     AmbientLight,
@@ -59,7 +60,6 @@ from diffshade.scene.mesh import (
 from diffshade.scene.objects import object_names, split_mesh, unstack_material
 from diffshade.scene.scene import Scene, make_scene, object_count, scene_object
 from diffshade.settings import DATA_FIELDS, RenderSettings
-from diffshade.shade.area import area_light, sphere_light
 
 __all__ = ["FORMAT_VERSION", "SceneFileError", "load_scene", "load_scenes", "read_json",
            "save_scene", "scene_from_dict", "scene_to_dict", "scenes_from_dict"]

@@ -11,8 +11,8 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from diffshade.numerics import safe_normalize
 from diffshade.scene.camera import projection_matrix, view_matrix
+from diffshade.scene.transform import transform_normals, transform_points
 
 
 @jax.tree_util.register_dataclass
@@ -25,17 +25,6 @@ class Projected:
     world: jax.Array
     normals: jax.Array
     depth: jax.Array
-
-
-def transform_points(matrix, points):
-    """Affine transform of points: matrix [4, 4], points [..., 3] -> [..., 3]."""
-    return points @ matrix[:3, :3].T + matrix[:3, 3]
-
-
-def transform_normals(matrix, normals):
-    """Normals under the inverse transpose of matrix[:3, :3], renormalized: [..., 3]."""
-    inv_t = jnp.linalg.inv(matrix[:3, :3]).T
-    return safe_normalize(normals @ inv_t.T)
 
 
 def project(scene) -> Projected:

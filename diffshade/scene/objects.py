@@ -3,7 +3,7 @@
 `diffshade.scene_object(mesh, material, transform=..., back_material=..., name=...)`
 describes one object; `make_scene(objects=[...])` joins several (`join_objects`):
 - the meshes are concatenated into one Mesh, each object's vertices moved by its
-  transform and its normals by the inverse transpose (`diffshade.project`'s helpers),
+  transform and its normals by the inverse transpose (diffshade.scene.transform),
   so that projection and rasterization see one mesh;
 - `ObjectIds` says which object each face and each vertex belongs to, and holds the
   objects' names (static; None when no object is named);
@@ -20,9 +20,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffshade.raster.project import transform_normals, transform_points
 from diffshade.scene.material import Material
 from diffshade.scene.mesh import Mesh
+from diffshade.scene.transform import transform_normals, transform_points
 
 
 @dataclasses.dataclass(frozen=True)

@@ -9,41 +9,17 @@ and evaluates it everywhere otherwise (`lax.cond` picks at run time; under `vmap
 branches run). Gradients flow through either branch.
 
 The indices of the active slots come from a compiled host kernel on the CPU backend
-(`host=True`; through a host callback, hostcall.py): XLA's `jnp.nonzero` (a cumulative
-sum and a scatter) took ~11 ms for the 524,288 slots of a 256^2, K = 8 render, more than
-lighting the active slots; the kernel takes well under 1 ms.
+(`host=True`; diffshade.host.active_kernel through diffshade.host.hostcall): XLA's
+`jnp.nonzero` (a cumulative sum and a scatter over all 524,288 slots of a 256^2, K = 8
+render) costs more than lighting the active slots.
 """
 
 import jax
 import jax.numpy as jnp
-import numba
 import numpy as np
 
+from diffshade.host.active_kernel import first_active
 from diffshade.host.hostcall import host_call
-
-
-@numba.njit(cache=True, nogil=True)
-def _first_active(mask, capacity):
-    """(indices [capacity] int32 of the first `capacity` True entries of mask [N], padded
-    with N; count [] int32 of all True entries)."""
-    idx, count = np.empty(capacity, np.int32), np.empty(1, np.int32)
-    first_active_into(mask, idx, count)
-    return idx, count[0]
-
-
-@numba.njit(cache=True, nogil=True)
-def first_active_into(mask, idx, count):
-    """_first_active writing into idx [capacity] and count [1] (ffi.py)."""
-    n = mask.shape[0]
-    found = 0
-    for i in range(n):
-        if mask[i]:
-            if found < idx.shape[0]:
-                idx[found] = i
-            found += 1
-    for i in range(min(found, idx.shape[0]), idx.shape[0]):
-        idx[i] = n
-    count[0] = found
 
 
 def active_indices(mask, capacity, host=None):
@@ -55,7 +31,7 @@ def active_indices(mask, capacity, host=None):
         return (jnp.nonzero(mask, size=capacity, fill_value=mask.shape[0])[0].astype(jnp.int32),
                 jnp.sum(mask, dtype=jnp.int32))
     shapes = (jax.ShapeDtypeStruct((capacity,), jnp.int32), jax.ShapeDtypeStruct((), jnp.int32))
-    return host_call(lambda m: _first_active(np.asarray(m, np.bool_), capacity), shapes, mask,
+    return host_call(lambda m: first_active(np.asarray(m, np.bool_), capacity), shapes, mask,
                      ffi=("active", ()))
 
 

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 from diffshade.numerics import dot, safe_div, safe_norm, safe_normalize, safe_pow
 from diffshade.scene.lights import LightGroups
 from diffshade.scene.material import Material
-from diffshade.shade import area as area_lights
+from diffshade.shade import area
 from diffshade.shade.shadows import ShadowMap, sampled_visibility, visibility
 
 
@@ -169,12 +169,12 @@ def shade(material: Material, lights: LightGroups, global_ambient, points, norma
             d, s = seen * d, None if s is None else seen * s
         ambient, diffuse = ambient + a, diffuse + d
         specular = specular if s is None else specular + s
-    for kind, index, light in _lights(lights, area_lights.KINDS):
+    for kind, index, light in _lights(lights, area.KINDS):
         maps = (shadow_maps or {}).get((kind, index))
         seen = None if maps is None else sampled_visibility(kind, light, maps, points,
                                                             normals, settings)
-        a, d, s = area_lights.terms(kind, light, material, points, normals, view_dirs,
-                                    settings, _light_terms, seen)
+        a, d, s = area.terms(kind, light, material, points, normals, view_dirs,
+                             settings, _light_terms, seen)
         ambient, diffuse = ambient + a, diffuse + d
         specular = specular if s is None else specular + s
     emission = (jnp.zeros(shape, points.dtype) if material.emission is None

@@ -39,9 +39,10 @@ import jax.numpy as jnp
 
 from diffshade.numerics import dot, safe_div, safe_norm, safe_normalize, tiny
 from diffshade.raster.fragments import rasterize
-from diffshade.raster.project import Projected, transform_points
+from diffshade.raster.project import Projected
 from diffshade.scene.camera import Camera, projection_matrix, view_matrix
 from diffshade.scene.lights import SHADOW_SPOT_CUTOFF, shadow_flags
+from diffshade.scene.transform import transform_points
 from diffshade.shade.area import KINDS as AREA_KINDS
 from diffshade.shade.area import from_point, sample_points
 

@@ -43,8 +43,9 @@ from diffshade.composite.transparency import layer_weights, layers_needed
 from diffshade.io.compile_cache import FAST_COMPILE, stored_jit
 from diffshade.numerics import clamp01, float_dtype
 from diffshade.pipeline.render import view_dirs
-from diffshade.raster.fragments import fragments_from_ids, search_depth, search_faces
+from diffshade.raster.fragments import fragments_from_ids
 from diffshade.raster.project import project
+from diffshade.raster.search import search_depth, search_faces
 from diffshade.scene.lights import LightGroups, shadow_flags
 from diffshade.scene.material import Material
 from diffshade.scene.material import material as make_material

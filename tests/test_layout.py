@@ -1,0 +1,186 @@
+"""The folders read as the pipeline, bottom to top, and the imports say so.
+
+Read from the source (the AST of every module, imports inside functions included), not
+from what happens to be imported at run time:
+- each module belongs to one floor; a module imports only from its own floor and the
+  floors below it (FLOORS, bottom first);
+- the renderer never imports its applications (fitting, data_synth), and fitting never
+  imports data_synth;
+- there is no import circle anywhere, between modules of one floor included.
+An import of a package counts as an import of its `__init__`; `from P import m`, m a
+submodule, as an import of P.m.
+"""
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGES = ("diffshade", "fitting", "data_synth")
+
+#: per package, its floors from the bottom: (name, modules). A module belongs to the floor
+#: that names it or the folder it is in (a package's own name covers only its __init__).
+FLOORS = {
+    "diffshade": [
+        ("foundation", ["diffshade.numerics", "diffshade.settings"]),
+        ("host", ["diffshade.host"]),
+        ("scene", ["diffshade.scene"]),
+        ("raster", ["diffshade.raster"]),
+        ("shade", ["diffshade.shade"]),
+        ("composite", ["diffshade.composite"]),
+        ("pipeline", ["diffshade.pipeline"]),
+        ("io", ["diffshade.io"]),
+        ("faces", ["diffshade", "diffshade.cli", "diffshade.__main__", "diffshade.analytic"]),
+    ],
+    "fitting": [
+        ("spec", ["fitting.spec"]),
+        ("data", ["fitting.data"]),
+        ("model", ["fitting.model"]),
+        ("solve", ["fitting.solve"]),
+        ("report", ["fitting.report"]),
+        ("driver", ["fitting", "fitting.checkpoint", "fitting.cli", "fitting.fit",
+                    "fitting.inputs", "fitting.plan", "fitting.run"]),
+    ],
+    "data_synth": [("data_synth", ["data_synth", "data_synth.cli", "data_synth.materials",
+                                   "data_synth.scenes"])],
+}
+#: which packages each package may import
+ALLOWED = {"diffshade": {"diffshade"}, "fitting": {"diffshade", "fitting"},
+           "data_synth": {"diffshade", "fitting", "data_synth"}}
+
+
+def module_files():
+    """{module name: path} of every module of the three packages."""
+    found = {}
+    for package in PACKAGES:
+        for path in sorted((ROOT / package).rglob("*.py")):
+            parts = path.relative_to(ROOT).with_suffix("").parts
+            name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+            found[name] = path
+    return found
+
+
+MODULES = module_files()
+
+
+def _target(name):
+    """The module an import of `name` runs: name itself, or its closest enclosing module
+    (for `from P import f`, f not a module)."""
+    while name not in MODULES and "." in name:
+        name = name.rpartition(".")[0]
+    return name
+
+
+def imports_of(name, path):
+    """The project modules that module `name` imports (anywhere in its source)."""
+    package_of_file = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            bases = [alias.name for alias in node.names]
+            found.update(_target(b) for b in bases if b.split(".")[0] in PACKAGES)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package_of_file.split(".")
+                anchor = anchor[:len(anchor) - (node.level - 1)]
+                base = ".".join(anchor + ([base] if base else []))
+            if base.split(".")[0] not in PACKAGES:
+                continue
+            for alias in node.names:
+                full = f"{base}.{alias.name}"
+                found.add(full if full in MODULES else _target(base))
+    found.discard(name)
+    return found
+
+
+GRAPH = {name: imports_of(name, path) for name, path in MODULES.items()}
+
+
+def floor_of(name):
+    """(package, floor index, floor name) of a module; (package, None, None) if no floor
+    names it."""
+    package = name.split(".")[0]
+    for index, (floor, prefixes) in enumerate(FLOORS[package]):
+        for prefix in prefixes:
+            if name == prefix or (prefix != package and name.startswith(prefix + ".")):
+                return package, index, floor
+    return package, None, None
+
+
+def test_every_module_is_on_a_floor():
+    """A new module is placed on a floor on purpose: in a floor's folder, or named."""
+    loose = [name for name in MODULES if floor_of(name)[1] is None]
+    assert loose == [], f"modules on no floor: {loose}"
+    for floors in FLOORS.values():
+        for _, prefixes in floors:
+            for prefix in prefixes:
+                assert prefix in MODULES, f"floor entry {prefix} names no module"
+
+
+def test_imports_run_down_the_floors():
+    upward = []
+    for name, targets in GRAPH.items():
+        package, index, floor = floor_of(name)
+        for target in targets:
+            other = target.split(".")[0]
+            if other not in ALLOWED[package]:
+                upward.append(f"{name} -> {target} ({package} must not import {other})")
+            elif other == package:
+                _, target_index, target_floor = floor_of(target)
+                if target_index > index:
+                    upward.append(f"{name} ({floor}) -> {target} ({target_floor})")
+    assert upward == [], "imports that run up the floors:\n" + "\n".join(sorted(upward))
+
+
+def find_cycle(graph):
+    """One import circle of graph {node: targets} as a list of nodes, or None."""
+    state = {}
+
+    def visit(node, path):
+        state[node] = "open"
+        path.append(node)
+        for target in sorted(graph.get(node, ())):
+            if state.get(target) == "open":
+                return path[path.index(target):] + [target]
+            if target not in state:
+                cycle = visit(target, path)
+                if cycle:
+                    return cycle
+        state[node] = "done"
+        path.pop()
+        return None
+
+    for node in sorted(graph):
+        if node not in state:
+            cycle = visit(node, [])
+            if cycle:
+                return cycle
+    return None
+
+
+def test_no_import_circle():
+    assert find_cycle(GRAPH) is None, " -> ".join(find_cycle(GRAPH))
+
+
+@pytest.mark.parametrize("graph, expected", [
+    ({"a": {"b"}, "b": {"c"}, "c": set()}, None),
+    ({"a": {"b"}, "b": {"c"}, "c": {"a"}}, ["a", "b", "c", "a"]),
+    ({"a": {"a2"}, "a2": set(), "b": {"b"}}, ["b", "b"]),
+])
+def test_find_cycle_finds_circles(graph, expected):
+    assert find_cycle(graph) == expected
+
+
+def test_the_checks_see_a_back_arrow_and_a_circle(tmp_path):
+    """The AST reading itself: a lazy import inside a function counts, a relative import
+    resolves, and `from P import m` of a submodule points at P.m."""
+    path = tmp_path / "mod.py"
+    path.write_text("def f():\n    from fitting.cli import register\n"
+                    "from .fragments import rasterize\nfrom diffshade.host import candidates\n")
+    found = imports_of("diffshade.raster.search", path)
+    assert found == {"fitting.cli", "diffshade.raster.fragments", "diffshade.host.candidates"}
+    assert floor_of("diffshade.raster.search")[2] == "raster"
+    assert floor_of("diffshade.cli")[2] == "faces"
+    assert floor_of("fitting.solve.linear")[2] == "solve"
