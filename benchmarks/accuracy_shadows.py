@@ -88,7 +88,7 @@ def run(quick=False, repeats=15):
     size, maps = (64, (32, 64)) if quick else (128, (32, 64, 128, 256, 512))
     repeats = 2 if quick else repeats
     # the row without shadows goes last: the first rows of a process measured several
-    # times slower here (129 ms first, 6.2 ms after a shadowed row)
+    # times slower here than the same row after a shadowed one
     return [row(size, m, repeats) for m in maps] + [row(size, None, repeats)]
 
 

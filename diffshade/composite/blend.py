@@ -52,8 +52,8 @@ def soft_weights(frags, near, far, sigma, gamma):
     (module docstring). The background's logit is kept apart rather than concatenated to
     the K others, and the two parts are returned apart: under jit(grad), XLA on CPU runs
     the concatenation, and the slicing of its derivative, as index arithmetic per element
-    in every fusion that reads the [H, W, K + 1] array (the forward + backward of the
-    blend took twice as long, docs/soft-rasterization.md)."""
+    in every fusion that reads the [H, W, K + 1] array, forward and backward
+    (docs/soft-rasterization.md, "How it works")."""
     zt = normalized_inverse_depth(frags.depth, near, far)
     logits = jnp.where(frags.valid, log_coverages(frags, sigma)[0] + zt / gamma, -jnp.inf)
     bg = jnp.asarray(BACKGROUND_EPS / gamma, logits.dtype)

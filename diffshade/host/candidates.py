@@ -417,8 +417,8 @@ def _bin_faces(box, reach, zndc, width, height):
     """Per view, the faces whose box touches each tile, front to back (by the sum of their
     vertices' NDC depths): (start [B, T + 1], binned [B, N]) with tile t's faces
     binned[v, start[v, t]:start[v, t + 1]]. The views are binned in parallel; their depth
-    sorts run one after another (inside the parallel loop, numba took ~5 s longer to
-    compile this function the first time)."""
+    sorts run one after another (inside the parallel loop, numba compiles this function
+    much more slowly the first time)."""
     views, count = reach.shape
     tiles_x, tiles_y = (width + TILE_W - 1) // TILE_W, (height + TILE_H - 1) // TILE_H
     start = np.zeros((views, tiles_x * tiles_y + 1), np.int64)

@@ -1,21 +1,22 @@
-"""Two process settings that make XLA on CPU run diffshade's backward passes 1.3-2x faster.
+"""Two process settings that make XLA on CPU run diffshade's backward passes faster.
 
 Applied once, when diffshade is imported (`apply()`); set DIFFSHADE_CPU_TUNING=0 in the
 environment to leave the process untouched. Both were found by profiling the soft
-rasterizer's forward + backward pass (docs/soft-rasterization.md, "CPU settings"):
+rasterizer's forward + backward pass (docs/soft-rasterization.md, "How it works", "CPU
+settings"):
 
 1. XLA's YNNPACK reduce fusions. jaxlib 0.10 hands reductions to YNNPACK, which runs the
    small reductions of a backward pass (the transpose of broadcasting a per-fragment
-   scalar to RGB: a reduce over an axis of 3) single-threaded at ~10 ns per element;
-   XLA's own loop emitter is 5-10x faster there. We add
+   scalar to RGB: a reduce over an axis of 3) single-threaded, where XLA's own loop
+   emitter is several times faster. We add
    `--xla_cpu_experimental_ynn_fusion_type=-reduce` to XLA_FLAGS, unless XLA_FLAGS
    already names that flag. XLA reads its flags when its CPU client starts, so this only
    takes effect when diffshade is imported before the first JAX computation. jaxlib aborts
    on a flag it does not know, so it is only added for jaxlib versions known to have it.
 2. glibc malloc returning XLA's temporary buffer to the kernel after every call. The
-   buffer (100-400 MB for a 256^2 soft render's backward pass) is allocated with mmap and
-   unmapped when the call ends, so every call page-faults it in afresh: ~100,000 faults,
-   ~25% of the time. mallopt keeps freed memory in the process instead (one arena,
+   buffer (hundreds of bytes per pixel per K in a soft render's backward pass) is
+   allocated with mmap and unmapped when the call ends, so every call page-faults it in
+   afresh, a page at a time. mallopt keeps freed memory in the process instead (one arena,
    no mmap for large blocks, no trimming below 1 GiB). The cost: the process keeps its
    peak heap size after large calls, as with jemalloc or tcmalloc.
 """

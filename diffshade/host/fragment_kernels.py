@@ -4,9 +4,8 @@ raster.py and interpolate.py wrap these in JAX primitives (hostop.py, through th
 callback of hostcall.py), nvdiffrast-style: the per-fragment work and its hand-written
 gradient run as one numba loop each, and JAX differentiates only the cheap per-face
 setup around them (edge coefficients, screen positions, the gather of vertex attributes to
-face corners). On XLA CPU this is ~10x faster than letting JAX differentiate the
-per-fragment expressions (docs/soft-rasterization.md, "Why the backward pass is slow on
-CPU").
+face corners). On XLA CPU, JAX's derivative of the same per-fragment expressions runs
+several times slower than these loops (docs/soft-rasterization.md, "How it works").
 
 Conventions: P pixels (row-major, H x W; the geometry kernels take whole rows, P = R * W),
 K slots per pixel, F faces. `ids` [P, K] int32 face ids (-1 = empty). Empty slots produce
@@ -19,10 +18,10 @@ gradients in one buffer per part (no races), summed at the end.
 Every division is `safe_div` semantics (numerics.py): num / den where |den| > tiny,
 0 (and zero gradient) elsewhere. The geometry kernels multiply by reciprocals instead of
 dividing (`_inv`): one per fragment and sum, and per face those of the corners' W and of
-the edges' squared lengths: a division costs ~10x a multiplication, and the kernels once
-made ~25 per fragment. What they read of a face sits in one float64 row (`_face_table`,
-built once per call), and the pixel coordinates come from per-row and per-column tables
-(`_pixel_coords`).
+the edges' squared lengths, because a division costs many times a multiplication and a
+fragment would otherwise need a dozen or more. What they read of a face sits in one
+float64 row (`_face_table`, built once per call), and the pixel coordinates come from
+per-row and per-column tables (`_pixel_coords`).
 """
 
 import numba
@@ -52,8 +51,8 @@ _COEFFS, _CW, _INV_W, _EDGES, _EDGE_WIDTH, _TABLE_WIDTH = 0, 9, 12, 15, 5, 30
 def _face_table(corner_w, coeffs, scr, tiny):
     """Per face, what the kernels read of it, in one float64 row (see _TABLE_WIDTH): [F,
     _TABLE_WIDTH]. Reciprocals by _inv; (ex, ey) computed in the dtype of scr, as the
-    kernels once did per fragment. Per fragment, one row instead of four arrays, and no
-    conversion from float32 nor subtraction left (~10% of the geometry kernels)."""
+    kernels once did per fragment. A fragment reads one row instead of four arrays, with
+    no conversion from float32 nor subtraction left to do."""
     nfaces = corner_w.shape[0]
     table = np.empty((nfaces, _TABLE_WIDTH), np.float64)
     for f in range(nfaces):
@@ -155,7 +154,7 @@ def geometry_forward(ids, corner_w, corner_z, coeffs, scr, width, height, soft, 
     """
     npix, k = ids.shape
     dtype = coeffs.dtype
-    # np.empty, every element written: zeroing ~10 MB first cost ~10% of the kernel
+    # np.empty, every element written: zeroing first would write every output twice
     bary = np.empty((npix, k, 3), dtype)
     depth = np.empty((npix, k), dtype)
     dist = np.empty((npix, k), dtype)
@@ -247,7 +246,8 @@ def geometry_backward_into(ids, corner_w, corner_z, coeffs, scr, width, height, 
     nfaces = coeffs.shape[0]
     table = _face_table(corner_w, coeffs, scr, tiny)
     # float64 accumulators: more accurate, and no conversion per fragment; a face's sums
-    # side by side in one row (_ACC_WIDTH), not in four arrays: ~7% faster
+    # side by side in one row (_ACC_WIDTH), not in four arrays: a fragment's accumulation
+    # writes one contiguous row
     acc = np.zeros((chunks, nfaces, _ACC_WIDTH), np.float64)
     xs, pxs, ys, pys = _pixel_coords(width, height)
     for chunk in prange(chunks):

@@ -12,14 +12,14 @@ user's home behind their back):
 - a cache directory already configured for JAX (JAX_COMPILATION_CACHE_DIR or
   jax.config) is left as it is.
 
-Every program is cached however quickly it compiled (JAX's default skips those under 1 s,
-and most of a fit's programs compile in 0.1-1 s each). JAX never caches a program that
+Every program is cached however quickly it compiled (JAX's default skips those that
+compile in under 1 s, as most of a fit's programs do). JAX never caches a program that
 contains a host callback; on CPU diffshade's compiled kernels are XLA FFI custom calls
 (diffshade.host.ffi), which it does cache (with DIFFSHADE_FFI=0 they are host callbacks, and
 the programs that rasterize are compiled afresh in every process).
 
 JAX computes a program's cache key from its lowered module, so even a warm run traces
-and lowers every program (a second or more for a fit's biggest). The program store
+and lowers every program, which is not quick for a fit's biggest. The program store
 skips that for the few big programs of a fit (`stored_jit` marks them): with the cache
 on, their compiled executables are also kept whole in the folder `programs` of the
 cache directory, keyed by a hash of the package's source, JAX, the backend, the CPU and
@@ -85,8 +85,8 @@ def enable() -> str | None:
 # values change by float rounding at most. benchmarks/fit_compile.py measures it
 # (docs/performance.md, "Time to first result and compile time").
 FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
-# For the programs a fit calls many times: LLVM's -O1 instead of XLA's default -O2 takes
-# 0.05-0.2 s off their compilation and ran as fast in the README's fit.
+# For the programs a fit calls many times: LLVM's -O1 instead of XLA's default -O2 compiles
+# them faster, and they ran as fast in the README's fit.
 LIGHT_COMPILE = {"xla_backend_optimization_level": 1}
 
 STORE_FOLDER = "programs"

@@ -443,7 +443,7 @@ def mesh_from_trimesh(tm, *, weighting="angle", crease_angle=None):
     Only positions and faces are taken: normals are our own (`vertex_normals`, or crease
     splitting when crease_angle is given), never trimesh's.
     """
-    import trimesh  # here, not at import: it takes a second (scipy) and most runs never need it
+    import trimesh  # here, not at import: it imports scipy (slow) and most runs never need it
 
     if isinstance(tm, trimesh.Scene):
         tm = trimesh.util.concatenate(tm.dump())

@@ -9,9 +9,10 @@ and evaluates it everywhere otherwise (`lax.cond` picks at run time; under `vmap
 branches run). Gradients flow through either branch.
 
 The indices of the active slots come from a compiled host kernel on the CPU backend
-(`host=True`; diffshade.host.active_kernel through diffshade.host.hostcall): XLA's
-`jnp.nonzero` (a cumulative sum and a scatter over all 524,288 slots of a 256^2, K = 8
-render) costs more than lighting the active slots.
+(`host=True`; diffshade.host.active_kernel through diffshade.host.hostcall): XLA on CPU
+runs `jnp.nonzero` as a cumulative sum and a scatter over all the slots (524,288 in a
+256^2, K = 8 render), which costs more than lighting the active slots; the kernel is one
+pass over the mask.
 """
 
 import jax
@@ -61,8 +62,8 @@ def on_active(fn, active, capacity, *arrays, axis_name=None, host=None):
 
     def everywhere(flat):
         # checkpointed: under reverse mode, lax.cond returns the residuals of both
-        # branches, zeros for the branch not taken; the ones of this branch were ~16
-        # arrays of N rows (48 MB of zeros written per call in a 256^2, K = 8 render).
+        # branches, zeros for the branch not taken; this branch has many residual
+        # arrays of N rows, which every call of the compacted branch would write as zeros.
         # Checkpointed, it keeps only its operands and recomputes the rest when taken.
         return jax.checkpoint(fn)(*flat)
 

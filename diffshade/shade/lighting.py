@@ -151,7 +151,7 @@ def shade(material: Material, lights: LightGroups, global_ambient, points, norma
     Each light's direction and attenuation, and the specular base, pass through
     `optimization_barrier`: XLA then stores them once instead of recomputing their chains
     inside every fusion of the backward pass that reads them (XLA on CPU has no
-    multi-output fusion); this makes a soft render's backward pass ~25% faster.
+    multi-output fusion, so without the barrier each fusion recomputes the chain).
     """
     shape = jnp.broadcast_shapes(points.shape, normals.shape, jnp.shape(material.kd))
     ambient_light = global_ambient

@@ -156,7 +156,7 @@ def fixed_fragments(scene, settings, layers=1):
 
 # Not FAST_COMPILE: the samples' normals and view directions compiled so round
 # differently, and a specular exponent of 350 magnifies that: the README fit's ks came
-# out 1.3e-5 off the truth instead of 1.3e-6, to save 0.07 s of compilation.
+# out 1.3e-5 off the truth instead of 1.3e-6, to save a small part of one compilation.
 @stored_jit
 def _geometry(scene, settings, proj, frags):
     samples, reader = shading_samples(scene, proj, frags, settings.shading, host=False)
