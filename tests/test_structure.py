@@ -16,7 +16,7 @@ Markers, counted over the render's jaxpr and all its sub-jaxprs, in hard and sof
   per sample (a gather whose table has a leading object axis), and only such a scene.
 The plain scene's lowered program is compared, op for op, with the one the revision
 before the effects of issue 14 (BASELINE) lowers, run from `git archive` in a subprocess.
-Recompilation is observed with the jitted `render`'s own cache size.
+Recompilation is counted with JAX's compile events (tests/compiles.py).
 """
 
 import collections
@@ -30,6 +30,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from compiles import compiles
 from jax.extend import core as jex_core
 
 from diffshade import (
@@ -254,17 +255,16 @@ SOFT_GROWTH = {"stablehlo.custom_call": 2, "stablehlo.gather": 1, "stablehlo.sqr
 
 
 def test_new_values_with_the_same_structure_do_not_recompile():
-    # an image size no other test uses, so that the first render is a fresh compile
     scene = scene_with([SUN, BULB], material(ka=0.1, kd=0.5, ks=0.3, shininess=5.0), size=11)
     first = np.asarray(render(scene))
-    size = render._cache_size()
     changed = replace(
         scene, material=material(ka=0.3, kd=0.2, ks=0.9, shininess=60.0),
         lights=replace(scene.lights, point=replace(scene.lights.point,
                                                    position=scene.lights.point.position + 0.5)),
         global_ambient=scene.global_ambient * 2.0, background=scene.background + 0.25)
-    second = np.asarray(render(changed))
-    assert render._cache_size() == size
+    with compiles() as counted:
+        second = np.asarray(render(changed))
+    assert counted.of(render) == 0
     assert np.abs(second - first).max() > 0.05  # the new values did take effect
 
 
@@ -272,9 +272,9 @@ def test_a_new_structure_does_recompile():
     # the control for the test above: dropping ks changes the pytree, so render retraces
     scene = scene_with([SUN], material(ks=0.5, shininess=10.0), size=13)
     render(scene)
-    size = render._cache_size()
-    render(replace(scene, material=material(ks=None)))
-    assert render._cache_size() == size + 1
+    with compiles() as counted:
+        render(replace(scene, material=material(ks=None)))
+    assert counted.of(render) == 1
 
 
 def test_a_jitted_render_traces_once_for_new_material_values():
