@@ -26,6 +26,7 @@ from functools import lru_cache
 import jax
 import numpy as np
 import pytest
+from compiles import compiles
 from test_fit_effects import box_on_table, perturbed
 
 import diffshade as ds
@@ -244,32 +245,32 @@ def test_linear_start_uncertainty_and_misfit_in_chunks_equal_the_plain_values():
         assert views.streamed and views.n_chunks == 3
         assert views.host_chunk(2).weight[1].sum() == 0
         gains = np.linspace(0.8, 1.2, 15).reshape(5, 3)
-        compiled = distribute._chunk_parts._cache_size(), distribute._chunk_rows._cache_size()
-        for g in (None, gains):
-            for got, want in zip(normal_equations(np.log(20.0), views, spec, g),
-                                 normal_equations(np.log(20.0), data, spec, g), strict=True):
+        with compiles() as counted:
+            for g in (None, gains):
+                for got, want in zip(normal_equations(np.log(20.0), views, spec, g),
+                                     normal_equations(np.log(20.0), data, spec, g), strict=True):
+                    np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
+            values = solve_linear(data, spec, grid_size=6)
+            # the values: the shininess is Brent's minimum to xatol = 1e-6 in log-shininess
+            # (linear.py), and Brent's steps follow the profile's last digits, which the two
+            # summation orders give differently; the rest is solved at that shininess
+            jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=2e-6, atol=1e-12),
+                solve_linear(views, spec, grid_size=6), values)
+            moments = [linear.gain_moments(values, d, spec) for d in (views, data)]
+            for got, want in zip(*moments, strict=True):
                 np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
-        values = solve_linear(data, spec, grid_size=6)
-        # the values: the shininess is Brent's minimum to xatol = 1e-6 in log-shininess
-        # (linear.py), and Brent's steps follow the profile's last digits, which the two
-        # summation orders give differently; the rest is solved at that shininess
-        jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=2e-6, atol=1e-12),
-            solve_linear(views, spec, grid_size=6), values)
-        moments = [linear.gain_moments(values, d, spec) for d in (views, data)]
-        for got, want in zip(*moments, strict=True):
-            np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
-        values = jax.tree.map(np.asarray, values)
-        got, want = (uncertainty(values, d, spec, warn=False) for d in (views, data))
-        assert got.rounding_bound is not None and got.names == want.names
-        for name in ("values", "std_errors", "covariance", "rounding_bound"):
-            np.testing.assert_allclose(getattr(got, name), getattr(want, name), rtol=1e-10)
-        assert (got.n_residuals, got.dof, got.warnings, got.notes) == (
-            want.n_residuals, want.dof, want.warnings, want.notes)
-        assert got.sigma2 == pytest.approx(want.sigma2, rel=1e-10)
-        got_m, want_m = (misfit(values, d, spec, widths) for d in (views, data))
+            values = jax.tree.map(np.asarray, values)
+            got, want = (uncertainty(values, d, spec, warn=False) for d in (views, data))
+            assert got.rounding_bound is not None and got.names == want.names
+            for name in ("values", "std_errors", "covariance", "rounding_bound"):
+                np.testing.assert_allclose(getattr(got, name), getattr(want, name), rtol=1e-10)
+            assert (got.n_residuals, got.dof, got.warnings, got.notes) == (
+                want.n_residuals, want.dof, want.warnings, want.notes)
+            assert got.sigma2 == pytest.approx(want.sigma2, rel=1e-10)
+            got_m, want_m = (misfit(values, d, spec, widths) for d in (views, data))
         # one compiled program each for the 3 chunks (the last padded), every pass
-        assert (distribute._chunk_parts._cache_size() - compiled[0],
-                distribute._chunk_rows._cache_size() - compiled[1]) == (1, 1)
+        assert (counted.of(distribute._chunk_parts),
+                counted.of(distribute._chunk_rows)) == (1, 1)
         for name in ("rms", "noise", "quantization", "ratio"):
             assert getattr(got_m, name) == pytest.approx(getattr(want_m, name), rel=1e-10)
         kept = 3 * sum(v.pixels.shape[0] for v in data.views)

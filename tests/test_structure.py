@@ -1,7 +1,7 @@
 """The scene's structure decides what is compiled, and only the structure.
 
 Markers, counted over the render's jaxpr and all its sub-jaxprs, in hard and soft raster:
-- the spot path is the only user of `cos` (the cone's cutoff angle);
+- `cos` comes only from the spot cone's cutoff angle and a sphere light's samples;
 - `log` comes only from safe_pow, used by the specular power and the spot exponent, so a
   directional-only scene without `ks` has as many as a scene without lights (none in
   hard raster; soft raster's weights have their own);
@@ -14,22 +14,26 @@ Markers, counted over the render's jaxpr and all its sub-jaxprs, in hard and sof
 - a scene of one object (make_scene(objects=[one])) compiles exactly the program of the
   same scene built from a mesh; a scene of several gathers each stacked material field
   per sample (a gather whose table has a leading object axis), and only such a scene.
-The plain scene's lowered program is compared, op for op, with the one the revision
-before the effects of issue 14 (BASELINE) lowers, run from `git archive` in a subprocess.
-Recompilation is observed with the jitted `render`'s own cache size.
+- the plain scene (a directional and a point light, specular, opaque, one object, no
+  shadows) compiles none of the effects' markers (cos and sin, rasterizations beyond the
+  camera's, shadow-map lookups, loops over light samples, depth sorts, hard raster's
+  layers): it has those of a scene without lights. Each effect added to it (a spot
+  light, shadows of a directional or a point light, a disk or sphere light, kt) raises
+  its own markers and no other, and adds operations without removing any of the plain
+  program's (but soft kt, which composites the layers in place of the soft blend);
+- values never change the program (a term of zero strength is compiled all the same),
+  nor does a field the structure leaves unused (a back material without two-sided
+  lighting): the programs are equal equation for equation.
+Recompilation is counted with JAX's compile events (tests/compiles.py).
 """
 
 import collections
-import json
-import os
 import re
-import subprocess
-import sys
-from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
+from compiles import compiles
 from jax.extend import core as jex_core
 
 from diffshade import (
@@ -42,6 +46,7 @@ from diffshade import (
     material,
     model_matrix,
     point_light,
+    rasterize_scene,
     render,
     replace,
     scene_object,
@@ -52,9 +57,6 @@ from diffshade import (
 SETTINGS = RenderSettings()
 SOFT = RenderSettings(raster="soft")
 RASTERS = pytest.mark.parametrize("settings", [SETTINGS, SOFT], ids=["hard", "soft"])
-#: the revision before the effects of issue 14 (shadows, transparency, area lights, objects)
-BASELINE = "4ab48df"
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def equations(scene, settings=SETTINGS):
@@ -197,74 +199,125 @@ def test_emission_compiles_only_when_the_material_has_it():
     assert glowing > plain
 
 
-PLAIN_PROGRAM = r"""
-import collections, json, re, sys
-import jax
-import diffshade as ds
-cam = ds.look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), width=8, height=8)
-lights = [ds.directional_light((0.0, -1.0, -1.0)),
-          ds.point_light((0.0, 1.0, 2.0), attenuation=(1.0, 0.1, 0.01))]
-out = {}
-for raster in ("hard", "soft"):
-    scene = ds.make_scene(ds.icosphere(0), cam, lights, ds.material(ks=0.3, shininess=5.0))
-    text = jax.jit(lambda s: ds.render(s, ds.RenderSettings(raster=raster))).lower(scene).as_text()
-    out[raster] = collections.Counter(re.findall(r"= (?:\"?)([a-z_]+\.[a-z_0-9.]+)", text))
-print(json.dumps(out))
-"""
+# ------------------------------------------------- the plain scene and each effect
+
+#: the plain scene: a directional and a point light on a specular, opaque material, one
+#: object, one-sided lighting and no shadows
+PLAIN_LIGHTS = [SUN, BULB]
+PLAIN_MATERIAL = material(ks=0.3, shininess=5.0)
+DISK = area_light((0.0, 1.0, 2.0), normal=(0.0, 0.0, -1.0), radius=0.3, samples=4)
+BALL = sphere_light((0.0, 1.0, 2.0), 0.3, samples=4)
 
 
-def lowered_plain_program(cwd):
-    proc = subprocess.run([sys.executable, "-c", PLAIN_PROGRAM], cwd=cwd, capture_output=True,
-                          text=True, env={**os.environ, "PYTHONPATH": str(cwd)})
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+def plain_scene(lights=PLAIN_LIGHTS, mat=PLAIN_MATERIAL):
+    return scene_with(lights, mat)
 
 
-def test_a_plain_scene_lowers_to_the_program_of_the_baseline_revision(tmp_path):
-    try:
-        archive = subprocess.run(["git", "archive", BASELINE], cwd=ROOT, capture_output=True,
-                                 check=True).stdout
-    except (OSError, subprocess.CalledProcessError) as err:
-        pytest.fail(f"the baseline revision {BASELINE} is not in this clone's history: {err}")
-    subprocess.run(["tar", "-x", "-C", str(tmp_path)], input=archive, check=True)
-    before = lowered_plain_program(tmp_path)
-    now = lowered_plain_program(ROOT)
-    assert sum(now["hard"].values()) > 100  # the count did see the program
-    assert now["hard"] == before["hard"]
-    # Soft raster has since been made faster (fewer operations of most kinds); it must
-    # not have gained any, except those SOFT_GROWTH lists.
-    grown = {op: (before["soft"].get(op, 0), n) for op, n in now["soft"].items()
-             if n > before["soft"].get(op, 0) + SOFT_GROWTH.get(op, 0)}
-    assert not grown, f"operations the plain soft program gained (before, now): {grown}"
+SHADOWS = {"rasterizations", "map lookups"}
+SAMPLED = {"sample loops"}
+#: each effect added to the plain scene (a builder), and the markers it raises in hard and
+#: in soft raster
+EFFECTS = {
+    "spot light": (lambda: plain_scene(PLAIN_LIGHTS + [SPOT]), {"cos"}, {"cos"}),
+    "directional shadows": (lambda: plain_scene([replace(SUN, shadows=True), BULB]),
+                            SHADOWS, SHADOWS),
+    "point shadows": (lambda: plain_scene([SUN, replace(BULB, shadows=True)]),
+                      SHADOWS, SHADOWS),
+    "disk light": (lambda: plain_scene(PLAIN_LIGHTS + [DISK]), SAMPLED, SAMPLED),
+    "sphere light": (lambda: plain_scene(PLAIN_LIGHTS + [BALL]),
+                     SAMPLED | {"sin", "cos"}, SAMPLED | {"sin", "cos"}),
+    # hard raster keeps K layers instead of a z-buffer's one; soft raster keeps K anyway
+    # and sorts them by depth to composite them
+    "transparency": (lambda: plain_scene(mat=material(ks=0.3, shininess=5.0, kt=0.4)),
+                     {"layers"}, {"depth sorts"}),
+}
 
 
-#: What the plain soft program may have gained since BASELINE, and why: the host call that
-#: finds the active slots (compact.active_indices, which replaced a jnp.nonzero); the
-#: Phong samples' interpolation and renormalization, now inside both branches of
-#: on_active's cond (render._shade_active: one more host call, gather, sqrt, divide and
-#: the reshapes and slices around them); the log-sigmoids written out, so that one jit
-#: shares their exp and log1p between the weights and the alpha (blend.log_coverages:
-#: exp, log1p, minimum, abs, subtract, multiply), and the background's weight kept apart
-#: in the softmax (one concatenate).
-SOFT_GROWTH = {"stablehlo.custom_call": 2, "stablehlo.gather": 1, "stablehlo.sqrt": 1,
-               "stablehlo.divide": 1, "stablehlo.reshape": 8, "stablehlo.slice": 8,
-               "stablehlo.exponential": 2, "stablehlo.log_plus_one": 1,
-               "stablehlo.minimum": 2, "stablehlo.abs": 1, "stablehlo.subtract": 1,
-               "stablehlo.multiply": 4, "stablehlo.concatenate": 1}
+def layers(scene, settings):
+    """Fragment layers per pixel that render(scene) rasterizes (K of its Fragments)."""
+    return jax.eval_shape(lambda s: rasterize_scene(s, settings), scene).face_ids.shape[-1]
+
+
+def markers(scene, settings):
+    """Code that only the effects compile, in render(scene)'s program: cos (a spot's cone,
+    a sphere light's samples), sin (a sphere light's samples), rasterizations (the
+    camera's, plus one per shadowed light), shadow-map lookups (the argmax that picks a
+    map), loops over a light's samples (scan), depth sorts, and the fragment layers."""
+    ops = primitive_counts(scene, settings)
+    return {"cos": ops["cos"], "sin": ops["sin"],
+            "rasterizations": ops["fragment_geometry_op"], "map lookups": ops["argmax"],
+            "sample loops": ops["scan"], "depth sorts": ops["sort"],
+            "layers": layers(scene, settings)}
+
+
+@RASTERS
+def test_a_plain_scene_compiles_none_of_the_effects(settings):
+    plain, dark = markers(plain_scene(), settings), markers(scene_with([]), settings)
+    assert sum(primitive_counts(plain_scene(), settings).values()) > 100  # it saw the program
+    # the plain scene's lights and specular term compile no effect's code
+    assert plain == dark
+    assert plain["rasterizations"] == 1 and plain["layers"] == (settings.faces_per_pixel
+                                                               if settings.raster == "soft"
+                                                               else 1)
+    for name, (build, *raised) in EFFECTS.items():
+        got = markers(build(), settings)
+        want = raised[settings.raster == "soft"]
+        assert {m for m in got if got[m] != plain[m]} == want, (name, plain, got)
+        assert all(got[m] > plain[m] for m in want), (name, plain, got)
+
+
+@RASTERS
+def test_an_effect_adds_its_code_to_the_plain_program_and_removes_none(settings):
+    plain = primitive_counts(plain_scene(), settings)
+    for name, (build, *_) in EFFECTS.items():
+        if name == "transparency" and settings.raster == "soft":
+            continue  # composites every layer, in place of the soft blend of lit fragments
+        added = primitive_counts(build(), settings)
+        assert not plain - added, (name, plain - added)
+        assert sum(added.values()) > sum(plain.values()), name
+
+
+def operations(scene, settings):
+    """Every equation of render(scene)'s jaxpr in order, as its primitive and output types
+    (the arguments aside: a field the program never reads is still one)."""
+    return [(e.primitive.name, [str(v.aval) for v in e.outvars])
+            for e in equations(scene, settings)]
+
+
+@RASTERS
+def test_values_and_unused_fields_leave_the_program_as_it_is(settings):
+    dark_sun = directional_light((1.0, 0.0, -1.0), 0.0)
+    dim_bulb = point_light((0.0, -1.0, 2.0), 0.0, attenuation=(1.0, 0.0, 0.0))
+    same = {
+        # other values, several of them zero: a term of zero strength is still compiled
+        "values": (plain_scene(), plain_scene([dark_sun, dim_bulb],
+                                              material(ka=0.0, kd=0.0, ks=0.0))),
+        # a back material is used only with two-sided lighting, its kt with it
+        "unused back material": (plain_scene(), replace(plain_scene(),
+                                                        back_material=material(kt=0.5))),
+        "zero-strength spot": (EFFECTS["spot light"][0](), plain_scene(PLAIN_LIGHTS + [
+            spot_light((0.0, 0.0, 2.0), (0.0, 0.0, -1.0), 0.0, cutoff=180.0)])),
+        "opaque layers": (EFFECTS["transparency"][0](),
+                          plain_scene(mat=material(ks=0.3, shininess=5.0, kt=0.0))),
+    }
+    for name, (one, other) in same.items():
+        assert operations(one, settings) == operations(other, settings), name
+    # the control: another structure is another program
+    spot = EFFECTS["spot light"][0]()
+    assert operations(plain_scene(), settings) != operations(spot, settings)
 
 
 def test_new_values_with_the_same_structure_do_not_recompile():
-    # an image size no other test uses, so that the first render is a fresh compile
     scene = scene_with([SUN, BULB], material(ka=0.1, kd=0.5, ks=0.3, shininess=5.0), size=11)
     first = np.asarray(render(scene))
-    size = render._cache_size()
     changed = replace(
         scene, material=material(ka=0.3, kd=0.2, ks=0.9, shininess=60.0),
         lights=replace(scene.lights, point=replace(scene.lights.point,
                                                    position=scene.lights.point.position + 0.5)),
         global_ambient=scene.global_ambient * 2.0, background=scene.background + 0.25)
-    second = np.asarray(render(changed))
-    assert render._cache_size() == size
+    with compiles() as counted:
+        second = np.asarray(render(changed))
+    assert counted.of(render) == 0
     assert np.abs(second - first).max() > 0.05  # the new values did take effect
 
 
@@ -272,9 +325,9 @@ def test_a_new_structure_does_recompile():
     # the control for the test above: dropping ks changes the pytree, so render retraces
     scene = scene_with([SUN], material(ks=0.5, shininess=10.0), size=13)
     render(scene)
-    size = render._cache_size()
-    render(replace(scene, material=material(ks=None)))
-    assert render._cache_size() == size + 1
+    with compiles() as counted:
+        render(replace(scene, material=material(ks=None)))
+    assert counted.of(render) == 1
 
 
 def test_a_jitted_render_traces_once_for_new_material_values():

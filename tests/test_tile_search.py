@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from compiles import compiles
 
 from diffshade import Mesh, icosphere, look_at, make_scene, model_matrix, project, torus
 from diffshade.host.candidates import find_candidates
@@ -183,12 +184,13 @@ def test_jit_with_traced_parameters_equals_eager():
     static = {"width": cam.width, "height": cam.height, "k": 4, "soft": True, "capacity": 512}
     eager = search_tiles(clip, faces, cam.near, cam.far, 1.5, 0.5, 1e-3, **static)
     jitted = jax.jit(partial(search_tiles, **static))
-    for radius, sigma, gamma in ((1.5, 0.5, 1e-3), (2.5, 2.0, 0.1)):
-        got = jitted(clip, faces, cam.near, cam.far, jnp.asarray(radius), jnp.asarray(sigma),
-                     jnp.asarray(gamma))
-        want = host(scene, 4, False, radius, sigma, gamma)
-        assert_same((np.asarray(got[0]), int(got[1])), want, near_ties=True)
-    assert jitted._cache_size() == 1
+    with compiles() as counted:
+        for radius, sigma, gamma in ((1.5, 0.5, 1e-3), (2.5, 2.0, 0.1)):
+            got = jitted(clip, faces, cam.near, cam.far, jnp.asarray(radius),
+                         jnp.asarray(sigma), jnp.asarray(gamma))
+            want = host(scene, 4, False, radius, sigma, gamma)
+            assert_same((np.asarray(got[0]), int(got[1])), want, near_ties=True)
+    assert counted.of("search_tiles") == 1  # the first call's; new values reuse it
     np.testing.assert_array_equal(eager[0], host(scene, 4, False, 1.5, 0.5, 1e-3)[0])
 
 

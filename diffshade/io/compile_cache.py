@@ -309,9 +309,6 @@ class StoredProgram:
     def lower(self, *args, **kwargs):
         return self.jitted.lower(*args, **kwargs)
 
-    def _cache_size(self):
-        return self.jitted._cache_size()
-
     def clear_cache(self):
         self.loaded.clear()
         self.jitted.clear_cache()

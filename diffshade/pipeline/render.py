@@ -156,7 +156,6 @@ def _checked(jitted):
     def entry(scene, settings=DEFAULT_SETTINGS, *args, **kwargs):
         check_arguments(scene, settings)
         return jitted(scene, settings, *args, **kwargs)
-    entry._cache_size = jitted._cache_size
     return entry
 
 
