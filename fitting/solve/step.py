@@ -82,5 +82,4 @@ def make_step(loss_fn, optimizer=None):
     def call(params, opt_state, data):
         return jitted(params, _strong(opt_state), data)
 
-    call.jitted = jitted
     return call
