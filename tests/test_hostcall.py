@@ -62,3 +62,19 @@ def test_missing_internals_fall_back_to_pure_callback_with_one_warning(monkeypat
     with warnings.catch_warnings():
         warnings.simplefilter("error", hostcall.FallbackWarning)
         jax.jit(lambda a: _call(a, 2.0 * x))(x)
+
+
+def test_primitive_lowers_as_pure_callback_without_the_internals(monkeypatch):
+    # an FFI call lowered for another platform than the CPU takes this branch: the
+    # primitive bound directly, without an FFI target, stands for it here
+    monkeypatch.setattr(hostcall, "jax_callback", None)
+    monkeypatch.setattr(hostcall, "_WARNED", set())
+    x = jnp.linspace(-1.0, 1.0, 4, dtype=jnp.float32)
+    shapes = (jax.ShapeDtypeStruct((4,), jnp.float32),)
+    bind = lambda a: hostcall._host_p.bind(a, a, fn=_twice_sin, result_shapes=shapes,
+                                           batched=False, ffi=None)[0]
+    with pytest.warns(hostcall.FallbackWarning):
+        text = jax.jit(bind).lower(x).as_text()
+        got = jax.jit(bind)(x)
+    assert "callback" in text
+    np.testing.assert_allclose(got, 2.0 * np.sin(np.asarray(x)) + np.asarray(x), rtol=1e-6)

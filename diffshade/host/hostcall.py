@@ -211,6 +211,9 @@ def _host_lowering(ctx, *operands, fn, result_shapes, batched, ffi):
         from diffshade.host import ffi as handlers  # (it imports the kernels' modules)
 
         return handlers.lowering(ctx, operands, *ffi)
+    if not _no_copy():  # an FFI call lowered for another platform, under another JAX
+        call = lambda *args: jax.pure_callback(fn, tuple(result_shapes), *args)
+        return mlir.lower_fun(call, multiple_results=True)(ctx, *operands)
     # where the callback runs in a sharded program: as pure_callback decides
     sharding = jax_callback._callback_op_sharding(ctx.module_context.axis_context, None,
                                                   ctx.avals_out)
