@@ -14,7 +14,7 @@ layout of xla/ffi/api/c_api.h, checked against the installed header by the tests
 it touches a buffer it checks the call against its `Target`: the frame's struct_size and
 the FFI API version XLA reports, the execution stage, the number of arguments and
 results, each buffer's dtype, rank, fixed trailing dims and size against the others, and
-the int64 attributes it reads by name (xla_ffi.check). A mismatch is returned as an
+the int64 attributes it reads by name (ffi_check). A mismatch is returned as an
 XLA_FFI_Error naming the target and what it expected, which `jit` raises in Python. It
 answers XLA's metadata query (the FFI API version of that header, asked once when the
 target is registered), and otherwise wraps each buffer as an array of its dtype and shape
@@ -41,35 +41,28 @@ from numba import carray, cfunc, types
 
 from diffshade.host import candidates, xla_ffi
 from diffshade.host import fragment_kernels as kernels
+from diffshade.host.ffi_check import ANY, BATCH, FLOAT, IMAGES, PER_LAST, TIMES, check, spec
 from diffshade.host.xla_ffi import (
-    ANY,
-    BATCH,
     BUFFER_DATA,
     BUFFER_DIMS,
     BUFFER_DTYPE,
     BUFFER_RANK,
     F32,
     F64,
-    FLOAT,
     FRAME_ARGS,
     FRAME_RETS,
-    IMAGES,
-    PER_LAST,
     PRED,
     S32,
     S64,
-    TIMES,
     address_of,
     attribute,
     buffer_dim,
     buffer_size,
-    check,
     error,
     int32,
     item,
     metadata_query,
     pointer,
-    spec,
     word,
     words,
 )
@@ -308,7 +301,7 @@ _BODIES = ("active", "geometry_forward", "geometry_backward", "interpolate_forwa
 class Target(NamedTuple):
     """An FFI target: its handler runs body _BODIES[body] with dtype and `other` (the
     geometry's tiny, the search's face dtype) once the call frame holds buffers as `args`
-    and `rets` say (xla_ffi.spec) and the int64 attributes `attrs` (names; the last is
+    and `rets` say (ffi_check.spec) and the int64 attributes `attrs` (names; the last is
     THREADS, which lowering appends)."""
 
     body: int
