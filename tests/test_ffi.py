@@ -4,14 +4,19 @@ from NumPy (fragment_kernels, candidates, the reference search loop of compact's
 np.flatnonzero), bit for bit, in float32 and float64, batched and not; and the lowered
 programs name the targets (else the callback path would be tested twice)."""
 
+import os
 import re
+import shutil
+import subprocess
+import tempfile
+import warnings
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffshade.host import candidates, hostcall
+from diffshade.host import candidates, hostcall, xla_ffi
 from diffshade.host import fragment_kernels as kernels
 from diffshade.numerics import tiny
 from diffshade.raster.fragments import fragment_geometry
@@ -170,49 +175,205 @@ def test_search_target_equals_find_candidates_for_batches(radius):
 
 def test_workqueue_threading_layer_keeps_the_callbacks(monkeypatch):
     # numba's workqueue layer aborts on parallel kernels started from two threads at once:
-    # there the kernels go through the (locked) callbacks
+    # there the kernels go through the (locked) callbacks, and host_call says so once
     import numba
 
     ids, *per_face = _fragment_inputs(np.float32)
     op = lambda *a: fragment_geometry(ids, *a, host=True, width=W, height=H, soft=True)
     monkeypatch.setattr(numba, "threading_layer", lambda: "workqueue")
-    assert _targets(op, *per_face) == set()
+    monkeypatch.setattr(hostcall, "_WARNED", set())
+    with pytest.warns(hostcall.FallbackWarning, match="threading layer is 'workqueue'"):
+        assert _targets(op, *per_face) == set()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", hostcall.FallbackWarning)
+        assert _targets(op, *per_face) == set()
 
 
-def test_switch_turns_the_targets_off(monkeypatch):
+def test_another_ffi_api_keeps_the_callbacks_and_warns(monkeypatch):
     ids, *per_face = _fragment_inputs(np.float32)
-    # a new function per program: the switch is read when a program is traced
-    op = lambda: lambda *a: fragment_geometry(ids, *a, host=True, width=W, height=H, soft=True)
-    on = jax.jit(op())(*per_face)
-    monkeypatch.setenv(hostcall.FFI_SWITCH, "0")
-    assert _targets(op(), *per_face) == set()
-    off = jax.jit(op())(*per_face)
-    for a, b in zip(on, off, strict=True):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    op = lambda *a: fragment_geometry(ids, *a, host=True, width=W, height=H, soft=True)
+    monkeypatch.setattr(xla_ffi, "header_version", lambda: (xla_ffi.API_MAJOR + 1, 0))
+    monkeypatch.setattr(hostcall, "_WARNED", set())
+    with pytest.warns(hostcall.FallbackWarning, match=f"FFI API is {xla_ffi.API_MAJOR + 1}.0"):
+        assert _targets(op, *per_face) == set()
 
 
-def test_concurrent_renders_from_two_threads_equal_one_at_a_time():
-    # the FFI targets take no lock (the callbacks do): numba's OpenMP layer runs parallel
-    # kernels started from two threads at once
-    import threading
+def test_ffi_api_version_gate():
+    assert xla_ffi.compatible(xla_ffi.API_MAJOR, xla_ffi.API_MINOR)
+    assert xla_ffi.compatible(xla_ffi.API_MAJOR, xla_ffi.API_MINOR + 1)
+    assert not xla_ffi.compatible(xla_ffi.API_MAJOR + 1, xla_ffi.API_MINOR)
+    assert not xla_ffi.compatible(xla_ffi.API_MAJOR, xla_ffi.API_MINOR - 1)
+    assert xla_ffi.header_version("/nonexistent") is None
 
+
+def test_render_under_the_pinned_versions_runs_the_ffi_targets():
+    # the versions pyproject.toml admits are the ones tested: there a jitted render calls
+    # the handlers and no Python callback, and nothing falls back
     import diffshade as ds
 
-    cam = ds.look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), width=32, height=32, fov_y=45.0)
-    scene = ds.make_scene(ds.icosphere(2), cam, [ds.directional_light((-0.3, -0.5, -1.0))],
+    cam = ds.look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), width=16, height=16, fov_y=45.0)
+    scene = ds.make_scene(ds.icosphere(1), cam, [ds.directional_light((-0.3, -0.5, -1.0))],
                           ds.material(ka=0.1, kd=0.6, ks=0.3, shininess=20.0))
     settings = ds.RenderSettings(raster="soft", faces_per_pixel=4, shading="phong")
-    render = jax.jit(lambda s: ds.render(s, settings))
-    want = np.asarray(render(scene))
-    got = [None] * 4
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", hostcall.FallbackWarning)
+        text = jax.jit(lambda s: ds.render(s, settings)).lower(scene).as_text()
+    targets = set(re.findall(r"custom_call @(diffshade_\w+)", text))
+    assert {"diffshade_search_soft_f32_i32", "diffshade_geometry_forward_f32"} <= targets
+    assert "callback" not in text
 
-    def run(i):
-        got[i] = [np.asarray(render(scene)) for _ in range(5)]
-    threads = [threading.Thread(target=run, args=(i,)) for i in range(4)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    for images in got:
-        for image in images:
-            np.testing.assert_array_equal(image, want)
+
+def _header_values(include, expressions):
+    """{name: value of the C expression} for the header under `include`, by a C program
+    compiled against it."""
+    lines = [f'printf("{name} %lld\\n", (long long)({expression}));'
+             for name, expression in expressions.items()]
+    source = ("#include <stdio.h>\n#include <stddef.h>\n#include \"xla/ffi/api/c_api.h\"\n"
+              "int main(void) {\n" + "\n".join(lines) + "\nreturn 0;\n}\n")
+    with tempfile.TemporaryDirectory() as folder:
+        path = os.path.join(folder, "layout.c")
+        with open(path, "w") as f:
+            f.write(source)
+        binary = os.path.join(folder, "layout")
+        subprocess.run([_compiler(), "-I", include, "-o", binary, path], check=True)
+        out = subprocess.run([binary], check=True, capture_output=True, text=True).stdout
+    return {name: int(value) for name, value in (line.split() for line in out.splitlines())}
+
+
+def _compiler():
+    return os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
+
+
+#: xla_ffi's constants, as C expressions on the header's types
+_LAYOUT = {
+    "EXTENSION_TYPE": "offsetof(XLA_FFI_Extension_Base, type)",
+    "EXTENSION_BASE_SIZE": "XLA_FFI_Extension_Base_STRUCT_SIZE",
+    "EXTENSION_METADATA": "XLA_FFI_Extension_Metadata",
+    "VERSION_MAJOR": "offsetof(XLA_FFI_Api_Version, major_version)",
+    "VERSION_MINOR": "offsetof(XLA_FFI_Api_Version, minor_version)",
+    "VERSION_SIZE": "XLA_FFI_Api_Version_STRUCT_SIZE",
+    "API_VERSION": "offsetof(XLA_FFI_Api, api_version)",
+    "API_ERROR_CREATE": "offsetof(XLA_FFI_Api, XLA_FFI_Error_Create)",
+    "ERROR_MESSAGE": "offsetof(XLA_FFI_Error_Create_Args, message)",
+    "ERROR_CODE": "offsetof(XLA_FFI_Error_Create_Args, errc)",
+    "ERROR_ARGS_SIZE": "XLA_FFI_Error_Create_Args_STRUCT_SIZE",
+    "INVALID_ARGUMENT": "XLA_FFI_Error_Code_INVALID_ARGUMENT",
+    "FRAME_EXTENSION": "offsetof(XLA_FFI_CallFrame, extension_start)",
+    "FRAME_API": "offsetof(XLA_FFI_CallFrame, api)",
+    "FRAME_STAGE": "offsetof(XLA_FFI_CallFrame, stage)",
+    "FRAME_ARGS": "offsetof(XLA_FFI_CallFrame, args)",
+    "FRAME_RETS": "offsetof(XLA_FFI_CallFrame, rets)",
+    "FRAME_ATTRS": "offsetof(XLA_FFI_CallFrame, attrs)",
+    "FRAME_SIZE": "XLA_FFI_CallFrame_STRUCT_SIZE",
+    "STAGE_EXECUTE": "XLA_FFI_ExecutionStage_EXECUTE",
+    "LIST_SIZE": "offsetof(XLA_FFI_Args, size)",
+    "LIST_TYPES": "offsetof(XLA_FFI_Args, types)",
+    "LIST_ITEMS": "offsetof(XLA_FFI_Args, args)",
+    "ARGS_SIZE": "XLA_FFI_Args_STRUCT_SIZE",
+    "RETS_SIZE": "XLA_FFI_Rets_STRUCT_SIZE",
+    "BUFFER_TYPE": "XLA_FFI_ArgType_BUFFER",
+    "ATTRS_NAMES": "offsetof(XLA_FFI_Attrs, names)",
+    "ATTRS_ITEMS": "offsetof(XLA_FFI_Attrs, attrs)",
+    "ATTRS_SIZE": "XLA_FFI_Attrs_STRUCT_SIZE",
+    "ATTR_SCALAR": "XLA_FFI_AttrType_SCALAR",
+    "SPAN_LENGTH": "offsetof(XLA_FFI_ByteSpan, len)",
+    "SCALAR_VALUE": "offsetof(XLA_FFI_Scalar, value)",
+    "BUFFER_DTYPE": "offsetof(XLA_FFI_Buffer, dtype)",
+    "BUFFER_DATA": "offsetof(XLA_FFI_Buffer, data)",
+    "BUFFER_RANK": "offsetof(XLA_FFI_Buffer, rank)",
+    "BUFFER_DIMS": "offsetof(XLA_FFI_Buffer, dims)",
+    "BUFFER_SIZE": "XLA_FFI_Buffer_STRUCT_SIZE",
+    "PRED": "XLA_FFI_DataType_PRED",
+    "S32": "XLA_FFI_DataType_S32",
+    "S64": "XLA_FFI_DataType_S64",
+    "F32": "XLA_FFI_DataType_F32",
+    "F64": "XLA_FFI_DataType_F64",
+    "METADATA_POINTER": "offsetof(XLA_FFI_Metadata_Extension, metadata)",
+    "METADATA_EXTENSION_SIZE": "XLA_FFI_Metadata_Extension_STRUCT_SIZE",
+    "METADATA_VERSION": "offsetof(XLA_FFI_Metadata, api_version)",
+    "METADATA_TRAITS": "offsetof(XLA_FFI_Metadata, traits)",
+    "METADATA_SIZE": "XLA_FFI_Metadata_STRUCT_SIZE",
+}
+
+
+def test_layout_equals_the_installed_header():
+    if _compiler() is None:
+        pytest.skip("no C compiler (cc, gcc or $CC) to read the header's layout with")
+    include = jax.ffi.include_dir()
+    assert _header_values(include, _LAYOUT) == {name: getattr(xla_ffi, name)
+                                                for name in _LAYOUT}
+    # the accessors read XLA_FFI_Rets and XLA_FFI_Attrs's list fields at XLA_FFI_Args's
+    shared = {f"{struct}_{field}": f"offsetof(XLA_FFI_{struct}, {field})"
+              for struct, fields in (("Rets", ("size", "types", "rets")),
+                                     ("Attrs", ("size", "types")))
+              for field in fields}
+    values = _header_values(include, shared)
+    assert (values["Rets_size"], values["Rets_types"], values["Rets_rets"]) == (
+        xla_ffi.LIST_SIZE, xla_ffi.LIST_TYPES, xla_ffi.LIST_ITEMS)
+    assert (values["Attrs_size"], values["Attrs_types"]) == (xla_ffi.LIST_SIZE,
+                                                             xla_ffi.LIST_TYPES)
+    version = _header_values(include, {"major": "XLA_FFI_API_MAJOR",
+                                       "minor": "XLA_FFI_API_MINOR"})
+    assert xla_ffi.header_version(include) == (version["major"], version["minor"])
+    assert xla_ffi.compatible(version["major"], version["minor"]), version
+
+
+def _ffi_call(target, operands, results, **attributes):
+    """jax.jit of a bare jax.ffi.ffi_call of `target` (registered first); Python int
+    attributes as int64."""
+    from diffshade.host import ffi
+
+    ffi._register(target)
+    named = {name: np.int64(value) if isinstance(value, int) else value
+             for name, value in attributes.items()}
+    call = jax.ffi.ffi_call(target, results)
+    return jax.jit(lambda *a: call(*a, **named))(*operands)
+
+
+_ACTIVE = (jax.ShapeDtypeStruct((4,), jnp.int32), jax.ShapeDtypeStruct((), jnp.int32))
+
+
+@pytest.mark.parametrize("operands, results, attributes, expected", [
+    ((np.ones(3, np.float32),), _ACTIVE, {"threads": 1},
+     "argument 0 has dtype float32 (F32), expected bool (PRED)"),
+    ((np.ones((3, 2), bool),), _ACTIVE, {"threads": 1}, "argument 0 has rank 2, expected 1"),
+    ((np.ones(3, bool), np.ones(3, bool)), _ACTIVE, {"threads": 1},
+     "2 arguments, expected 1"),
+    ((np.ones(3, bool),), _ACTIVE[:1], {"threads": 1}, "1 results, expected 2"),
+    ((np.ones(3, bool),), (_ACTIVE[0], jax.ShapeDtypeStruct((1,), jnp.int32)),
+     {"threads": 1}, "result 1 has rank 1, expected 0"),
+    ((np.ones(3, bool),), _ACTIVE, {}, "no attribute 'threads'"),
+])
+def test_active_target_rejects_a_bad_call(operands, results, attributes, expected):
+    with pytest.raises(Exception, match=re.escape(f"diffshade_active: {expected}")):
+        _ffi_call("diffshade_active", operands, results, **attributes)
+    # the process survives, and the target still runs a good call
+    idx, count = _ffi_call("diffshade_active", (np.asarray([False, True, True]),), _ACTIVE,
+                           threads=1)
+    np.testing.assert_array_equal(np.asarray(idx), [1, 2, 3, 3])
+    assert int(count) == 2
+
+
+def test_geometry_target_rejects_bad_shapes():
+    ids, corner_w, corner_z, coeffs, scr = _fragment_inputs(np.float32)
+    results = (jax.ShapeDtypeStruct((H, W, K, 3), jnp.float32),
+               jax.ShapeDtypeStruct((H, W, K), jnp.float32),
+               jax.ShapeDtypeStruct((H, W, K), jnp.float32))
+    attributes = {"width": W, "height": H, "soft": 1, "threads": 1}
+    target = "diffshade_geometry_forward_f32"
+    cases = [
+        ((ids, corner_w, corner_z, coeffs, scr[..., :1]), results,
+         "argument 4 has 1 at axis -1, expected 2"),
+        ((ids, corner_w.astype(np.float64), corner_z, coeffs, scr), results,
+         "argument 1 has dtype float64 (F64), expected float32 (F32)"),
+        ((ids, corner_w, corner_z, coeffs, scr), (results[0], results[1],
+                                                  jax.ShapeDtypeStruct((H, W), jnp.float32)),
+         f"result 2 has {H * W} elements, expected {H * W * K} (1 per element of argument 0)"),
+    ]
+    with jax.enable_x64(True):
+        for operands, shapes, expected in cases:
+            with pytest.raises(Exception, match=re.escape(f"{target}: {expected}")):
+                _ffi_call(target, operands, shapes, **attributes)
+        with pytest.raises(Exception, match=re.escape(f"{target}: attribute 'soft' is of")):
+            _ffi_call(target, (ids, corner_w, corner_z, coeffs, scr), results,
+                      **{**attributes, "soft": np.int32(1)})

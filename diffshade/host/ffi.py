@@ -9,149 +9,95 @@ with the addresses of its operand and result buffers: the kernel reads and write
 in place, with no Python, no GIL and no copy.
 
 Each handler here is a numba `cfunc` with XLA's FFI handler signature,
-`XLA_FFI_Error* handler(XLA_FFI_CallFrame*)`. It reads the call frame as int64 words
-(XLA's C API, xla/ffi/api/c_api.h, as jaxlib 0.10 ships it; `FRAME_*` below), answers
-XLA's metadata query (the FFI API version, asked once when the target is registered),
-and otherwise wraps each buffer as an array of its dtype and shape and calls the kernel.
-Static settings (image size, K, flags) travel as int64 attributes named a0, a1, ...
-(XLA passes attributes sorted by name), then numba's thread count. Float operands are
-float32, or float64 under x64: a target per dtype (`target_for`).
+`XLA_FFI_Error* handler(XLA_FFI_CallFrame*)`, reading the call frame through xla_ffi (the
+layout of xla/ffi/api/c_api.h, checked against the installed header by the tests). Before
+it touches a buffer it checks the call against its `Target`: the frame's struct_size and
+the FFI API version XLA reports, the execution stage, the number of arguments and
+results, each buffer's dtype, rank, fixed trailing dims and size against the others, and
+the int64 attributes it reads by name (ffi_check). A mismatch is returned as an
+XLA_FFI_Error naming the target and what it expected, which `jit` raises in Python. It
+answers XLA's metadata query (the FFI API version of that header, asked once when the
+target is registered), and otherwise wraps each buffer as an array of its dtype and shape
+and calls the kernel. Static settings (image size, K, flags) travel as int64 attributes
+named as in Target.attrs, then numba's thread count (THREADS). Float operands are float32,
+or float64 under x64: a target per dtype (`target_for`).
 
 A target is compiled (or loaded from numba's cache) and registered with XLA the first
 time a program using it is lowered (`lowering`), so importing diffshade compiles nothing.
 Targets exist for the CPU only. hostcall.host_call uses the Python callback instead on
-other platforms, for operand types no handler takes, with JAX versions other than the
-one this layout was read from (hostcall.NO_COPY_JAX), with numba's workqueue threading
-layer (`available`), and where the environment sets DIFFSHADE_FFI=0.
+other platforms, for operand types no handler takes, where `unavailable` says why not (a
+jaxlib whose FFI API major version differs, or whose minor version is older than the
+layout's; numba's workqueue threading layer; hostcall warns), and where the environment
+sets DIFFSHADE_FFI=0.
 """
 
 import threading
+from typing import NamedTuple
 
 import jax
 import numba
 import numpy as np
 from numba import carray, cfunc, types
-from numba.core import cgutils
-from numba.extending import intrinsic
 
-from diffshade.host import active_kernel, candidates
+from diffshade.host import active_kernel, candidates, xla_ffi
 from diffshade.host import fragment_kernels as kernels
+from diffshade.host.ffi_check import ANY, BATCH, FLOAT, IMAGES, PER_LAST, TIMES, check, spec
+from diffshade.host.xla_ffi import (
+    BUFFER_DATA,
+    BUFFER_DIMS,
+    BUFFER_DTYPE,
+    BUFFER_RANK,
+    F32,
+    F64,
+    FRAME_ARGS,
+    FRAME_RETS,
+    PRED,
+    S32,
+    S64,
+    address_of,
+    attribute,
+    buffer_dim,
+    buffer_size,
+    error,
+    int32,
+    item,
+    metadata_query,
+    pointer,
+    word,
+    words,
+)
 from diffshade.numerics import tiny
 
-# XLA_FFI_CallFrame as int64 words: struct_size, extension_start, api, ctx, stage; then
-# XLA_FFI_Args (struct_size, extension_start, size, types, args), XLA_FFI_Rets (same,
-# rets) and XLA_FFI_Attrs (struct_size, extension_start, size, types, names, attrs)
-FRAME_WORDS, FRAME_EXTENSION, FRAME_ARGS, FRAME_RETS, FRAME_ATTRS = 21, 1, 9, 14, 20
-# XLA_FFI_Buffer as int64 words: struct_size, extension_start, dtype, data, rank, dims
-BUFFER_DTYPE, BUFFER_DATA, BUFFER_RANK, BUFFER_DIMS = 2, 3, 4, 5
-# XLA_FFI_DataType of float64 (the handlers that read a float argument of either width)
-F64 = 12
-# XLA_FFI_Extension_Metadata; the FFI API version the handlers declare (XLA accepts 0.1
-# up to its own, 0.3 in jaxlib 0.10)
-METADATA_EXTENSION, API_MAJOR, API_MINOR = 1, 0, 1
 #: the attribute lowering appends to every call: numba's thread count when lowered (the
 #: kernels' parallel parts; numba.get_num_threads in a handler would keep numba from
 #: caching it)
-THREADS = -1
+THREADS = "threads"
 
 _SIGNATURE = types.voidptr(types.voidptr)
 #: numerics.tiny of each float dtype (numba freezes them as constants)
 _TINY32, _TINY64 = tiny(np.float32), tiny(np.float64)
 
 
-@intrinsic
-def _pointer(typingctx, address):
-    """An int64 address (or a void pointer, unchanged) as a void pointer (for carray)."""
-    if address == types.voidptr:
-        return types.voidptr(address), lambda context, builder, signature, args: args[0]
-    if not isinstance(address, types.Integer):
-        return None
-
-    def codegen(context, builder, signature, args):
-        return builder.inttoptr(args[0], cgutils.voidptr_t)
-    return types.voidptr(address), codegen
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _words(address, count):
-    return carray(_pointer(address), (count,), np.int64)
-
-
-@numba.njit(cache=True, nogil=True)
-def _answered_metadata(frame):
-    """Whether the call is XLA's metadata query (then answered: the API version the
-    handler implements, no traits). XLA_FFI_Metadata_Extension: the extension base
-    (struct_size, type, next) and a pointer to XLA_FFI_Metadata (struct_size, then
-    XLA_FFI_Api_Version: struct_size, extension_start, major, minor (int32 each), then the
-    traits (uint32))."""
-    if frame[FRAME_EXTENSION] == 0:
-        return False
-    extension = _words(frame[FRAME_EXTENSION], 4)
-    if (extension[1] & 0xFFFFFFFF) != METADATA_EXTENSION:
-        return False
-    metadata = carray(_pointer(extension[3]), (9,), np.int32)
-    metadata[6], metadata[7], metadata[8] = API_MAJOR, API_MINOR, 0
-    return True
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _buffer(frame, which, index):
-    """The XLA_FFI_Buffer words of argument (which = FRAME_ARGS) or result (FRAME_RETS)
-    `index`."""
-    return _words(_words(frame[which], index + 1)[index], 6)
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _size(buffer):
-    """Number of elements."""
-    rank = buffer[BUFFER_RANK]
-    dims = _words(buffer[BUFFER_DIMS], max(rank, 1))
-    n = 1
-    for i in range(rank):
-        n *= dims[i]
-    return n
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _dim(buffer, axis):
-    """Size of an axis (negative: from the end)."""
-    rank = buffer[BUFFER_RANK]
-    return _words(buffer[BUFFER_DIMS], rank)[axis % rank]
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _attribute(frame, index):
-    """int64 attribute `index` (a0, a1, ... in name order; negative: from the end): an
-    XLA_FFI_Scalar (dtype, value pointer)."""
-    index = index + frame[FRAME_ATTRS - 3] if index < 0 else index  # from the end
-    scalar = _words(_words(frame[FRAME_ATTRS], index + 1)[index], 2)
-    return _words(scalar[1], 1)[0]
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _dtype(frame, which, index):
-    return _buffer(frame, which, index)[BUFFER_DTYPE] & 0xFFFFFFFF
-
-
 @numba.njit(cache=True, nogil=True, inline="always")
 def _array2(frame, which, index, tail, dtype):
-    """A buffer as [N / tail, tail] of `dtype`."""
-    b = _buffer(frame, which, index)
-    return carray(_pointer(b[BUFFER_DATA]), (_size(b) // tail, tail), dtype)
+    """Argument (which = FRAME_ARGS) or result (FRAME_RETS) `index` as [N / tail, tail] of
+    `dtype`."""
+    b = item(frame, which, index)
+    return carray(pointer(word(b, BUFFER_DATA)), (buffer_size(b) // tail, tail), dtype)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _array3(frame, which, index, middle, tail, dtype):
     """A buffer as [N / (middle * tail), middle, tail] of `dtype`."""
-    b = _buffer(frame, which, index)
-    return carray(_pointer(b[BUFFER_DATA]), (_size(b) // (middle * tail), middle, tail),
-                  dtype)
+    b = item(frame, which, index)
+    return carray(pointer(word(b, BUFFER_DATA)),
+                  (buffer_size(b) // (middle * tail), middle, tail), dtype)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _flat(frame, which, index, dtype):
-    b = _buffer(frame, which, index)
-    return carray(_pointer(b[BUFFER_DATA]), (_size(b),), dtype)
+    b = item(frame, which, index)
+    return carray(pointer(word(b, BUFFER_DATA)), (buffer_size(b),), dtype)
 
 
 # -- fragment geometry (raster.fragment_geometry) ------------------------------------------
@@ -164,11 +110,11 @@ def _flat(frame, which, index, dtype):
 def _geometry_inputs(frame, dtype):
     """(ids [P, K], corner_w, corner_z, coeffs, scr, width, height, soft): the kernels'
     leading arguments."""
-    k = _dim(_buffer(frame, FRAME_ARGS, 0), -1)
+    k = buffer_dim(item(frame, FRAME_ARGS, 0), -1)
     return (_array2(frame, FRAME_ARGS, 0, k, np.int32), _array2(frame, FRAME_ARGS, 1, 3, dtype),
             _array2(frame, FRAME_ARGS, 2, 3, dtype), _array3(frame, FRAME_ARGS, 3, 3, 3, dtype),
-            _array3(frame, FRAME_ARGS, 4, 3, 2, dtype), _attribute(frame, 0),
-            _attribute(frame, 1), _attribute(frame, 2) != 0)
+            _array3(frame, FRAME_ARGS, 4, 3, 2, dtype), attribute(frame, "width"),
+            attribute(frame, "height"), attribute(frame, "soft") != 0)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -177,7 +123,7 @@ def _geometry_forward(frame, dtype, tiny):
     k = ids.shape[1]
     kernels.geometry_forward_into(
         ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny,
-        _attribute(frame, THREADS), _array3(frame, FRAME_RETS, 0, k, 3, dtype),
+        attribute(frame, THREADS), _array3(frame, FRAME_RETS, 0, k, 3, dtype),
         _array2(frame, FRAME_RETS, 1, k, dtype), _array2(frame, FRAME_RETS, 2, k, dtype))
 
 
@@ -187,7 +133,7 @@ def _geometry_backward(frame, dtype, tiny):
     k = ids.shape[1]
     kernels.geometry_backward_into(
         ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny,
-        _attribute(frame, THREADS), _array3(frame, FRAME_ARGS, 5, k, 3, dtype),
+        attribute(frame, THREADS), _array3(frame, FRAME_ARGS, 5, k, 3, dtype),
         _array2(frame, FRAME_ARGS, 6, k, dtype), _array2(frame, FRAME_ARGS, 7, k, dtype),
         _array2(frame, FRAME_RETS, 0, 3, dtype), _array2(frame, FRAME_RETS, 1, 3, dtype),
         _array3(frame, FRAME_RETS, 2, 3, 3, dtype), _array3(frame, FRAME_RETS, 3, 3, 2, dtype))
@@ -199,22 +145,22 @@ def _geometry_backward(frame, dtype, tiny):
 
 @numba.njit(cache=True, nogil=True)
 def _interpolate_forward(frame, dtype):
-    k = _dim(_buffer(frame, FRAME_ARGS, 0), -1)
-    c = _dim(_buffer(frame, FRAME_ARGS, 2), -1)
+    k = buffer_dim(item(frame, FRAME_ARGS, 0), -1)
+    c = buffer_dim(item(frame, FRAME_ARGS, 2), -1)
     kernels.interpolate_forward_into(
         _array2(frame, FRAME_ARGS, 0, k, np.int32), _array3(frame, FRAME_ARGS, 1, k, 3, dtype),
-        _array3(frame, FRAME_ARGS, 2, 3, c, dtype), _attribute(frame, THREADS),
+        _array3(frame, FRAME_ARGS, 2, 3, c, dtype), attribute(frame, THREADS),
         _array3(frame, FRAME_RETS, 0, k, c, dtype))
 
 
 @numba.njit(cache=True, nogil=True)
 def _interpolate_backward(frame, dtype):
-    k = _dim(_buffer(frame, FRAME_ARGS, 0), -1)
-    c = _dim(_buffer(frame, FRAME_ARGS, 2), -1)
+    k = buffer_dim(item(frame, FRAME_ARGS, 0), -1)
+    c = buffer_dim(item(frame, FRAME_ARGS, 2), -1)
     kernels.interpolate_backward_into(
         _array2(frame, FRAME_ARGS, 0, k, np.int32), _array3(frame, FRAME_ARGS, 1, k, 3, dtype),
         _array3(frame, FRAME_ARGS, 2, 3, c, dtype), _array3(frame, FRAME_ARGS, 3, k, c, dtype),
-        _attribute(frame, THREADS), _array3(frame, FRAME_RETS, 0, k, 3, dtype),
+        attribute(frame, THREADS), _array3(frame, FRAME_RETS, 0, k, 3, dtype),
         _array3(frame, FRAME_RETS, 1, 3, c, dtype))
 
 
@@ -239,8 +185,8 @@ def _active(frame):
 def _member(view, lead, buffer, core):
     """Index into argument `buffer` (leading axes broadcast against the batch shape
     `lead`, then `core` axes of its own) of batch member `view` (row-major in lead)."""
-    rank = buffer[BUFFER_RANK]
-    dims = _words(buffer[BUFFER_DIMS], max(rank, 1))
+    rank = word(buffer, BUFFER_RANK)
+    dims = words(word(buffer, BUFFER_DIMS), rank)
     axes = rank - core
     index, stride, rest = 0, 1, view
     for axis in range(lead.shape[0] - 1, -1, -1):
@@ -257,9 +203,9 @@ def _member(view, lead, buffer, core):
 @numba.njit(cache=True, nogil=True)
 def _per_view(frame, index, lead, views):
     """Argument `index` ([*B], broadcast; float32 or float64) as float64 [views]."""
-    buffer = _buffer(frame, FRAME_ARGS, index)
+    buffer = item(frame, FRAME_ARGS, index)
     out = np.empty(views)
-    if (buffer[BUFFER_DTYPE] & 0xFFFFFFFF) == F64:
+    if int32(buffer, BUFFER_DTYPE) == F64:
         values64 = _flat(frame, FRAME_ARGS, index, np.float64)
         for v in range(views):
             out[v] = values64[_member(v, lead, buffer, 0)]
@@ -277,18 +223,18 @@ def _search_inputs(frame, dtype, face_dtype):
     (_group_faces), clips [views, V, 4], radii [views], params [views, 4] (sigma, gamma,
     near, far), width, height, k, cull, perspective, threads)."""
     ids = _flat(frame, FRAME_RETS, 0, np.int32)
-    out_dropped = _buffer(frame, FRAME_RETS, 1)
+    out_dropped = item(frame, FRAME_RETS, 1)
     dropped = _flat(frame, FRAME_RETS, 1, np.int32)
     views = dropped.shape[0]
-    lead = _words(out_dropped[BUFFER_DIMS], max(out_dropped[BUFFER_RANK], 1)).copy()
-    if out_dropped[BUFFER_RANK] == 0:
-        lead[0] = 1
-    clip_buffer, face_buffer = _buffer(frame, FRAME_ARGS, 0), _buffer(frame, FRAME_ARGS, 1)
-    clip_in = _array3(frame, FRAME_ARGS, 0, _dim(clip_buffer, -2), 4, dtype)
+    rank = word(out_dropped, BUFFER_RANK)
+    lead = words(word(out_dropped, BUFFER_DIMS), rank).copy() if rank > 0 else np.ones(
+        1, np.int64)
+    clip_buffer, face_buffer = item(frame, FRAME_ARGS, 0), item(frame, FRAME_ARGS, 1)
+    clip_in = _array3(frame, FRAME_ARGS, 0, buffer_dim(clip_buffer, -2), 4, dtype)
     clips = np.empty((views, clip_in.shape[1], 4))
     for v in range(views):
         clips[v] = clip_in[_member(v, lead, clip_buffer, 2)]
-    faces_in = _array3(frame, FRAME_ARGS, 1, _dim(face_buffer, -2), 3, face_dtype)
+    faces_in = _array3(frame, FRAME_ARGS, 1, buffer_dim(face_buffer, -2), 3, face_dtype)
     groups = 1 if faces_in.shape[0] == 1 else views
     faces = np.empty((groups, faces_in.shape[1], 3), np.int64)
     for g in range(groups):
@@ -299,9 +245,10 @@ def _search_inputs(frame, dtype, face_dtype):
     params[:, 0] = _per_view(frame, 5, lead, views)
     params[:, 1] = _per_view(frame, 6, lead, views)
     params[:, 2], params[:, 3] = near, far
-    return (ids, dropped, views, faces, clips, radii, params, _attribute(frame, 0),
-            _attribute(frame, 1), _attribute(frame, 2), _attribute(frame, 3) != 0,
-            _attribute(frame, 4) != 0, _attribute(frame, THREADS))
+    return (ids, dropped, views, faces, clips, radii, params, attribute(frame, "width"),
+            attribute(frame, "height"), attribute(frame, "k"),
+            attribute(frame, "cull_backfaces") != 0, attribute(frame, "perspective") != 0,
+            attribute(frame, THREADS))
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -350,16 +297,70 @@ _BODIES = ("active", "geometry_forward", "geometry_backward", "interpolate_forwa
            "interpolate_backward", "search_soft", "search_hard")
 
 
-def _handler(name, body, dtype=np.float32, other=np.int32):
-    """The FFI handler `name`: answers XLA's metadata query, else runs the body
-    _BODIES[body] on the frame with dtype (and `other`: the geometry's tiny, the
-    search's face dtype). A closure per target over plain constants, which numba freezes:
-    the branches of the other bodies are pruned before compiling, and the constants are
-    part of the cache's key (a closure over the body's dispatcher would not be cached)."""
+class Target(NamedTuple):
+    """An FFI target: its handler runs body _BODIES[body] with dtype and `other` (the
+    geometry's tiny, the search's face dtype) once the call frame holds buffers as `args`
+    and `rets` say (ffi_check.spec) and the int64 attributes `attrs` (names; the last is
+    THREADS, which lowering appends)."""
+
+    body: int
+    dtype: type
+    other: object
+    args: tuple
+    rets: tuple
+    attrs: tuple
+
+
+def _geometry(body, f, dtype, tiny_value):
+    """The fragment geometry's target (body 1: forward, 2: backward) of float code f."""
+    ids = spec(S32, (1, ANY))
+    faces = (spec(f, 2, (3,)), spec(f, 2, (3,)), spec(f, 3, (3, 3)), spec(f, 3, (2, 3)))
+    per_id = (spec(f, (2, ANY), (3,), TIMES, 0, 3), spec(f, (1, ANY), (), TIMES, 0, 1),
+              spec(f, (1, ANY), (), TIMES, 0, 1))
+    args, rets = (ids, *faces), per_id
+    if body == 2:
+        args = (*args, *per_id)
+        rets = tuple(s[:6] + (TIMES, i + 1, 1) for i, s in enumerate(faces))
+    return Target(body, dtype, tiny_value, args, rets, ("width", "height", "soft", THREADS))
+
+
+def _interpolation(body, f, dtype):
+    """The interpolation's target (body 3: forward, 4: backward) of float code f."""
+    ids, corners = spec(S32, (1, ANY)), spec(f, 3, (0, 3))
+    bary = spec(f, (2, ANY), (3,), TIMES, 0, 3)
+    out = spec(f, (2, ANY), (), PER_LAST, 0, 2)
+    if body == 3:
+        return Target(body, dtype, 0, (ids, bary, corners), (out,), (THREADS,))
+    return Target(body, dtype, 0, (ids, bary, corners, out),
+                  (bary, corners[:6] + (TIMES, 2, 1)), (THREADS,))
+
+
+def _search(body, f, dtype, i, ints):
+    """The candidate search's target (body 5: soft, 6: hard) of float code f, face ids of
+    int code i."""
+    per_view = spec(FLOAT, (0, ANY), (), BATCH, 1, 0)
+    args = (spec(f, (2, ANY), (4,), BATCH, 1, 2), spec(i, (2, ANY), (3,), BATCH, 1, 2),
+            *(per_view,) * 5)
+    rets = (spec(S32, (3, ANY), (), IMAGES, 1), spec(S32, (0, ANY)))
+    attrs = ("width", "height", "k", "cull_backfaces", "perspective", THREADS)
+    return Target(body, dtype, ints, args, rets, attrs)
+
+
+def _handler(name, target):
+    """The FFI handler of target `name`: answers XLA's metadata query, checks the call
+    frame against the target (an XLA error where it differs), else runs the body. A
+    closure per target over plain constants, which numba freezes: the branches of the
+    other bodies are pruned before compiling, and the constants are part of the cache's
+    key (a closure over the body's dispatcher would not be cached)."""
+    body, dtype, other, args, rets, attrs = target
+
     def handler(address):
-        frame = _words(address, FRAME_WORDS)
-        if _answered_metadata(frame):
-            return _pointer(0)
+        frame = address_of(address)
+        message = check(frame, name, args, rets, attrs)
+        if message.size > 0:
+            return pointer(error(frame, message))
+        if metadata_query(frame):
+            return pointer(0)
         if body == 0:
             _active(frame)
         elif body == 1:
@@ -374,33 +375,45 @@ def _handler(name, body, dtype=np.float32, other=np.int32):
             _search_soft(frame, dtype, other)
         else:
             _search_hard(frame, dtype, other)
-        return _pointer(0)
+        return pointer(0)
     handler.__name__ = handler.__qualname__ = f"_handler_{name}"
     return handler
 
 
-#: target name -> handler (compiled on first use); a target per operand dtype, so that a
-#: program compiles only the dtypes it uses
-_HANDLERS = {"diffshade_active": _handler("active", 0)}
-for _width, _dtype, _tiny in (("f32", np.float32, _TINY32), ("f64", np.float64, _TINY64)):
-    for _body in range(1, 5):
-        _name = f"{_BODIES[_body]}_{_width}"
-        _HANDLERS[f"diffshade_{_name}"] = _handler(_name, _body, _dtype, _tiny)
-    for _ints, _int in (("i32", np.int32), ("i64", np.int64)):
+#: target name -> Target; a target per operand dtype, so that a program compiles only the
+#: dtypes it uses
+TARGETS = {"diffshade_active": Target(0, np.float32, 0, (spec(PRED, 1),),
+                                      (spec(S32, 1), spec(S32, 0)), (THREADS,))}
+for _width, _f, _dtype, _tiny in (("f32", F32, np.float32, _TINY32),
+                                  ("f64", F64, np.float64, _TINY64)):
+    for _body in (1, 2):
+        TARGETS[f"diffshade_{_BODIES[_body]}_{_width}"] = _geometry(_body, _f, _dtype, _tiny)
+    for _body in (3, 4):
+        TARGETS[f"diffshade_{_BODIES[_body]}_{_width}"] = _interpolation(_body, _f, _dtype)
+    for _ints, _i, _int in (("i32", S32, np.int32), ("i64", S64, np.int64)):
         for _body in (5, 6):
-            _name = f"{_BODIES[_body]}_{_width}_{_ints}"
-            _HANDLERS[f"diffshade_{_name}"] = _handler(_name, _body, _dtype, _int)
+            TARGETS[f"diffshade_{_BODIES[_body]}_{_width}_{_ints}"] = _search(
+                _body, _f, _dtype, _i, _int)
+#: target name -> handler (compiled on first use)
+_HANDLERS = {name: _handler(name, target) for name, target in TARGETS.items()}
 _REGISTERED = {}
 _REGISTERING = threading.Lock()
 
 
-def available() -> bool:
-    """Whether the handlers may be used (the JAX version is hostcall's check): a numba
-    threading layer that runs parallel kernels started from two threads at once (OpenMP
-    or TBB: XLA may run two independent custom calls together, where the host callbacks
-    take a lock; numba's fallback layer, workqueue, aborts on that)."""
+def unavailable():
+    """None where the handlers may be used, else why not (a sentence): the installed
+    jaxlib's FFI API must be one whose call frame xla_ffi lays out, and numba's threading
+    layer must run parallel kernels started from two threads at once (OpenMP or TBB: XLA
+    may run two independent custom calls together, where the host callbacks take a lock;
+    numba's fallback layer, workqueue, aborts on that)."""
+    why = xla_ffi.supported()
+    if why is not None:
+        return why
     numba.get_num_threads()  # starts the threading layer
-    return numba.threading_layer() in ("omp", "tbb")
+    layer = numba.threading_layer()
+    if layer not in ("omp", "tbb"):
+        return f"numba's threading layer is {layer!r}; the handlers need 'omp' or 'tbb'"
+    return None
 
 
 def target_for(base, args):
@@ -442,12 +455,13 @@ def _register(target):
 
 
 def lowering(ctx, operands, target, attributes):
-    """The MLIR of a call of `target` (registered on first use) with int attributes
-    a0, a1, ... = attributes, then numba's thread count (THREADS)."""
+    """The MLIR of a call of `target` (registered on first use) with its int64 attributes
+    (Target.attrs, by name) = attributes, then THREADS = numba's thread count."""
+    names = TARGETS[target].attrs[:-1]
+    if len(attributes) != len(names):
+        raise ValueError(f"attributes of FFI target {target}: got {tuple(attributes)}, "
+                         f"expected values of {names}")
     _register(target)
-    values = (*attributes, numba.get_num_threads())
-    assert len(values) <= 10, "a10 would sort before a2: the handlers read by position"
-    named = {f"a{i}": np.int64(int(value)) for i, value in enumerate(values)}
+    named = {name: np.int64(int(value)) for name, value in zip(names, attributes, strict=True)}
+    named[THREADS] = np.int64(numba.get_num_threads())
     return jax.ffi.ffi_lowering(target)(ctx, *operands, **named)
-
-

@@ -4,7 +4,10 @@ Where the caller names an FFI target of ffi.py (the rasterizer's kernels do), ho
 binds its primitive with the operands as they are and lowers it, on the CPU, to a custom
 call of that target: XLA runs the compiled handler on its own buffers (no Python, no GIL,
 no copy; ffi.py). `fn` then serves eager calls, other platforms, and DIFFSHADE_FFI=0 in
-the environment (read when a program is traced). What follows is the callback path.
+the environment (read when a program is traced). Where the handlers cannot be used (a
+jaxlib whose FFI API the call frame's layout does not hold for, xla_ffi.supported; numba's
+workqueue threading layer), host_call takes the callback path and says why in a
+FallbackWarning, once per reason. What follows is the callback path.
 
 Under the `jax.enable_x64()` context manager (thread-local), XLA may run a callback on one
 of its own threads, where x64 is off: jax then hands the callback float64 operands
@@ -23,8 +26,9 @@ back into Python) but handing `fn` the operands as XLA gives them: pure_callback
 copies every operand into a new JAX array (`device_put`), ~0.1 ms per MB, ~6 ms per
 forward + backward pass of a 256^2 soft render. Its vmap rule is pure_callback's
 ("sequential", or "expand_dims" when batched). The primitive's lowering uses JAX internals
-(jax._src.callback, mlir.emit_python_callback), so it is used only with the JAX versions
-it was tested with (NO_COPY_JAX); with any other, host_call is jax.pure_callback itself.
+(jax._src.callback._callback_op_sharding, mlir.emit_python_callback and its keywords), so
+it is used where this JAX has them (`_no_copy`); where it does not, host_call is
+jax.pure_callback itself, with a FallbackWarning once.
 
 Called outside any trace (every argument a concrete array), host_call runs `fn` at once
 on the NumPy arrays: nothing is compiled (the FFI targets are not used: compiling a
@@ -35,8 +39,10 @@ that runs a host kernel on fixed inputs (the fitting cache's candidate search,
 fitting.model.cache) calls it this way, between jitted programs that have no callback.
 """
 
+import inspect
 import os
 import threading
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -52,25 +58,64 @@ except ImportError:  # another JAX's internals
 _LOCK = threading.Lock()
 #: DIFFSHADE_FFI=0 in the environment: the kernels run through the Python callback only
 FFI_SWITCH = "DIFFSHADE_FFI"
-#: JAX versions (major, minor) whose internals the no-copy primitive was tested with
-NO_COPY_JAX = ((0, 10),)
+#: the keyword arguments the no-copy lowering passes to mlir.emit_python_callback
+_EMIT_KEYWORDS = ("has_side_effect", "returns_token", "sharding")
+_WARNED = set()
+
+
+class FallbackWarning(RuntimeWarning):
+    """host_call runs a host kernel by a slower path than the one it was built for: as a
+    Python callback instead of an XLA FFI target, or through jax.pure_callback (which
+    copies every operand) instead of its own callback primitive. The message says why."""
+
+
+def _warn_once(message):
+    if message not in _WARNED:
+        _WARNED.add(message)
+        warnings.warn(message, FallbackWarning, stacklevel=4)
+
+
+def _no_copy_missing():
+    """None where this JAX has the internals host_call's callback primitive is lowered
+    with, else what is missing (a sentence)."""
+    if jax_callback is None or not hasattr(jax_callback, "_callback_op_sharding"):
+        return "jax._src.callback._callback_op_sharding is missing"
+    emit = getattr(mlir, "emit_python_callback", None)
+    if emit is None:
+        return "jax.interpreters.mlir.emit_python_callback is missing"
+    missing = set(_EMIT_KEYWORDS) - set(inspect.signature(emit).parameters)
+    if missing:
+        return f"mlir.emit_python_callback takes no {', '.join(sorted(missing))}"
+    return None
 
 
 def _no_copy():
-    """Whether host_call may use its own primitive (else jax.pure_callback)."""
-    version = tuple(int(p) for p in jax.__version__.split(".")[:2])
-    return (version in NO_COPY_JAX and jax_callback is not None
-            and hasattr(jax_callback, "_callback_op_sharding"))
+    """Whether host_call may use its own callback primitive (else jax.pure_callback, with
+    a FallbackWarning once)."""
+    missing = _no_copy_missing()
+    if missing is not None:
+        _warn_once(f"diffshade's host callbacks copy their operands (jax.pure_callback): "
+                   f"JAX {jax.__version__}: {missing}")
+    return missing is None
 
 
 def _ffi_target(base, args):
     """The FFI target of ffi.py that host_call may run for `base` and these operands, or
-    None (also where the environment sets DIFFSHADE_FFI=0)."""
+    None (also where the environment sets DIFFSHADE_FFI=0). Where a target exists but
+    the handlers cannot be used (ffi.unavailable): None, and a FallbackWarning once."""
     from diffshade.host import ffi as handlers  # (it imports the kernels' modules)
 
-    if os.environ.get(FFI_SWITCH) == "0" or not (_no_copy() and handlers.available()):
+    if os.environ.get(FFI_SWITCH) == "0":
         return None
-    return handlers.target_for(base, args)
+    target = handlers.target_for(base, args)
+    if target is None:
+        return None
+    why = handlers.unavailable()
+    if why is not None:
+        _warn_once(f"diffshade's host kernels run as Python callbacks, not XLA FFI targets: "
+                   f"{why}")
+        return None
+    return target
 
 
 def _is64(dtype):
@@ -166,6 +211,9 @@ def _host_lowering(ctx, *operands, fn, result_shapes, batched, ffi):
         from diffshade.host import ffi as handlers  # (it imports the kernels' modules)
 
         return handlers.lowering(ctx, operands, *ffi)
+    if not _no_copy():  # an FFI call lowered for another platform, under another JAX
+        call = lambda *args: jax.pure_callback(fn, tuple(result_shapes), *args)
+        return mlir.lower_fun(call, multiple_results=True)(ctx, *operands)
     # where the callback runs in a sharded program: as pure_callback decides
     sharding = jax_callback._callback_op_sharding(ctx.module_context.axis_context, None,
                                                   ctx.avals_out)
