@@ -32,7 +32,7 @@ import jax
 import numpy as np
 import optax
 
-from diffshade.scene.material import Material
+from diffshade.scene import Material
 from fitting.model.batch import batched
 from fitting.model.loss import make_loss
 from fitting.solve.distribute import ShardedViews, fit_data

@@ -39,20 +39,22 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffshade.composite.transparency import layer_weights, layers_needed
-from diffshade.io.compile_cache import FAST_COMPILE, stored_jit
+from diffshade.composite import layer_weights, layers_needed
+from diffshade.io import FAST_COMPILE, stored_jit
 from diffshade.numerics import clamp01, float_dtype
-from diffshade.pipeline.render import view_dirs
-from diffshade.raster.fragments import fragments_from_ids
-from diffshade.raster.project import project
-from diffshade.raster.search import search_depth, search_faces
-from diffshade.scene.lights import LightGroups, shadow_flags
-from diffshade.scene.material import Material
-from diffshade.scene.material import material as make_material
-from diffshade.scene.objects import take_material
-from diffshade.shade.lighting import ShadingParts, light_visibility, shade
-from diffshade.shade.samples import Reader, read, shading_samples
-from diffshade.shade.shadows import shadow_maps
+from diffshade.pipeline import view_dirs
+from diffshade.raster import fragments_from_ids, project, search_depth, search_faces
+from diffshade.scene import LightGroups, Material, shadow_flags, take_material
+from diffshade.scene import material as make_material
+from diffshade.shade import (
+    Reader,
+    ShadingParts,
+    light_visibility,
+    read,
+    shade,
+    shading_samples,
+    shadow_maps,
+)
 from fitting.data.views import Dataset, view_scene
 
 # Geometry does not depend on the material; one fixed material keeps one compilation
