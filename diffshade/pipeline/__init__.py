@@ -16,10 +16,15 @@ from diffshade.pipeline.render import (
     stack_cameras,
     view_dirs,
 )
-from diffshade.pipeline.shading_cache import ShadingCache, cache_shading, render_cached
+from diffshade.pipeline.shading_cache import (
+    ShadingCache,
+    cache_shading,
+    render_cached,
+    slot_samples,
+)
 
 __all__ = [
     "blend", "rasterize_scene", "render", "render_fragments", "render_parts",
     "render_supersampled", "render_views", "stack_cameras", "view_dirs",
-    "ShadingCache", "cache_shading", "render_cached",
+    "ShadingCache", "cache_shading", "render_cached", "slot_samples",
 ]
