@@ -26,18 +26,10 @@ from fit_step import time_step
 
 import diffshade as ds
 from data_synth import make_dataset
-from fitting import (
-    DEFAULT_INIT,
-    FitSpec,
-    build_cache,
-    fit,
-    make_loss,
-    make_optimizer,
-    make_render_loss,
-    make_step,
-    render_data,
-    to_unconstrained,
-)
+from fitting import DEFAULT_INIT, FitSpec, fit
+from fitting.model import build_cache, make_loss, make_render_loss, render_data
+from fitting.solve import make_optimizer, make_step
+from fitting.spec import to_unconstrained
 
 SEED = 3
 NOISE_SEEDS = (3, 4, 5, 6, 7)

@@ -39,7 +39,8 @@ import numpy as np
 
 from data_synth import SHAPES, make_dataset, random_material
 from diffshade.io.images import read_image, write_png
-from fitting import DEFAULT_INIT, fit, value_names
+from fitting import DEFAULT_INIT, fit
+from fitting.spec import value_names
 
 BARS = {"float": (0.005, 0.02), "8-bit": (None, 0.03)}
 

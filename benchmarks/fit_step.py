@@ -1,9 +1,9 @@
 """Per-step time of a material fit, with and without the rasterization cache.
 
 Scene: the data_synth icosphere, 3 views x 2 lights = 6 images at 128 x 128 (options
-change it). Both steps are the same jitted Adam step (fitting.make_step) on the same
+change it). Both steps are the same jitted Adam step (fitting.solve.make_step) on the same
 parameters; they differ only in the loss:
-- cached: `diffshade.shade` on the kept pixels cached by fitting.build_cache;
+- cached: `diffshade.shade` on the kept pixels cached by fitting.model.build_cache;
 - full render: `diffshade.render` of every view every step (rasterization included),
   compared at the same pixels;
 - cached, unguarded: the cached step without optax.apply_if_finite (the guard against
@@ -28,17 +28,10 @@ import jax
 import numpy as np
 
 from data_synth import make_dataset
-from fitting import (
-    DEFAULT_INIT,
-    FitSpec,
-    build_cache,
-    make_loss,
-    make_optimizer,
-    make_render_loss,
-    make_step,
-    render_data,
-    to_unconstrained,
-)
+from fitting import DEFAULT_INIT, FitSpec
+from fitting.model import build_cache, make_loss, make_render_loss, render_data
+from fitting.solve import make_optimizer, make_step
+from fitting.spec import to_unconstrained
 
 
 def time_step(step, params, state, data, runs, warmup):

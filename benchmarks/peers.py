@@ -7,10 +7,11 @@ directional light travelling along (-0.3, -0.5, -1).
   global ambient 0.2, Phong shading; hard raster, and soft raster with K = 8. Timed: hard
   forward; hard forward + backward (value_and_grad of the MSE to a grey image with
   respect to the material); soft forward; soft f+b material; soft f+b material and
-  vertices; the cached material step of a fit (fitting.build_cache + make_step: an Adam
-  step on the kept pixels of the same view, as benchmarks/fit_step.py times it); the
-  soft cached material step (value_and_grad of the MSE w.r.t. the material of
-  diffshade.render_cached on the soft render's cache_shading: fixed geometry, re-lit).
+  vertices; the cached material step of a fit (fitting.model.build_cache +
+  fitting.solve.make_step: an Adam step on the kept pixels of the same view, as
+  benchmarks/fit_step.py times it); the soft cached material step (value_and_grad of
+  the MSE w.r.t. the material of diffshade.render_cached on the soft render's
+  cache_shading: fixed geometry, re-lit).
 - Mitsuba 3 (variant llvm_ad_rgb, the `prb` integrator with max_depth 2: direct light,
   all a convex object with one light has), `diffuse` BSDF with reflectance kd, 4 samples
   per pixel, box pixel filter, the same mesh (positions, faces, normals), a `perspective`
@@ -97,11 +98,11 @@ def cached_step(scene, settings, repeats):
     target = np.asarray(ds.render(scene, settings))[..., :3]
     view = fitting.View(scene.camera, scene.lights, target)
     dataset = fitting.Dataset(scene.mesh, [view], global_ambient=0.2, settings=settings)
-    spec, optimizer = fitting.FitSpec(), fitting.make_optimizer()
-    params = fitting.to_unconstrained(fitting.DEFAULT_INIT, spec)
-    step = fitting.make_step(fitting.make_loss(spec), optimizer)
+    spec, optimizer = fitting.FitSpec(), fitting.solve.make_optimizer()
+    params = fitting.spec.to_unconstrained(fitting.DEFAULT_INIT, spec)
+    step = fitting.solve.make_step(fitting.model.make_loss(spec), optimizer)
     first, times = time_step(step, params, optimizer.init(params),
-                             fitting.build_cache(dataset, fitting.DEFAULT_INIT), repeats, 3)
+                             fitting.model.build_cache(dataset, fitting.DEFAULT_INIT), repeats, 3)
     return {"compile_s": first, "median_s": float(np.median(times))}
 
 

@@ -22,7 +22,7 @@ import shutil
 import uuid
 
 from data_synth.scenes import make_dataset
-from diffshade.io.scenefile import load_scenes
+from diffshade.io import load_scenes
 from diffshade.settings import SHADING_MODES
 from fitting.data.folder import save_dataset
 from fitting.inputs import non_negative_float, parse_material, positive_int

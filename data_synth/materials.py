@@ -10,7 +10,7 @@ pixel, 0.4 * 0.25 = 0.1, is still 25 levels of an 8-bit image.
 
 import numpy as np
 
-from diffshade.scene.material import Material, material
+from diffshade.scene import Material, material
 
 COEFFICIENT_RANGES = {"ka": (0.25, 0.6), "kd": (0.2, 0.7), "ks": (0.15, 0.6)}
 SHININESS_RANGE = (2.0, 500.0)

@@ -27,7 +27,7 @@ import numpy as np
 import diffshade as ds
 from data_synth.materials import random_material
 from diffshade.numerics import float_dtype
-from diffshade.scene.transform import transform_points
+from diffshade.scene import transform_points
 from fitting.data.views import Dataset, View, view_scene
 
 SHAPES = ("icosphere", "torus", "box")

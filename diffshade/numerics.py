@@ -11,6 +11,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+__all__ = ["clamp01", "dot", "float_dtype", "float_dtype_of", "representable", "safe_div",
+           "safe_norm", "safe_normalize", "safe_pow", "safe_sqrt", "tiny"]
+
 
 def tiny(dtype) -> float:
     """A threshold well above underflow for `dtype`: 1e-12 for float32, 1e-30 for float64."""

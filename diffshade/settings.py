@@ -41,6 +41,9 @@ import dataclasses
 import jax
 import numpy as np
 
+__all__ = ["KERNELS", "RASTER_MODES", "SHADING_MODES", "SPECULAR_MODELS", "SPOT_EDGES",
+           "RenderSettings"]
+
 SHADING_MODES = ("phong", "gouraud", "flat", "flat_last")
 SPECULAR_MODELS = ("blinn", "phong")
 SPOT_EDGES = ("hard", "smooth")

@@ -4,54 +4,30 @@ The forward model is diffshade's lighting core: targets are rendered with
 `diffshade.render`, and a fit evaluates `diffshade.shade` on cached pixels. Start with
 `fit(dataset, FitSpec())`; see docs/fitting.md. `fit` and `diffshade fit` run the same
 driver (fitting.run) with the same options (fitting.solve.options).
+
+Here: what a user calls and reads. The floors below are namespaces of their own, each
+with its public face: `fitting.spec` (the parameter maps), `fitting.data` (datasets),
+`fitting.model` (the pixel cache and the losses: build_cache, predict, make_loss),
+`fitting.solve` (make_step, make_optimizer, the solvers) and `fitting.report`. Solver
+internals (lm_step, normal_equations, ...) stay in their modules.
 """
 
+from fitting import data, model, report, solve, spec
 from fitting.data.folder import load_dataset, save_dataset
-from fitting.data.views import Dataset, View, view_scene
-from fitting.fit import FitResult, fit, fit_result, relative_errors
-from fitting.model.cache import FitData, ViewSamples, build_cache, pixel_parts, predict
-from fitting.model.loss import (
-    LOSSES,
-    RenderData,
-    make_loss,
-    make_render_loss,
-    render_data,
-    residuals,
-)
-from fitting.report.misfit import Misfit, misfit
-from fitting.report.result import comparison_table
-from fitting.report.uncertainty import IdentifiabilityWarning, UncertaintyReport, uncertainty
-from fitting.run import RunState, advance, finish, start_run
-from fitting.solve.gauss_newton import levenberg_marquardt, lm_step
-from fitting.solve.linear import box_least_squares, normal_equations, solve_linear
-from fitting.solve.options import FIT_METHODS, METHODS, FitOptions
-from fitting.solve.step import make_optimizer, make_step
-from fitting.spec.params import (
-    DEFAULT_INIT,
-    KINDS,
-    FitSpec,
-    at_bound,
-    from_values,
-    material_values,
-    param_labels,
-    to_lights,
-    to_material,
-    to_unconstrained,
-    to_values,
-    value_names,
-    values_to_lights,
-    values_to_material,
-)
+from fitting.data.views import Dataset, View, dataset_of_scene, view_scene
+from fitting.fit import FitResult, fit
+from fitting.report.misfit import Misfit
+from fitting.report.uncertainty import IdentifiabilityWarning, UncertaintyReport
+from fitting.solve.options import FitOptions
+from fitting.spec.params import DEFAULT_INIT, FitSpec
 
 __all__ = [
-    "DEFAULT_INIT", "FIT_METHODS", "KINDS", "LOSSES", "METHODS", "Dataset", "FitData",
-    "FitOptions", "FitResult", "FitSpec", "IdentifiabilityWarning", "Misfit", "RenderData",
-    "RunState", "UncertaintyReport", "View", "ViewSamples", "advance", "at_bound",
-    "box_least_squares", "build_cache", "comparison_table", "finish", "fit", "fit_result",
-    "from_values", "levenberg_marquardt", "lm_step", "load_dataset", "make_loss",
-    "make_optimizer", "make_render_loss", "make_step", "material_values", "misfit",
-    "normal_equations", "param_labels", "pixel_parts", "predict", "relative_errors",
-    "render_data", "residuals", "save_dataset", "solve_linear", "start_run", "to_lights",
-    "to_material", "to_unconstrained", "to_values", "uncertainty", "value_names",
-    "values_to_lights", "values_to_material", "view_scene",
+    # fitting
+    "fit", "FitSpec", "FitOptions", "DEFAULT_INIT",
+    # the data
+    "Dataset", "View", "dataset_of_scene", "load_dataset", "save_dataset", "view_scene",
+    # what a fit returns
+    "FitResult", "IdentifiabilityWarning", "Misfit", "UncertaintyReport",
+    # the floors, each a namespace with its own __all__
+    "data", "model", "report", "solve", "spec",
 ]

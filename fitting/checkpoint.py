@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffshade.io.images import write_json
+from diffshade.io import write_json
 from fitting.data.folder import material_dict, material_from_dict
 from fitting.run import RunState, check_run, initial_opt_state, start_params
 from fitting.solve.options import FitOptions

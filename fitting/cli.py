@@ -44,7 +44,7 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from diffshade.io.color import COLOR_SPACES
+from diffshade.io import COLOR_SPACES
 from fitting.checkpoint import save_checkpoint
 from fitting.fit import fit_result
 from fitting.inputs import non_negative_float, non_negative_int, positive_float, positive_int

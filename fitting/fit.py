@@ -28,7 +28,7 @@ import time
 import jax
 import numpy as np
 
-from diffshade.scene.material import Material
+from diffshade.scene import Material
 from fitting.data.views import Dataset, material_for
 from fitting.model.cache import build_cache
 from fitting.report.misfit import Misfit, misfit

@@ -13,8 +13,8 @@ import os
 
 import numpy as np
 
-from diffshade.io.scenefile import read_json
-from diffshade.scene.material import material
+from diffshade.io import read_json
+from diffshade.scene import material
 from fitting.data.folder import fingerprint, load_dataset, material_from_dict
 from fitting.spec.params import FIT_NAMES, MODED, FitSpec
 

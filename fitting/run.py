@@ -4,7 +4,7 @@
     state = start_run(data, spec, init, FitOptions(method="adam"))   # or load_checkpoint
     status, message = advance(state, data, should_stop=flag.is_set, on_step=show,
                               save=lambda s: save_checkpoint(path, s), every=500)
-    finish(state, data)            # then fitting.fit_result(state, dataset, data)
+    finish(state, data)            # then fitting.fit.fit_result(state, dataset, data)
 
 `RunState` is a plain, mutable record that `advance` updates in place after every step,
 so it is a consistent snapshot whenever `should_stop`, `on_step` or `save` sees it: the
@@ -32,7 +32,7 @@ import jax
 import numpy as np
 import optax
 
-from diffshade.scene.material import Material
+from diffshade.scene import Material
 from fitting.model.batch import batched
 from fitting.model.loss import make_loss
 from fitting.solve.distribute import ShardedViews, fit_data
@@ -125,7 +125,7 @@ def start_params(spec, init, lights, n_views=None):
 def start_run(data, spec: FitSpec, init: Material, options: FitOptions | None = None,
               meta=None) -> RunState:
     """A fresh RunState at `init` (for 'linear' with one object: at the closed-form
-    solution) on the cached `data` (fitting.build_cache(dataset, init), or its
+    solution) on the cached `data` (fitting.model.build_cache(dataset, init), or its
     fitting.solve.distribute.ShardedViews); options default FitOptions()."""
     options = FitOptions() if options is None else options
     check_run(spec, init, options)

@@ -278,7 +278,8 @@ def test_the_key_follows_the_package_source(monkeypatch):
 
 def test_a_fit_program_from_the_store_equals_jit(store, monkeypatch):
     from data_synth import make_dataset
-    from fitting import DEFAULT_INIT, FitSpec, build_cache
+    from fitting import DEFAULT_INIT, FitSpec
+    from fitting.model import build_cache
     from fitting.model.batch import batched
     from fitting.solve.gauss_newton import normal_system
     from fitting.spec.params import material_values

@@ -32,24 +32,16 @@ from test_fit_effects import box_on_table, perturbed
 import diffshade as ds
 from data_synth import make_dataset
 from diffshade.scene.lights import group_lights
-from fitting import (
-    DEFAULT_INIT,
-    FitOptions,
-    FitSpec,
-    advance,
-    build_cache,
-    fit,
-    make_loss,
-    start_run,
-    to_unconstrained,
-)
-from fitting.model import batch
+from fitting import DEFAULT_INIT, FitOptions, FitSpec, fit
+from fitting.model import batch, build_cache, make_loss
 from fitting.report.misfit import misfit
 from fitting.report.uncertainty import uncertainty
+from fitting.run import advance, start_run
 from fitting.solve import distribute, linear
 from fitting.solve.distribute import common_lights, for_options, shard_views
 from fitting.solve.gauss_newton import _linearize
 from fitting.solve.linear import normal_equations, solve_linear
+from fitting.spec import to_unconstrained
 from fitting.spec.params import from_values as to_unconstrained_values
 
 TRUTH = dict(ka=0.15, kd=(0.55, 0.35, 0.25), ks=0.35, shininess=25.0)
@@ -348,7 +340,8 @@ import jax, numpy as np
 import diffshade as ds
 from data_synth import make_dataset
 from diffshade.scene.lights import group_lights
-from fitting import DEFAULT_INIT, FitSpec, build_cache, fit
+from fitting import DEFAULT_INIT, FitSpec, fit
+from fitting.model import build_cache
 from fitting.solve.distribute import shard_views
 assert jax.device_count() == 4, jax.devices()
 dataset = make_dataset(ds.icosphere(1), ds.material(ka=0.15, kd=(0.55, 0.35, 0.25), ks=0.35,
@@ -400,7 +393,8 @@ import jax, numpy as np
 jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, "tests")
 from test_fit_effects import box_on_table, perturbed
-from fitting import FitSpec, build_cache, fit
+from fitting import FitSpec, fit
+from fitting.model import build_cache
 from fitting.solve.distribute import shard_views
 assert jax.device_count() == 4, jax.devices()
 for glass, names in ((False, ["kd", "ks"]), (True, ["kd", "kt"])):

@@ -24,12 +24,14 @@ from jax.flatten_util import ravel_pytree
 import diffshade as ds
 import fitting.model.batch as batch
 from data_synth import make_dataset
-from fitting import DEFAULT_INIT, FitSpec, build_cache, fit, make_loss, to_unconstrained
+from fitting import DEFAULT_INIT, FitSpec, fit
+from fitting.model import build_cache, make_loss
 from fitting.model.batch import batched, light_layout, view_map
 from fitting.model.cache import pixel_parts, predict
 from fitting.model.loss import values_residuals
 from fitting.solve.gauss_newton import _linearize
 from fitting.solve.linear import normal_equations
+from fitting.spec import to_unconstrained
 from fitting.spec.params import to_values, values_to_material
 
 TRUTH = dict(ka=0.15, kd=(0.55, 0.35, 0.25), ks=0.35, shininess=25.0)

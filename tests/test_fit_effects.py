@@ -21,8 +21,10 @@ from jax.test_util import check_grads
 import diffshade as ds
 from diffshade.scene.lights import group_lights
 from diffshade.scene.objects import unstack_material
-from fitting import FitSpec, View, build_cache, fit, make_loss, predict, to_unconstrained
+from fitting import FitSpec, View, fit
 from fitting.data.views import dataset_of_scene, view_scene
+from fitting.model import build_cache, make_loss, predict
+from fitting.spec import to_unconstrained
 
 # (built in the tests, in the float dtype of each)
 BOX = dict(ka=(0.25, 0.2, 0.15), kd=(0.6, 0.3, 0.2), ks=(0.4, 0.35, 0.3), shininess=30.0)

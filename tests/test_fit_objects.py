@@ -14,9 +14,11 @@ import pytest
 import diffshade as ds
 from diffshade.scene.lights import group_lights
 from diffshade.scene.objects import unstack_material
-from fitting import FitSpec, View, build_cache, fit, make_loss, to_unconstrained, view_scene
+from fitting import FitSpec, View, fit, view_scene
 from fitting.data.views import dataset_of_scene
+from fitting.model import build_cache, make_loss
 from fitting.report.result import mtl_text
+from fitting.spec import to_unconstrained
 
 TRUTH = [ds.material(ka=(0.25, 0.2, 0.15), kd=(0.6, 0.3, 0.2), ks=(0.5, 0.45, 0.4),
                      shininess=30.0),

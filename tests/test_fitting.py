@@ -15,32 +15,23 @@ from compiles import compiles
 import diffshade as ds
 from data_synth import make_dataset
 from diffshade.scene.lights import group_lights
-from fitting import (
-    DEFAULT_INIT,
-    Dataset,
-    FitSpec,
-    IdentifiabilityWarning,
-    View,
-    box_least_squares,
-    build_cache,
-    fit,
-    make_loss,
-    make_optimizer,
-    make_step,
-    material_values,
-    normal_equations,
-    param_labels,
-    relative_errors,
-    to_material,
-    to_unconstrained,
-    to_values,
-    uncertainty,
-    value_names,
-    view_scene,
-)
+from fitting import DEFAULT_INIT, Dataset, FitSpec, IdentifiabilityWarning, View, fit, view_scene
+from fitting.fit import relative_errors
+from fitting.model import build_cache, make_loss
 from fitting.model.loss import mean_rho
 from fitting.report.misfit import _neighbour_squares
 from fitting.report.result import _render_rgb
+from fitting.report.uncertainty import uncertainty
+from fitting.solve import make_optimizer, make_step
+from fitting.solve.linear import box_least_squares, normal_equations
+from fitting.spec import (
+    material_values,
+    param_labels,
+    to_material,
+    to_unconstrained,
+    to_values,
+    value_names,
+)
 
 TRUTH = dict(ka=(0.35, 0.3, 0.5), kd=(0.6, 0.45, 0.3), ks=(0.4, 0.5, 0.3), shininess=35.0)
 SPHERE = ds.icosphere(2)

@@ -6,7 +6,10 @@ from what happens to be imported at run time:
   floors below it (FLOORS, bottom first);
 - the renderer never imports its applications (fitting, data_synth), and fitting never
   imports data_synth;
-- there is no import circle anywhere, between modules of one floor included.
+- there is no import circle anywhere, between modules of one floor included;
+- fitting and data_synth use diffshade through its public faces only: the package itself
+  and its floor packages (and the foundation's two modules), and only the names those list
+  in `__all__` (PUBLIC_FACES).
 An import of a package counts as an import of its `__init__`; `from P import m`, m a
 submodule, as an import of P.m.
 """
@@ -45,6 +48,11 @@ FLOORS = {
     "data_synth": [("data_synth", ["data_synth", "data_synth.cli", "data_synth.materials",
                                    "data_synth.scenes"])],
 }
+#: what fitting and data_synth may import diffshade through: the package, the floors' packages
+#: and the foundation's modules (host has no public face)
+PUBLIC_FACES = ("diffshade", "diffshade.numerics", "diffshade.settings", "diffshade.scene",
+                "diffshade.raster", "diffshade.shade", "diffshade.composite", "diffshade.pipeline",
+                "diffshade.io")
 #: which packages each package may import
 ALLOWED = {"diffshade": {"diffshade"}, "fitting": {"diffshade", "fitting"},
            "data_synth": {"diffshade", "fitting", "data_synth"}}
@@ -184,3 +192,73 @@ def test_the_checks_see_a_back_arrow_and_a_circle(tmp_path):
     assert floor_of("diffshade.raster.search")[2] == "raster"
     assert floor_of("diffshade.cli")[2] == "faces"
     assert floor_of("fitting.solve.linear")[2] == "solve"
+
+
+def exported(face):
+    """The names a public face lists in its `__all__` (read from its source)."""
+    for node in ast.parse(MODULES[face].read_text()).body:
+        if isinstance(node, ast.Assign) and [getattr(n, "id", None) for n in node.targets] \
+                == ["__all__"]:
+            return set(ast.literal_eval(node.value))
+    return set()
+
+
+EXPORTED = {face: exported(face) for face in PUBLIC_FACES}
+
+
+def private_uses(path, exported_names=EXPORTED):
+    """What the module at `path` takes from diffshade other than a public face's listed
+    names: `import diffshade.x.y`, `from diffshade.x.y import`, a name missing from the
+    face's __all__, or an attribute of `import diffshade as ds` missing from its __all__."""
+    found, aliases = [], set()
+    tree = ast.parse(path.read_text(), str(path))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name == "diffshade":
+                    aliases.add(alias.asname or alias.name)
+                elif alias.name.startswith("diffshade."):
+                    found.append(f"{node.lineno}: import {alias.name}")
+        elif isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] == "diffshade":
+            face = node.module
+            if face not in exported_names:
+                found.append(f"{node.lineno}: from {face} import ...")
+                continue
+            found += [f"{node.lineno}: {alias.name} is not in {face}.__all__"
+                      for alias in node.names if alias.name not in exported_names[face]]
+    for node in ast.walk(tree):
+        if (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name)
+                and node.value.id in aliases and node.attr not in exported_names["diffshade"]):
+            found.append(f"{node.lineno}: {node.value.id}.{node.attr} is not in "
+                         "diffshade.__all__")
+    return found
+
+
+def test_every_public_face_lists_its_names():
+    for face, names in EXPORTED.items():
+        assert names, f"{face} has no __all__"
+
+
+def test_applications_use_diffshade_through_public_faces():
+    """fitting and data_synth import from diffshade and its floors' packages, never from a
+    module below a floor's face, so that diffshade can move its modules freely."""
+    private = [f"{name} {use}" for name, path in MODULES.items()
+               if name.split(".")[0] in ("fitting", "data_synth")
+               for use in private_uses(path)]
+    assert private == [], "diffshade used past its public faces:\n" + "\n".join(private)
+
+
+def test_the_public_face_check_sees_private_uses(tmp_path):
+    path = tmp_path / "mod.py"
+    path.write_text("import diffshade as ds\nimport diffshade.shade.samples\n"
+                    "from diffshade.scene import Mesh, take_material, _check_arrays\n"
+                    "from diffshade.raster.search import search_faces\n"
+                    "def f():\n    from diffshade import render, view_dirs\n"
+                    "    return ds.render, ds.scene_to_dict\n")
+    assert sorted(private_uses(path)) == sorted([
+        "2: import diffshade.shade.samples",
+        "3: _check_arrays is not in diffshade.scene.__all__",
+        "4: from diffshade.raster.search import ...",
+        "6: view_dirs is not in diffshade.__all__",
+        "7: ds.scene_to_dict is not in diffshade.__all__",
+    ])

@@ -19,7 +19,8 @@ import trimesh
 import diffshade as ds
 from data_synth import make_dataset, save_dataset
 from diffshade import cli
-from fitting import FitSpec, fit, load_dataset, material_values
+from fitting import FitSpec, fit, load_dataset
+from fitting.spec import material_values
 
 TRUTH = ds.material(ka=(0.35, 0.3, 0.45), kd=(0.6, 0.45, 0.3), ks=(0.4, 0.5, 0.3),
                     shininess=35.0)

@@ -35,7 +35,8 @@ from diffshade import (
     spot_light,
 )
 from diffshade.numerics import float_dtype
-from diffshade.pipeline.shading_cache import cache_shading, render_cached
+from diffshade.pipeline.shading_cache import cache_shading, render_cached, slot_samples
+from diffshade.shade.samples import Reader
 
 pytestmark = pytest.mark.usefixtures("x64")
 
@@ -232,6 +233,28 @@ def test_cached_shading_gradients_equal_central_differences():
             want = (loss(*shifted[0]) - loss(*shifted[1])) / (2 * eps)
             np.testing.assert_allclose(np.asarray(grad).reshape(-1)[j], want, rtol=1e-6,
                                        atol=1e-8)
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+def test_slot_samples_keep_what_the_chosen_fragments_read(weighted):
+    """Against a loop over the chosen fragments: each reads, from the kept samples through
+    the new Reader, the weighted sum of the samples its table row names; only read
+    samples are kept."""
+    rng = np.random.default_rng(7)
+    values = rng.normal(size=(9, 2))
+    table = rng.integers(0, 9, size=(6, 3)) if weighted else rng.integers(0, 9, size=(6, 1))
+    ids = rng.integers(0, 6, size=(2, 3, 4))
+    weights = rng.random(ids.shape + table.shape[1:]) if weighted else None
+    slots = np.array([3, 17, 8, 22, 0], np.int32)
+    (kept,), reader = slot_samples([values], Reader(ids, weights, table), slots, (5, 1, 1))
+    for m, slot in enumerate(slots):
+        row = table[ids.reshape(-1)[slot]]
+        w = np.ones(1) if weights is None else weights.reshape(-1, 3)[slot]
+        got_w = np.ones(1) if reader.weights is None else reader.weights.reshape(5, -1)[m]
+        got = sum(got_w[g] * kept[reader.table[reader.ids.reshape(-1)[m], g]]
+                  for g in range(row.size))
+        np.testing.assert_allclose(got, sum(w[g] * values[row[g]] for g in range(row.size)))
+    assert len(kept) == len(np.unique(table[ids.reshape(-1)[slots]]))
 
 
 def test_cached_shading_rejects_a_transparent_scene():

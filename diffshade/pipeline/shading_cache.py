@@ -13,6 +13,11 @@ active fragments' colours and sums them into the pixels: the image of `render_fr
 
 The number of active fragments is data, so `cache_shading` runs eagerly (not under
 `jit`; it jits its parts); `render_cached` compiles once per cache size.
+
+`slot_samples` is the step both caches of fixed geometry share, this one and a fit's
+(fitting.model.cache, which keeps the fragment layers of the pixels it fits): from the
+shading samples of every fragment and their Reader, keep the samples that the chosen
+fragments read, and no others, and a Reader of those fragments into them.
 """
 
 import dataclasses
@@ -34,8 +39,8 @@ from diffshade.shade.shadows import shadow_maps
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class ShadingCache:
-    """samples: the Samples the active fragments read; reader: how they read them
-    (diffshade.shade.samples.Reader, ids [C, 1, 1]: one row per active fragment); pixels: [C]
+    """samples: the Samples the active fragments read (only those); reader: how they read
+    them (diffshade.shade.samples.Reader, ids [C, 1, 1]: one per active fragment); pixels: [C]
     int32 flat pixel index (row * width + column) of each active fragment, ascending;
     weights: [C] its blend weight; background: [H, W] the background's weight; alpha:
     [H, W] coverage."""
@@ -67,6 +72,32 @@ def _fixed_parts(scene, frags, settings):
     return slot, background, alpha, active, samples, reader
 
 
+def slot_samples(arrays, reader: Reader, slots, shape):
+    """The samples some fragments read, and how they read them (eager, in NumPy).
+
+    arrays: per-sample values, NumPy arrays [S, ...] (per fragment, [H, W, K, ...], when
+    reader has no table: Phong); reader: the Reader of every fragment (ids [H, W, K]);
+    slots: [M] int flat indices of the fragments kept (row * width * K + column * K + k);
+    shape: the shape, of M elements, of the kept fragments' ids.
+    Returns (the arrays at the samples those fragments read, [S', ...] each: only those;
+    a Reader of the kept fragments into them, NumPy arrays: ids `shape` (0..M-1), weights
+    `shape` + [G] or None, table [M, G] int32 or None)."""
+    ids = np.arange(len(slots), dtype=np.int32).reshape(shape)
+    if reader.table is None:
+        per_fragment = np.ndim(reader.ids)
+        return [a.reshape((-1,) + a.shape[per_fragment:])[slots] for a in arrays], Reader(ids)
+    rows = np.asarray(reader.ids).reshape(-1)[slots]
+    # an empty slot (-1) reads the table's last row: a caller gives it no weight
+    used = np.asarray(reader.table)[rows]
+    unique, inverse = np.unique(used, return_inverse=True)
+    weights = None
+    if reader.weights is not None:
+        weights = np.asarray(reader.weights).reshape(-1, used.shape[1])[slots]
+        weights = weights.reshape(ids.shape + used.shape[1:])
+    table = inverse.reshape(used.shape).astype(np.int32)
+    return [a[unique] for a in arrays], Reader(ids, weights, table)
+
+
 def cache_shading(scene, frags: Fragments, settings) -> ShadingCache:
     """The fixed part of rendering `frags` (rasterize_scene(scene, settings)) of `scene`
     (module docstring). Raises ValueError for a scene with a transparent material (its
@@ -81,17 +112,11 @@ def cache_shading(scene, frags: Fragments, settings) -> ShadingCache:
     slot, background, alpha, active, samples, reader = _fixed_parts(scene, frags, settings)
     k = slot.shape[-1]
     index = np.flatnonzero(np.asarray(active)).astype(np.int32)
-    rows = index[:, None, None]
-    if reader.table is None:  # Phong: one sample per fragment, keep the active ones
-        samples = jax.tree.map(lambda a: jnp.take(a.reshape((-1,) + a.shape[3:]), index, 0),
-                               samples)
-        reader = Reader(jnp.arange(index.size, dtype=jnp.int32).reshape(-1, 1, 1))
-    else:
-        weights = (None if reader.weights is None else jnp.take(
-            reader.weights.reshape(-1, reader.weights.shape[-1]), rows, 0))
-        reader = Reader(jnp.take(reader.ids.reshape(-1), rows, 0), weights, reader.table)
-    return ShadingCache(samples, reader, jnp.asarray(index // k),
-                        jnp.take(slot.reshape(-1), index), background, alpha)
+    kept, reader = slot_samples([np.asarray(a) for a in samples.leaves()], reader, index,
+                                (index.size, 1, 1))
+    return ShadingCache(Samples(*map(jnp.asarray, kept)), jax.tree.map(jnp.asarray, reader),
+                        jnp.asarray(index // k), jnp.take(slot.reshape(-1), index),
+                        background, alpha)
 
 
 @jax.jit

@@ -1,1 +1,15 @@
-"""shade."""
+"""shade: where and how light falls: shading samples, the lighting core, shadows.
+
+The floor's public face, listed in `__all__` (diffshade's own modules import each other
+by full module path).
+"""
+
+from diffshade.shade.lighting import ShadingParts, light_visibility, shade
+from diffshade.shade.samples import Reader, Samples, read, shading_samples
+from diffshade.shade.shadows import ShadowMap, shadow_maps
+
+__all__ = [
+    "ShadingParts", "light_visibility", "shade",
+    "Reader", "Samples", "read", "shading_samples",
+    "ShadowMap", "shadow_maps",
+]

@@ -42,10 +42,8 @@ import os
 import numpy as np
 
 import diffshade as ds
-from diffshade.io.color import COLOR_SPACES
-from diffshade.io.images import write_json
-from diffshade.io.scenefile import read_json, scene_to_dict
-from diffshade.scene.objects import stack_materials, unstack_material
+from diffshade.io import COLOR_SPACES, read_json, scene_to_dict, write_json
+from diffshade.scene import stack_materials, unstack_material
 from fitting.data.views import Dataset, View, material_for, view_scene
 from fitting.spec.params import DEFAULT_INIT, object_count
 

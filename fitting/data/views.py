@@ -20,12 +20,19 @@ import dataclasses
 
 import numpy as np
 
-from diffshade.scene.camera import Camera
-from diffshade.scene.lights import LightGroups, group_lights
-from diffshade.scene.material import Material
-from diffshade.scene.mesh import Mesh, check_mesh
-from diffshade.scene.objects import ObjectIds, stack_materials
-from diffshade.scene.scene import Scene, make_scene, replace
+from diffshade.scene import (
+    Camera,
+    LightGroups,
+    Material,
+    Mesh,
+    ObjectIds,
+    Scene,
+    check_mesh,
+    group_lights,
+    make_scene,
+    replace,
+    stack_materials,
+)
 from diffshade.settings import RenderSettings
 
 

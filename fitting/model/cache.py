@@ -6,7 +6,9 @@ and the lights is fixed too. `build_cache` rasterizes every view once
 and (by default) not on the silhouette, and stores only what is fixed: the shading samples
 those pixels read (world point, normal, direction to the viewer) and how they read them.
 Both come from `diffshade.shade.samples`, the code `render` uses, per shading mode (per pixel
-for Phong, per vertex and side for Gouraud and flat_last, per face for flat). Two-sided
+for Phong, per vertex and side for Gouraud and flat_last, per face for flat); which of
+them the kept pixels' fragments read, and how, is `diffshade.pipeline.slot_samples`, the
+step `diffshade.cache_shading` takes for the fragments a render blends. Two-sided
 lighting is in the normals (reversed on back faces); the fitted material serves both
 sides. With several objects each sample keeps its object id, which picks its row of the
 (stacked) material.
@@ -39,20 +41,22 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffshade.composite.transparency import layer_weights, layers_needed
-from diffshade.io.compile_cache import FAST_COMPILE, stored_jit
+from diffshade.composite import layer_weights, layers_needed
+from diffshade.io import FAST_COMPILE, stored_jit
 from diffshade.numerics import clamp01, float_dtype
-from diffshade.pipeline.render import view_dirs
-from diffshade.raster.fragments import fragments_from_ids
-from diffshade.raster.project import project
-from diffshade.raster.search import search_depth, search_faces
-from diffshade.scene.lights import LightGroups, shadow_flags
-from diffshade.scene.material import Material
-from diffshade.scene.material import material as make_material
-from diffshade.scene.objects import take_material
-from diffshade.shade.lighting import ShadingParts, light_visibility, shade
-from diffshade.shade.samples import Reader, read, shading_samples
-from diffshade.shade.shadows import shadow_maps
+from diffshade.pipeline import slot_samples, view_dirs
+from diffshade.raster import fragments_from_ids, project, search_depth, search_faces
+from diffshade.scene import LightGroups, Material, shadow_flags, take_material
+from diffshade.scene import material as make_material
+from diffshade.shade import (
+    Reader,
+    ShadingParts,
+    light_visibility,
+    read,
+    shade,
+    shading_samples,
+    shadow_maps,
+)
 from fitting.data.views import Dataset, view_scene
 
 # Geometry does not depend on the material; one fixed material keeps one compilation
@@ -200,23 +204,15 @@ def kept_pixels(valid, mask, edge_margin):
 def _kept_samples(geo, pixels, arrays):
     """`arrays` ([..., C] per sample, as geo's samples) at the samples the kept pixels'
     fragments (K layers each) read: [S, C] each; and the Reader of those fragments into
-    them (only the samples read are kept)."""
-    reader, n_pixels = geo["reader"], np.asarray(geo["valid"]).size
+    them, [N, 1, K] ids (only the samples read are kept: diffshade.pipeline.slot_samples).
+    An empty layer reads some sample: it weighs nothing in the composite
+    (ViewSamples.layers)."""
     layers = np.asarray(geo["face_ids"]).shape[-1]
-    ids = np.arange(len(pixels) * layers, dtype=np.int32).reshape(-1, 1, layers)
-    if reader.table is None:
-        return ([a.reshape(n_pixels, -1, a.shape[-1])[pixels].reshape(-1, a.shape[-1])
-                 for a in arrays], Reader(ids))
-    rows = np.asarray(reader.ids).reshape(n_pixels, -1)[pixels].reshape(-1)
-    used = np.asarray(reader.table)[rows]  # an empty layer (-1) reads some sample: it weighs
-    # nothing in the composite (ViewSamples.layers)
-    unique, inverse = np.unique(used, return_inverse=True)
-    weights = None
-    if reader.weights is not None:
-        weights = np.asarray(reader.weights).reshape(n_pixels, -1, used.shape[1])[pixels]
-        weights = jnp.asarray(weights.reshape(ids.shape + used.shape[1:]), float_dtype())
-    return ([a[unique] for a in arrays],
-            Reader(ids, weights, jnp.asarray(inverse.reshape(used.shape), jnp.int32)))
+    slots = (pixels[:, None] * layers + np.arange(layers, dtype=np.int32)).reshape(-1)
+    kept, reader = slot_samples(arrays, geo["reader"], slots, (len(pixels), 1, layers))
+    weights = None if reader.weights is None else jnp.asarray(reader.weights, float_dtype())
+    table = None if reader.table is None else jnp.asarray(reader.table, jnp.int32)
+    return kept, Reader(reader.ids, weights, table)
 
 
 def _layer_fields(dataset, geo, pixels):

@@ -20,8 +20,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffshade.pipeline.render import render
-from diffshade.scene.scene import replace
+from diffshade.pipeline import render
+from diffshade.scene import replace
 from fitting.data.views import view_scene
 from fitting.model.batch import unpadded, view_map
 from fitting.model.cache import FitData, predict

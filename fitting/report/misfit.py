@@ -80,7 +80,7 @@ def _neighbour_squares(r, pixels, width):
 
 
 def misfit(values, data, spec, widths) -> Misfit:
-    """The Misfit of the physical `values` on the cached `data` (fitting.build_cache, or
+    """The Misfit of the physical `values` on the cached `data` (fitting.model.build_cache, or
     its ShardedViews: then a chunk of views at a time); widths: the image width of each
     view."""
     base = fit_data(data)

@@ -32,13 +32,19 @@ import os
 import jax
 import numpy as np
 
-from diffshade.composite.transparency import layers_needed
-from diffshade.io.color import srgb_to_linear
-from diffshade.io.compile_cache import FAST_COMPILE, stored_jit
-from diffshade.io.images import write_json, write_npy, write_png, write_text
-from diffshade.pipeline.render import render_fragments
-from diffshade.scene.objects import unstack_material
-from diffshade.shade.shadows import shadow_maps
+from diffshade.composite import layers_needed
+from diffshade.io import (
+    FAST_COMPILE,
+    srgb_to_linear,
+    stored_jit,
+    write_json,
+    write_npy,
+    write_png,
+    write_text,
+)
+from diffshade.pipeline import render_fragments
+from diffshade.scene import unstack_material
+from diffshade.shade import shadow_maps
 from fitting.data.folder import material_dict
 from fitting.data.views import view_scene
 from fitting.model.batch import common_lights

@@ -29,7 +29,7 @@ import warnings
 import jax
 import numpy as np
 
-from diffshade.io.color import decode, encode
+from diffshade.io import decode, encode
 from fitting.model.batch import batched, unpadded
 from fitting.model.cache import FitData
 from fitting.solve.distribute import ShardedViews, fit_data

@@ -459,7 +459,7 @@ def shard_views(data: FitData, devices="all", chunk=None, *,
     `data` (jax.Array.delete) once the host holds them, so that an accelerator's memory
     does not keep the whole cache; `data`'s views are unusable after."""
     if not isinstance(data, FitData):
-        raise TypeError(f"data: got {type(data).__name__}; expected fitting.FitData")
+        raise TypeError(f"data: got {type(data).__name__}; expected fitting.model.FitData")
     found = device_list(devices)
     if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int)
                               or chunk < 1):

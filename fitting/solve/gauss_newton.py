@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from diffshade.io.compile_cache import LIGHT_COMPILE, stored_jit
+from diffshade.io import LIGHT_COMPILE, stored_jit
 from fitting.model.batch import batched
 from fitting.model.loss import irls_weight, mean_rho, stacked_residuals
 from fitting.solve.distribute import ShardedViews

@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from diffshade.io.compile_cache import LIGHT_COMPILE, stored_jit
+from diffshade.io import LIGHT_COMPILE, stored_jit
 from fitting.model.batch import batched, view_map
 from fitting.model.cache import FitData, pixel_parts
 from fitting.solve.distribute import ShardedViews, fit_data

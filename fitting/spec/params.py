@@ -37,8 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffshade.numerics import float_dtype
-from diffshade.scene.material import Material, material
-from diffshade.scene.objects import stack_materials, unstack_material
+from diffshade.scene import Material, material, stack_materials, unstack_material
 from fitting.spec.gains import GAIN_NAMES, fitted_gains, gain_values
 
 COEFFICIENTS = ("ka", "kd", "ks")
