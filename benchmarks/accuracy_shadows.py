@@ -29,7 +29,7 @@ from common import print_table, time_call, write_results  # noqa: E402
 
 import diffshade as ds  # noqa: E402
 from diffshade.analytic import SphereOverPlane  # noqa: E402
-from diffshade.pipeline.render import render  # noqa: E402
+from diffshade.pipeline.rendering import render  # noqa: E402
 
 GEOMETRY = SphereOverPlane()
 LIGHT = (-1.0, 1.8, -1.0)

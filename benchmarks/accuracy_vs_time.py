@@ -37,7 +37,7 @@ from common import print_table, time_call, write_results  # noqa: E402
 
 import diffshade as ds  # noqa: E402
 from diffshade.analytic import render_analytic_sphere  # noqa: E402
-from diffshade.pipeline.render import render_supersampled  # noqa: E402
+from diffshade.pipeline.rendering import render_supersampled  # noqa: E402
 
 REFERENCE_SUPERSAMPLE = 8
 HIGHLIGHT_THRESHOLD = 0.05

@@ -16,7 +16,7 @@ Measured, from /proc/self/status: VmRSS after the dataset is made (the targets a
 interpreter: the same for every mode), then the peak (VmHWM, reset with
 /proc/self/clear_refs before each phase) while the cache is built, while the fit starts
 (start_run: for 'linear' the closed-form start), while the steps run (their first step
-compiles) and while the report is made (fitting.fit.fit_result: the uncertainty report and
+compiles) and while the report is made (fitting.driver.fit_result: the uncertainty report and
 the misfit check); the time of each phase, the step time (median of the steps after the
 first) and the compile + first step. The parent watches every point's resident memory and ends
 it above --max-gib (reported as such), so that a loaded, shared machine is not pushed
@@ -58,7 +58,7 @@ def point(views, size, chunk, steps, method="adam"):
     import diffshade as ds
     from data_synth import make_dataset
     from fitting import FitOptions, FitSpec
-    from fitting.fit import fit_result
+    from fitting.driver import fit_result
     from fitting.model import build_cache
     from fitting.run import advance, finish, start_run
     from fitting.solve.distribute import fit_data, for_options

@@ -56,11 +56,11 @@ def stages(size):
     from diffshade.host.candidates import find_candidates
     from diffshade.raster import fragments as raster
     from diffshade.raster.fragments import fragments_from_ids
-    from diffshade.raster.project import project
+    from diffshade.raster.projection import project
     from diffshade.raster.search import soft_radius
-    from diffshade.shade.compact import active_indices
+    from diffshade.shading.compact import active_indices
 
-    render_module = importlib.import_module("diffshade.pipeline.render")
+    render_module = importlib.import_module("diffshade.pipeline.rendering")
     scene = judged_scene(size, 4)
     soft = ds.RenderSettings(raster="soft", faces_per_pixel=SOFT_K, shading="phong")
     hard = ds.RenderSettings(raster="hard", shading="phong")

@@ -19,7 +19,7 @@ from diffshade.io.scenefile import (
     scene_from_dict,
     scenes_from_dict,
 )
-from diffshade.pipeline.render import (
+from diffshade.pipeline.rendering import (
     blend,
     rasterize_scene,
     render,
@@ -30,13 +30,13 @@ from diffshade.pipeline.render import (
 )
 from diffshade.pipeline.shading_cache import ShadingCache, cache_shading, render_cached
 from diffshade.raster.fragments import Fragments, rasterize
-from diffshade.raster.interpolate import interpolate
-from diffshade.raster.project import project
+from diffshade.raster.interpolation import interpolate
+from diffshade.raster.projection import project
 from diffshade.scene.area_lights import area_light, sphere_light
 from diffshade.scene.builtin import BUILTIN_SCENES, builtin_scene
 from diffshade.scene.camera import Camera, look_at
 from diffshade.scene.lights import ambient_light, directional_light, point_light, spot_light
-from diffshade.scene.material import Material, material
+from diffshade.scene.materials import Material, material
 from diffshade.scene.mesh import (
     Mesh,
     box,
@@ -49,7 +49,7 @@ from diffshade.scene.mesh import (
 )
 from diffshade.scene.scene import Scene, SceneObject, make_scene, replace, scene_object
 from diffshade.settings import RenderSettings
-from diffshade.shade.lighting import shade
+from diffshade.shading.lighting import shade
 
 # What users call. Everything else (light classes, blend variants, mesh utilities, the
 # scene-file dict writer, io helpers) stays importable from its module.

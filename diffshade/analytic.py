@@ -21,7 +21,7 @@ import numpy as np
 from diffshade.numerics import clamp01, dot, safe_normalize, safe_sqrt
 from diffshade.scene.camera import Camera, view_dir_infinite
 from diffshade.scene.mesh import icosphere, mesh_from_arrays
-from diffshade.shade.lighting import shade
+from diffshade.shading.lighting import shade
 
 
 def _sample_ndc(width, height, supersample, dtype):

@@ -28,7 +28,7 @@ import numpy as np
 from diffshade.io import compile_cache
 from diffshade.io.images import write_npy, write_png
 from diffshade.io.scenefile import load_scene
-from diffshade.pipeline.render import render, render_parts
+from diffshade.pipeline.rendering import render, render_parts
 from diffshade.scene.builtin import BUILTIN_SCENES, builtin_scene
 from diffshade.scene.camera import MAX_IMAGE_SIZE
 from diffshade.scene.scene import replace

@@ -23,7 +23,7 @@ Structural (static):
   higher-order derivatives; 'auto' (default): 'host' when JAX's default backend is the
   CPU with one device, 'jax' elsewhere (nothing then leaves the device; and the host
   kernels' callbacks do not shard: under XLA's SPMD partitioner they deadlock).
-- shadow_map_size: texels a side of each shadow map (diffshade.shade.shadows), for the lights
+- shadow_map_size: texels a side of each shadow map (diffshade.shading.shadows), for the lights
   with shadows=True; a scene without such a light compiles no shadow pass.
 
 Continuous (data):

@@ -15,7 +15,7 @@ internals (lm_step, normal_equations, ...) stay in their modules.
 from fitting import data, model, report, solve, spec
 from fitting.data.folder import load_dataset, save_dataset
 from fitting.data.views import Dataset, View, dataset_of_scene, view_scene
-from fitting.fit import FitResult, fit
+from fitting.driver import FitResult, fit
 from fitting.report.misfit import Misfit
 from fitting.report.uncertainty import IdentifiabilityWarning, UncertaintyReport
 from fitting.solve.options import FitOptions

@@ -46,7 +46,7 @@ from tqdm import tqdm
 
 from diffshade.io import COLOR_SPACES
 from fitting.checkpoint import save_checkpoint
-from fitting.fit import fit_result
+from fitting.driver import fit_result
 from fitting.inputs import non_negative_float, non_negative_int, positive_float, positive_int
 from fitting.model.cache import build_cache
 from fitting.model.loss import LOSSES

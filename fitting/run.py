@@ -4,7 +4,7 @@
     state = start_run(data, spec, init, FitOptions(method="adam"))   # or load_checkpoint
     status, message = advance(state, data, should_stop=flag.is_set, on_step=show,
                               save=lambda s: save_checkpoint(path, s), every=500)
-    finish(state, data)            # then fitting.fit.fit_result(state, dataset, data)
+    finish(state, data)            # then fitting.driver.fit_result(state, dataset, data)
 
 `RunState` is a plain, mutable record that `advance` updates in place after every step,
 so it is a consistent snapshot whenever `should_stop`, `on_step` or `save` sees it: the

@@ -14,7 +14,7 @@ search, no K) it redoes, in plain jax.numpy (differentiable, float64 under x64):
 - reach: |d2| <= r^2 = sigma ln((1 - t) / t) or inside, NDC depth in [-1, 1], and the
   face not culled: no vertex behind the near plane (Z + W < 0), non-zero screen area,
   back faces (clockwise on screen) only when cull_backfaces is off;
-- colours with diffshade.shade.lighting.shade (the lighting core is tested elsewhere): Phong at
+- colours with diffshade.shading.lighting.shade (the lighting core is tested elsewhere): Phong at
   the interpolated point and normal, Gouraud from clamped vertex colours, flat at the
   centroid with the face normal, flat_last from the last vertex; OpenGL's two-sided rule;
 - aggregation written out literally, with the largest exponent m factored out:
@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 
 from diffshade.scene.camera import projection_matrix, view_matrix
-from diffshade.shade.lighting import shade
+from diffshade.shading.lighting import shade
 
 BACKGROUND_EPS = 1e-3
 

@@ -34,8 +34,8 @@ from diffshade import (
     spot_light,
 )
 from diffshade.io.scenefile import SceneFileError, scene_to_dict
-from diffshade.shade.area import orthonormal_frame, rect_irradiance, sample_incidence, terms
-from diffshade.shade.lighting import _light_terms
+from diffshade.shading.area import orthonormal_frame, rect_irradiance, sample_incidence, terms
+from diffshade.shading.lighting import _light_terms
 
 pytestmark = pytest.mark.usefixtures("x64")
 

@@ -1,4 +1,4 @@
-"""diffshade.shade.compact.on_active: values and gradients at the active entries equal a plain
+"""diffshade.shading.compact.on_active: values and gradients at the active entries equal a plain
 evaluation, whether the active entries fit the capacity (compacted) or not (everywhere)."""
 
 import jax
@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffshade.shade.compact import active_indices, on_active
+from diffshade.shading.compact import active_indices, on_active
 
 pytestmark = pytest.mark.usefixtures("x64")
 

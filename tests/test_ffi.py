@@ -20,8 +20,8 @@ from diffshade.host import candidates, hostcall, xla_ffi
 from diffshade.host import fragment_kernels as kernels
 from diffshade.numerics import tiny
 from diffshade.raster.fragments import fragment_geometry
-from diffshade.raster.interpolate import interpolate_corners
-from diffshade.shade import compact
+from diffshade.raster.interpolation import interpolate_corners
+from diffshade.shading import compact
 
 H, W, K, F = 6, 5, 3, 7
 

@@ -16,7 +16,7 @@ import diffshade as ds
 from data_synth import make_dataset
 from diffshade.scene.lights import group_lights
 from fitting import DEFAULT_INIT, Dataset, FitSpec, IdentifiabilityWarning, View, fit, view_scene
-from fitting.fit import relative_errors
+from fitting.driver import relative_errors
 from fitting.model import build_cache, make_loss
 from fitting.model.loss import mean_rho
 from fitting.report.misfit import _neighbour_squares

@@ -243,7 +243,7 @@ VARIANTS = {"plain": _plain, "local_two_sided": _local_two_sided}
 # 1e-8 and 1e2, and a local viewer with two-sided lighting. Each entry compiles a program
 # of its own (4-12 s of CPU each), so no two entries run the same code on the cases: flat
 # and flat_last light one sample per face (per vertex) whichever raster reads it
-# (diffshade.shade.samples), so they run in soft raster alone, which reads and clamps those
+# (diffshade.shading.samples), so they run in soft raster alone, which reads and clamps those
 # samples as hard raster does; hard raster's own code runs under Phong and Gouraud.
 PLAN = (
     ("plain", RenderSettings()),
@@ -711,7 +711,7 @@ def test_2048_square_hard_render_fits_in_memory_and_covers_the_sphere():
 # ---------------------------------------------------------------------- shadow maps
 # A second, smaller catalogue of one shared structure: a 20-face sphere over a 2-face
 # floor, lit by a point light, a spot, a directional light, a disk and a sphere light, all
-# with shadows (diffshade/shade/shadows.py; the disk and the sphere two samples each, so two cube
+# with shadows (diffshade/shading/shadows.py; the disk and the sphere two samples each, so two cube
 # maps each: penumbrae), in both raster modes. Cases differ in values only and render in
 # one vmap per raster mode; values and gradients with respect to every float leaf of the
 # mesh, the lights and the material must be finite.

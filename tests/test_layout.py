@@ -15,6 +15,8 @@ submodule, as an import of P.m.
 """
 
 import ast
+import importlib
+import types
 from pathlib import Path
 
 import pytest
@@ -30,7 +32,7 @@ FLOORS = {
         ("host", ["diffshade.host"]),
         ("scene", ["diffshade.scene"]),
         ("raster", ["diffshade.raster"]),
-        ("shade", ["diffshade.shade"]),
+        ("shading", ["diffshade.shading"]),
         ("composite", ["diffshade.composite"]),
         ("pipeline", ["diffshade.pipeline"]),
         ("io", ["diffshade.io"]),
@@ -42,7 +44,7 @@ FLOORS = {
         ("model", ["fitting.model"]),
         ("solve", ["fitting.solve"]),
         ("report", ["fitting.report"]),
-        ("driver", ["fitting", "fitting.checkpoint", "fitting.cli", "fitting.fit",
+        ("driver", ["fitting", "fitting.checkpoint", "fitting.cli", "fitting.driver",
                     "fitting.inputs", "fitting.plan", "fitting.run"]),
     ],
     "data_synth": [("data_synth", ["data_synth", "data_synth.cli", "data_synth.materials",
@@ -51,8 +53,8 @@ FLOORS = {
 #: what fitting and data_synth may import diffshade through: the package, the floors' packages
 #: and the foundation's modules (host has no public face)
 PUBLIC_FACES = ("diffshade", "diffshade.numerics", "diffshade.settings", "diffshade.scene",
-                "diffshade.raster", "diffshade.shade", "diffshade.composite", "diffshade.pipeline",
-                "diffshade.io")
+                "diffshade.raster", "diffshade.shading", "diffshade.composite",
+                "diffshade.pipeline", "diffshade.io")
 #: which packages each package may import
 ALLOWED = {"diffshade": {"diffshade"}, "fitting": {"diffshade", "fitting"},
            "data_synth": {"diffshade", "fitting", "data_synth"}}
@@ -250,15 +252,31 @@ def test_applications_use_diffshade_through_public_faces():
 
 def test_the_public_face_check_sees_private_uses(tmp_path):
     path = tmp_path / "mod.py"
-    path.write_text("import diffshade as ds\nimport diffshade.shade.samples\n"
+    path.write_text("import diffshade as ds\nimport diffshade.shading.samples\n"
                     "from diffshade.scene import Mesh, take_material, _check_arrays\n"
                     "from diffshade.raster.search import search_faces\n"
                     "def f():\n    from diffshade import render, view_dirs\n"
                     "    return ds.render, ds.scene_to_dict\n")
     assert sorted(private_uses(path)) == sorted([
-        "2: import diffshade.shade.samples",
+        "2: import diffshade.shading.samples",
         "3: _check_arrays is not in diffshade.scene.__all__",
         "4: from diffshade.raster.search import ...",
         "6: view_dirs is not in diffshade.__all__",
         "7: ds.scene_to_dict is not in diffshade.__all__",
     ])
+
+
+def test_no_name_shadows_a_module():
+    """`package.name` is the module package/name.py wherever that module exists: a
+    function exported under a module's name would hide it (`import a.b as m` gives the
+    function), so modules and the functions they export have different names."""
+    shadowed = []
+    for name in MODULES:
+        if "." not in name or name.endswith("__main__"):
+            continue
+        parent, _, leaf = name.rpartition(".")
+        importlib.import_module(name)
+        attribute = getattr(importlib.import_module(parent), leaf)
+        if not isinstance(attribute, types.ModuleType):
+            shadowed.append(f"{name} is hidden by {parent}.{leaf} = {attribute!r}")
+    assert shadowed == [], "\n".join(shadowed)

@@ -1,4 +1,4 @@
-"""Closed forms for the lighting core, `diffshade.shade.lighting.shade`, and the same laws seen
+"""Closed forms for the lighting core, `diffshade.shading.lighting.shade`, and the same laws seen
 through `render_parts` (OpenGL 1.x spec 2.14.1 semantics; all in float64).
 
 Geometry used throughout: the surface normal N = +z at the origin, so that a light or a

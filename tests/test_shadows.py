@@ -1,4 +1,4 @@
-"""Shadow maps (diffshade/shade/shadows.py) against the exact shadow of a sphere over a floor.
+"""Shadow maps (diffshade/shading/shadows.py) against the exact shadow of a sphere over a floor.
 
 - One scene, three shadowed lights of different types, each lighting one colour channel
   only (a point light red, a spot green, a directional light blue): each channel of the

@@ -36,7 +36,7 @@ from diffshade import (
 )
 from diffshade.numerics import float_dtype
 from diffshade.pipeline.shading_cache import cache_shading, render_cached, slot_samples
-from diffshade.shade.samples import Reader
+from diffshade.shading.samples import Reader
 
 pytestmark = pytest.mark.usefixtures("x64")
 

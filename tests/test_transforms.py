@@ -117,7 +117,7 @@ SECOND_ORDER_NAMES = tuple(n for n in NAMES if not n.startswith(("point", "ambie
 
 
 # flat_last's samples are Gouraud's (per vertex and side) read as flat's are (one sample
-# per fragment, unweighted: diffshade.shade.samples), so the modes below run each of its parts
+# per fragment, unweighted: diffshade.shading.samples), so the modes below run each of its parts
 # in both rasters; its first-order gradients are checked above with every other mode
 SECOND_ORDER_MODES = [(raster, shading) for raster, shading in MODES if shading != "flat_last"]
 

@@ -29,8 +29,8 @@ from diffshade import (
     replace,
 )
 from diffshade.composite.transparency import soft_composite
-from diffshade.pipeline.render import shade_fragments
-from diffshade.raster.project import project
+from diffshade.pipeline.rendering import shade_fragments
+from diffshade.raster.projection import project
 from fitting.report.result import mtl_text
 
 pytestmark = pytest.mark.usefixtures("x64")

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 
 from diffshade.composite.blend import BACKGROUND_EPS, normalized_inverse_depth
-from diffshade.shade.samples import object_ids
+from diffshade.shading.samples import object_ids
 
 
 def _materials(scene):

@@ -1,4 +1,4 @@
-"""The compiled kernel behind diffshade.shade.compact.active_indices: the positions of the
+"""The compiled kernel behind diffshade.shading.compact.active_indices: the positions of the
 first `capacity` True entries of a boolean mask, and how many there are.
 
 One pass over the mask, written for numba: XLA's own `jnp.nonzero` (a cumulative sum and a

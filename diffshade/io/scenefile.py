@@ -47,7 +47,7 @@ from diffshade.scene.lights import (
     shadow_flags,
     spot_light,
 )
-from diffshade.scene.material import material
+from diffshade.scene.materials import material
 from diffshade.scene.mesh import (
     WEIGHTINGS,
     box,

@@ -2,10 +2,10 @@
 
 The floor's public face, listed in `__all__` (diffshade's own modules import each other
 by full module path). `render` here is the function (the module is
-diffshade.pipeline.render).
+diffshade.pipeline.rendering).
 """
 
-from diffshade.pipeline.render import (
+from diffshade.pipeline.rendering import (
     blend,
     rasterize_scene,
     render,

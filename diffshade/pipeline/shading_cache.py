@@ -5,7 +5,7 @@ fragments, blend weights and coverage are the same on every step; only the colou
 change. `cache_shading(scene, frags, settings)` computes, once, the fragments whose blend
 weight is not 0 (the *active* ones: in soft mode with a small gamma, about a third of the
 H x W x K slots; in hard mode the nearest fragment of each covered pixel), their
-shading samples (diffshade.shade.samples: the interpolated points and normals for Phong, the
+shading samples (diffshade.shading.samples: the interpolated points and normals for Phong, the
 vertices or faces the other modes light), their weights, the background's weight and the
 alpha channel. `render_cached(scene, cache, settings)` then lights the samples, reads the
 active fragments' colours and sums them into the pixels: the image of `render_fragments`
@@ -29,18 +29,18 @@ import numpy as np
 from diffshade.composite.blend import soft_alpha
 from diffshade.composite.transparency import is_transparent
 from diffshade.numerics import clamp01
-from diffshade.pipeline.render import blend_weights, check_arguments, shade_samples
+from diffshade.pipeline.rendering import blend_weights, check_arguments, shade_samples
 from diffshade.raster.fragments import Fragments
-from diffshade.raster.project import project
-from diffshade.shade.samples import Reader, Samples, read, shading_samples
-from diffshade.shade.shadows import shadow_maps
+from diffshade.raster.projection import project
+from diffshade.shading.samples import Reader, Samples, read, shading_samples
+from diffshade.shading.shadows import shadow_maps
 
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class ShadingCache:
     """samples: the Samples the active fragments read (only those); reader: how they read
-    them (diffshade.shade.samples.Reader, ids [C, 1, 1]: one per active fragment); pixels: [C]
+    them (diffshade.shading.samples.Reader, ids [C, 1, 1]: one per active fragment); pixels: [C]
     int32 flat pixel index (row * width + column) of each active fragment, ascending;
     weights: [C] its blend weight; background: [H, W] the background's weight; alpha:
     [H, W] coverage."""

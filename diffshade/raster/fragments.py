@@ -21,7 +21,7 @@ import jax.numpy as jnp
 from diffshade.host import fragment_kernels as kernels
 from diffshade.host.hostop import FragmentOp
 from diffshade.numerics import dot, safe_div, tiny
-from diffshade.raster.project import Projected
+from diffshade.raster.projection import Projected
 from diffshade.raster.search import search_depth, search_faces
 
 

@@ -3,7 +3,7 @@
 The floor's public face, listed in `__all__`: the names other packages (fitting,
 data_synth) may use. Modules inside diffshade import each other by full module path, so
 this package imports its own modules and nothing above them. `material` here is the
-function (the module is diffshade.scene.material).
+function (the module is diffshade.scene.materials).
 """
 
 from diffshade.scene.area_lights import area_light, sphere_light
@@ -18,7 +18,7 @@ from diffshade.scene.lights import (
     shadow_flags,
     spot_light,
 )
-from diffshade.scene.material import Material, material
+from diffshade.scene.materials import Material, material
 from diffshade.scene.mesh import (
     Mesh,
     box,

@@ -1,6 +1,6 @@
 """Area and extended lights as scene objects: `area_light` (a rectangle or a disk) and
 `sphere_light`, checked at the boundary. How they light a surface (their radiometric
-convention, the closed form and the sample patterns) is diffshade.shade.area's.
+convention, the closed form and the sample patterns) is diffshade.shading.area's.
 """
 
 import jax.numpy as jnp

@@ -8,7 +8,7 @@ written as a scene file. Render them with `RenderSettings()` or
 
 from diffshade.scene.camera import look_at
 from diffshade.scene.lights import ambient_light, directional_light, point_light, spot_light
-from diffshade.scene.material import material
+from diffshade.scene.materials import material
 from diffshade.scene.mesh import box, icosphere, model_matrix, torus
 from diffshade.scene.scene import Scene, make_scene
 

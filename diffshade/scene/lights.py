@@ -6,10 +6,10 @@ their input; `color=` sets diffuse = specular = color and leaves ambient at 0.
 `group_lights` stacks the lights of one type into one pytree with a leading light axis,
 and leaves a type absent (`None`) when the scene has none, so that no code for it is
 traced or compiled. Area and extended lights (rectangle, disk, sphere) are declared here
-too; their factories and shading are diffshade.shade.area (docs/area-lights.md).
+too; their factories and shading are diffshade.shading.area (docs/area-lights.md).
 Whether a light casts shadows (`shadows=True`; every type but the ambient light) is
 static structure: a stacked group holds a tuple of one flag per light, and only the
-flagged lights get a shadow pass (diffshade.shade.shadows).
+flagged lights get a shadow pass (diffshade.shading.shadows).
 
 Conventions: positions are world-space points; a `direction` is the direction the light
 *travels* (from the light into the scene), as for `GL_SPOT_DIRECTION`; attenuation is
@@ -97,7 +97,7 @@ class RectLight:
     """A one-sided rectangular (parallelogram) emitter: center [..., 3], edge vectors
     edge_u, edge_v [..., 3] (it emits towards edge_u x edge_v); colours [..., 3];
     samples: the static sample count of its sampled terms (area_lights.py); shadows:
-    static, see `shadow_flags` (a shadow map per sample, diffshade.shade.shadows)."""
+    static, see `shadow_flags` (a shadow map per sample, diffshade.shading.shadows)."""
 
     center: jax.Array
     edge_u: jax.Array
@@ -214,7 +214,7 @@ def _shadows(value):
 def directional_light(direction, color=None, *, ambient=0.0, diffuse=None,
                       specular=None, shadows=False) -> DirectionalLight:
     """A light at infinity shining along `direction` (white when no colour is given);
-    shadows=True: points it cannot see keep only its ambient term (diffshade.shade.shadows)."""
+    shadows=True: points it cannot see keep only its ambient term (diffshade.shading.shadows)."""
     return DirectionalLight(_direction("direction", direction),
                             *_colours(color, ambient, diffuse, specular), _shadows(shadows))
 

@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffshade.scene.material import Material
+from diffshade.scene.materials import Material
 from diffshade.scene.mesh import Mesh
 from diffshade.scene.transform import transform_normals, transform_points
 

@@ -21,8 +21,8 @@ import numpy as np
 from diffshade.numerics import float_dtype, representable
 from diffshade.scene.camera import Camera
 from diffshade.scene.lights import LightGroups, group_lights
-from diffshade.scene.material import Material
-from diffshade.scene.material import material as make_material
+from diffshade.scene.materials import Material
+from diffshade.scene.materials import material as make_material
 from diffshade.scene.mesh import Mesh
 from diffshade.scene.objects import ObjectIds, SceneObject, join_objects
 

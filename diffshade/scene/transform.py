@@ -3,7 +3,7 @@
 Normals transform by the inverse transpose of the matrix's upper 3x3 block (then are
 renormalized), so that they stay perpendicular to the surface under non-uniform scale.
 Used where objects are placed in the world (diffshade.scene.objects) and where the camera
-projects them (diffshade.raster.project).
+projects them (diffshade.raster.projection).
 """
 
 import jax.numpy as jnp

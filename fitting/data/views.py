@@ -96,7 +96,7 @@ class Dataset:
                              "non-negative number or 3 of them")
         if self.truth is not None and not isinstance(self.truth, Material):
             raise TypeError(f"truth: got {type(self.truth).__name__}; expected a Material "
-                            "(diffshade.scene.material(...)) or None")
+                            "(diffshade.scene.materials(...)) or None")
         if not isinstance(self.settings, RenderSettings):
             raise TypeError(f"settings: got {type(self.settings).__name__}; "
                             "expected RenderSettings")

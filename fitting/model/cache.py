@@ -5,7 +5,7 @@ and the lights is fixed too. `build_cache` rasterizes every view once
 (`diffshade.rasterize_scene`), keeps the pixels that are covered, inside the view's mask
 and (by default) not on the silhouette, and stores only what is fixed: the shading samples
 those pixels read (world point, normal, direction to the viewer) and how they read them.
-Both come from `diffshade.shade.samples`, the code `render` uses, per shading mode (per pixel
+Both come from `diffshade.shading.samples`, the code `render` uses, per shading mode (per pixel
 for Phong, per vertex and side for Gouraud and flat_last, per face for flat); which of
 them the kept pixels' fragments read, and how, is `diffshade.pipeline.slot_samples`, the
 step `diffshade.cache_shading` takes for the fragments a render blends. Two-sided
@@ -15,7 +15,7 @@ sides. With several objects each sample keeps its object id, which picks its row
 
 Shadows: with geometry and lights fixed, which samples a shadowed light reaches is fixed
 too. `build_cache` computes that visibility once per sample and light, with the shadow
-maps and the lookup `render` uses (diffshade.shade.shadows, diffshade.shade.lighting
+maps and the lookup `render` uses (diffshade.shading.shadows, diffshade.shading.lighting
 .light_visibility), and `shade` scales those lights' diffuse and specular terms by it,
 where render does (shadowed points keep only the ambient terms). A fit that moves a
 shadowed light (light_positions) therefore keeps its shadows where the given positions
@@ -48,7 +48,7 @@ from diffshade.pipeline import slot_samples, view_dirs
 from diffshade.raster import fragments_from_ids, project, search_depth, search_faces
 from diffshade.scene import LightGroups, Material, shadow_flags, take_material
 from diffshade.scene import material as make_material
-from diffshade.shade import (
+from diffshade.shading import (
     Reader,
     ShadingParts,
     light_visibility,
@@ -73,7 +73,7 @@ class ViewSamples:
     points, normals, view_dirs: [S, 3] world space (unit normals, reversed on back faces
     under two-sided lighting, and unit view_dirs); target: [N, 3] target colours of the
     kept pixels; pixels: [N] int32 flat index (row * width + column) of each kept pixel;
-    reader: diffshade.shade.samples.Reader of the kept pixels' fragments ([N, 1, K] ids, one row
+    reader: diffshade.shading.samples.Reader of the kept pixels' fragments ([N, 1, K] ids, one row
     each) into the samples, with no table when sample i is fragment i (Phong); objects:
     [S] int32 object ids of the samples (several objects), or None; shadows: {(kind,
     index): [S, 1]} the samples' visibility from each light with shadows, or None;
@@ -171,7 +171,7 @@ def _geometry(scene, settings, proj, frags):
 @jax.jit
 def sample_visibility(scene, samples, settings) -> dict:
     """{(kind, index): [..., 1]} the visibility of the shading samples from every light of
-    the scene with shadows, as render computes it (diffshade.shade.shadows)."""
+    the scene with shadows, as render computes it (diffshade.shading.shadows)."""
     return light_visibility(scene.lights, samples.points, samples.normals, settings,
                             shadow_maps(scene, settings))
 
@@ -185,7 +185,7 @@ def casts_shadows(lights: LightGroups) -> bool:
 
 def view_geometry(scene, settings) -> dict:
     """Rasterize and project once (fixed_fragments): the mode's shading samples
-    (diffshade.shade.samples) with their view directions, how the pixels read them, and which
+    (diffshade.shading.samples) with their view directions, how the pixels read them, and which
     pixels are covered ('valid', [H, W]). Lights and material play no part, so views of
     one camera size share the compilations (geometry_scene)."""
     proj, frags = fixed_fragments(scene, settings, layers_needed(scene, settings))

@@ -44,7 +44,7 @@ from diffshade.io import (
 )
 from diffshade.pipeline import render_fragments
 from diffshade.scene import unstack_material
-from diffshade.shade import shadow_maps
+from diffshade.shading import shadow_maps
 from fitting.data.folder import material_dict
 from fitting.data.views import view_scene
 from fitting.model.batch import common_lights

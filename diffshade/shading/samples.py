@@ -24,7 +24,7 @@ import jax.numpy as jnp
 
 from diffshade.numerics import safe_normalize
 from diffshade.raster.fragments import face_edge_coefficients
-from diffshade.raster.interpolate import interpolate_rows
+from diffshade.raster.interpolation import interpolate_rows
 
 
 @jax.tree_util.register_dataclass

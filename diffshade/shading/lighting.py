@@ -12,7 +12,7 @@ and view_dirs are [..., 3]; material fields broadcast against [..., 3] (so a per
 material, as two-sided lighting needs, works too). All vectors are world space; the
 caller passes unit normals and unit directions *towards* the viewer. Absent light types,
 `ks=None` and `emission=None` are skipped at trace time: no code is compiled for them.
-Area and sphere lights (diffshade.shade.area) add their terms through the same
+Area and sphere lights (diffshade.shading.area) add their terms through the same
 `_light_terms`, once per light sample.
 """
 
@@ -23,9 +23,9 @@ import jax.numpy as jnp
 
 from diffshade.numerics import dot, safe_div, safe_norm, safe_normalize, safe_pow
 from diffshade.scene.lights import LightGroups
-from diffshade.scene.material import Material
-from diffshade.shade import area
-from diffshade.shade.shadows import ShadowMap, sampled_visibility, visibility
+from diffshade.scene.materials import Material
+from diffshade.shading import area
+from diffshade.shading.shadows import ShadowMap, sampled_visibility, visibility
 
 
 @jax.tree_util.register_dataclass
@@ -141,7 +141,7 @@ def shade(material: Material, lights: LightGroups, global_ambient, points, norma
           view_dirs, settings, shadow_maps=None) -> ShadingParts:
     """Light samples. points, normals, view_dirs: [..., 3] float world space (normals and
     view_dirs unit); global_ambient: [3]; settings: RenderSettings (specular model, spot
-    edge, shadow lookup); shadow_maps: {(kind, index): diffshade.shade.shadows.ShadowMap, or the
+    edge, shadow lookup); shadow_maps: {(kind, index): diffshade.shading.shadows.ShadowMap, or the
     points' visibility [..., 1] (light_visibility)} of the scene's shadowed lights, whose
     diffuse and specular terms are scaled by their visibility (None: no shadows).
     Returns ShadingParts, each [..., 3], unclamped.

@@ -24,7 +24,7 @@ L_j and weight w_j, its share of the integral.
 
 Shadows (shadows=True, docs/shadows.md): the light's `samples` fixed points
 (`sample_points`: the rectangle's and the disk's own sample pattern, stratified points
-over a sphere's whole surface) each get a shadow map (diffshade.shade.shadows.sampled_visibility);
+over a sphere's whole surface) each get a shadow map (diffshade.shading.shadows.sampled_visibility);
 at a point p the light's diffuse and specular terms are multiplied by
 V(p) = sum_j c_j vis_j / sum_j c_j, c_j = max(N.L_j, 0) max(-n_j.L_j, 0) / r_j^2 the
 unshadowed diffuse contribution of sample point j (n_j its emitting normal). For a disk
@@ -301,7 +301,7 @@ def terms(kind, light, material, points, normals, view_dirs, settings, light_ter
           seen=None):
     """(ambient, diffuse, specular or None) of one area or sphere light, [..., 3] each.
     light_terms: shading._light_terms (one point-like light at one direction and scale);
-    seen: None, or the light's visibility V [..., 1] (diffshade.shade.shadows.sampled_visibility),
+    seen: None, or the light's visibility V [..., 1] (diffshade.shading.shadows.sampled_visibility),
     which scales its diffuse and specular terms (module docstring)."""
     d, s = _unshadowed(kind, light, material, points, normals, view_dirs, settings,
                        light_terms)

@@ -195,7 +195,7 @@ def _check_fit_args(dataset, spec, init, truth, options, settings):
         named = name == "init" and isinstance(value, dict)  # {object name: Material}
         if value is not None and not isinstance(value, Material) and not named:
             raise TypeError(f"{name}: got {type(value).__name__}; expected a Material "
-                            "(diffshade.scene.material(...)) or None")
+                            "(diffshade.scene.materials(...)) or None")
     if options is not None and not isinstance(options, FitOptions):
         raise TypeError(f"options: got {type(options).__name__}; expected FitOptions")
     unknown = sorted(set(settings) - {f.name for f in dataclasses.fields(FitOptions)})

@@ -1,7 +1,7 @@
 """render: project -> rasterize -> weights -> shade what counts -> blend, each once.
 
 Shading modes (RenderSettings.shading) follow OpenGL 1.x; where each mode lights the
-surface and how fragments read the lit colours is diffshade.shade.samples (shared with the
+surface and how fragments read the lit colours is diffshade.shading.samples (shared with the
 fitting cache):
 - 'phong': normals interpolated perspective-correctly and renormalized, lit per fragment;
   the final colour is clamped (when clamping is on).
@@ -14,7 +14,7 @@ screen and lights them with the back material, when the scene has one, as OpenGL
 In a scene of several objects each sample takes its object's (front or back) material.
 
 In soft mode the blend weights are computed once, before shading: Phong shading then
-lights only the fragments whose weight is not 0 (diffshade.shade.compact).
+lights only the fragments whose weight is not 0 (diffshade.shading.compact).
 
 A scene with a transparent material (kt) keeps K layers in hard mode too and composites
 them (diffshade.composite.transparency); an opaque scene compiles none of that.
@@ -36,20 +36,20 @@ from diffshade.composite.transparency import (
 )
 from diffshade.numerics import clamp01, safe_normalize
 from diffshade.raster.fragments import Fragments, rasterize
-from diffshade.raster.project import Projected, project
+from diffshade.raster.projection import Projected, project
 from diffshade.scene.camera import Camera, view_dir_infinite
 from diffshade.scene.objects import take_material
 from diffshade.scene.scene import Scene
 from diffshade.settings import RenderSettings
-from diffshade.shade.compact import on_active
-from diffshade.shade.lighting import ShadingParts, shade
-from diffshade.shade.samples import Samples, phong_samples, read, shading_samples
-from diffshade.shade.shadows import shadow_maps
+from diffshade.shading.compact import on_active
+from diffshade.shading.lighting import ShadingParts, shade
+from diffshade.shading.samples import Samples, phong_samples, read, shading_samples
+from diffshade.shading.shadows import shadow_maps
 
 DEFAULT_SETTINGS = RenderSettings()
 
 #: Phong shading of a soft render lights at most this many slots per pixel on average
-#: when only that many have a non-zero blend weight (diffshade.shade.compact); else all of them
+#: when only that many have a non-zero blend weight (diffshade.shading.compact); else all of them
 ACTIVE_SLOTS_PER_PIXEL = 4
 
 
@@ -108,7 +108,7 @@ def shade_fragments(scene, proj: Projected, frags: Fragments, settings, active=N
 
     active: optional [H, W, K] bool, the fragments whose colour matters; Phong shading
     then interpolates and lights only those (the others' values are 0 or unspecified;
-    see _shade_active, and diffshade.shade.compact's axis_name for a batch of views)."""
+    see _shade_active, and diffshade.shading.compact's axis_name for a batch of views)."""
     host = settings.use_host_kernels()
     maps = shadow_maps(scene, settings)
     light = lambda samples: shade_samples(scene, samples, settings, maps)

@@ -24,7 +24,7 @@ differentiable in the vertices and the light. An occluder's depth therefore has 
 gradient; its silhouette's sideways motion acts only through the point's projection.
 
 `visibility(shadow_map, points, normals, light_dir, settings)` takes any map. An area or
-sphere light with shadows (diffshade.shade.area) gets one cube map per sample point
+sphere light with shadows (diffshade.shading.area) gets one cube map per sample point
 (`area_maps`: `point_map` in a loop over the light's `sample_points`, so S samples cost
 S times a point light's six maps), and `sampled_visibility` averages the per-sample
 visibilities weighted by each sample's unshadowed diffuse contribution: in soft raster
@@ -39,12 +39,12 @@ import jax.numpy as jnp
 
 from diffshade.numerics import dot, safe_div, safe_norm, safe_normalize, tiny
 from diffshade.raster.fragments import rasterize
-from diffshade.raster.project import Projected
+from diffshade.raster.projection import Projected
 from diffshade.scene.camera import Camera, projection_matrix, view_matrix
 from diffshade.scene.lights import SHADOW_SPOT_CUTOFF, shadow_flags
 from diffshade.scene.transform import transform_points
-from diffshade.shade.area import KINDS as AREA_KINDS
-from diffshade.shade.area import from_point, sample_points
+from diffshade.shading.area import KINDS as AREA_KINDS
+from diffshade.shading.area import from_point, sample_points
 
 #: the cube's faces: (axis the face looks along, its up vector)
 CUBE_FACES = (((1, 0, 0), (0, 1, 0)), ((-1, 0, 0), (0, 1, 0)), ((0, 1, 0), (0, 0, 1)),

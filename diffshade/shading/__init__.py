@@ -4,9 +4,9 @@ The floor's public face, listed in `__all__` (diffshade's own modules import eac
 by full module path).
 """
 
-from diffshade.shade.lighting import ShadingParts, light_visibility, shade
-from diffshade.shade.samples import Reader, Samples, read, shading_samples
-from diffshade.shade.shadows import ShadowMap, shadow_maps
+from diffshade.shading.lighting import ShadingParts, light_visibility, shade
+from diffshade.shading.samples import Reader, Samples, read, shading_samples
+from diffshade.shading.shadows import ShadowMap, shadow_maps
 
 __all__ = [
     "ShadingParts", "light_visibility", "shade",
