@@ -2,7 +2,9 @@
 
 import os
 import platform
+import random
 import statistics
+import subprocess
 import time
 
 import jax
@@ -22,6 +24,75 @@ def time_call(fn, *args, repeats=10, warmup=2):
         jax.block_until_ready(fn(*args))
         runs.append(time.perf_counter() - start)
     return compile_s, statistics.median(runs), runs
+
+
+def _timed(fn):
+    start = time.perf_counter()
+    jax.block_until_ready(fn())
+    return time.perf_counter() - start
+
+
+def _settled(times, settle):
+    last = times[-3:]
+    middle = statistics.median(last)
+    return len(last) == 3 and all(abs(t - middle) <= settle * middle for t in last)
+
+
+def time_settings(calls, *, rounds=7, settle=0.15, min_warmup=2, max_warmup=20, seed=0):
+    """Time several settings against each other: {name: zero-argument fn} ->
+    {name: {"compile_s", "warmup_calls", "median_ms", "q1_ms", "q3_ms", "min_ms", "max_ms"}}.
+
+    The protocol: (1) each fn's first call (trace, compile and run) is timed apart, as
+    compile_s; (2) each fn is then called until its time settles (the last three calls
+    within `settle` of their median; at least `min_warmup`, at most `max_warmup` calls),
+    which keeps a slow first run of a warm program (page faults, a cold cache) out of the
+    figures; (3) `rounds` rounds follow, in each of which every setting runs once, in an
+    order shuffled per round (fixed seed), so that a change in the machine's speed hits
+    every setting alike; the median and the quartiles of those runs are reported."""
+    compile_s = {name: _timed(fn) for name, fn in calls.items()}
+    warmups = {}
+    for name, fn in calls.items():
+        times = [_timed(fn) for _ in range(min_warmup)]
+        while len(times) < max_warmup and not _settled(times, settle):
+            times.append(_timed(fn))
+        warmups[name] = len(times)
+    runs = {name: [] for name in calls}
+    order, shuffle = list(calls), random.Random(seed).shuffle
+    for _ in range(rounds):
+        shuffle(order)
+        for name in order:
+            runs[name].append(_timed(calls[name]))
+    out = {}
+    for name, times in runs.items():
+        q1, median, q3 = statistics.quantiles(times, n=4, method="inclusive")
+        out[name] = {"compile_s": compile_s[name], "warmup_calls": warmups[name],
+                     "median_ms": 1e3 * median, "q1_ms": 1e3 * q1, "q3_ms": 1e3 * q3,
+                     "min_ms": 1e3 * min(times), "max_ms": 1e3 * max(times)}
+    return out
+
+
+def run_record():
+    """What a measurement ran on and under: the commit (with '+dirty' when the work tree
+    has changes), the UTC start and the 1-minute load average; `finish_record` adds the end."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
+                                text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+                               cwd=root, capture_output=True, text=True).stdout.strip()
+        commit += "+dirty" if dirty else ""
+    except (OSError, subprocess.CalledProcessError):
+        commit = None
+    return {"commit": commit, "start_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
+            "load_before": round(os.getloadavg()[0], 2), "_start": time.perf_counter()}
+
+
+def finish_record(record):
+    """The record of run_record with the minutes taken and the load average at the end."""
+    done = {k: v for k, v in record.items() if k != "_start"}
+    done["minutes"] = round((time.perf_counter() - record["_start"]) / 60, 1)
+    done["load_after"] = round(os.getloadavg()[0], 2)
+    return done
 
 
 def machine_info():
