@@ -192,6 +192,10 @@ def plot_fitting(axes, rows):
           "largest relative parameter error")
     ax.legend(loc="upper right", fontsize=8)
     ax = axes[1]
+    if not steps:  # a quick run has no trace
+        ax.set_axis_off()
+        ax.text(0.5, 0.5, "no step trace in these results", ha="center", transform=ax.transAxes)
+        return
     ax.plot([r["steps"] for r in steps], [r["loss"] for r in steps], "o-", color="C0")
     for r in steps:
         ax.annotate(f"{r['loss']:.1e}", (r["steps"], r["loss"]), textcoords="offset points",
