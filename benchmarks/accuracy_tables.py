@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import with_spreads  # noqa: E402
+from common import spread, with_spreads  # noqa: E402
 
 MESH = [("subdivisions", "subdiv", "{}"), ("faces", "faces", "{:,}"), ("shading", "shading", "{}"),
         ("size", "px", "{}"),
@@ -102,11 +102,16 @@ RENDER_TABLES = {"mesh": "Mesh vs analytic sphere", "supersample": "Supersamplin
                  "soft": "Soft rasterization"}
 
 
+def _forward_time(row):
+    quartiles = spread(row, "fwd")
+    return f"{row['fwd_ms']:.1f} ms forward" + (f" ({quartiles})" if quartiles else "")
+
+
 def render_candidates(studies):
     """Every hard, supersampled and soft render of the study's sphere scene."""
     results = studies.get("vs_time", {})
     return [{**row, "setting": _render_setting(row), "from": RENDER_TABLES[study],
-             "time_ms": row["fwd_ms"], "time": f"{row['fwd_ms']:.1f} ms forward"}
+             "time_ms": row["fwd_ms"], "time": _forward_time(row)}
             for study in RENDER_TABLES for row in results.get(study, [])]
 
 
@@ -149,7 +154,7 @@ def choose_table(studies):
                      "error": fmt.format(best[key]), "from": best["from"]})
     return table(rows, [("target", "target", "{}"), ("setting", "cheapest measured settings",
                                                      "{}"),
-                        ("time", "time (median)", "{}"), ("error", "its error", "{}"),
+                        ("time", "time: median (q1–q3)", "{}"), ("error", "its error", "{}"),
                         ("from", "row of the table", "{}")])
 
 
