@@ -76,22 +76,22 @@ def config(kind, samples, map_size):
     return jax.jit(lambda s: ds.render(s, settings)), scene(kind, samples)
 
 
-def measure(kind, samples_list, map_sizes):
-    """(rows, {(kind, samples, map): zero-argument forward render}) of one light."""
+def measure(kind, samples_list, map_sizes, stats, configs):
+    """The rows of one light: its hard-shadow row, then per samples and map size the
+    penumbra's error (rendered after the timing, so that "first call" is one)."""
     mask, want, scale, hard_error = penumbra(kind)
     # columns that do not apply to the penumbra-blind estimate are None (an empty cell)
     rows = [{"light": kind, "samples": "hard shadow", "map": None, "mean_err": hard_error,
              "max_err": None, "pixels": int(mask.sum()), "fwd_ms": None, "compile_s": None}]
-    calls = {}
     for samples in samples_list:
         for size in map_sizes:
-            render, s = config(kind, samples, size)
+            render, s = configs[kind, samples, size]
             error = np.abs(np.asarray(render(s), np.float64)[..., 0] - want)[mask] / scale
             rows.append({"light": kind, "samples": samples, "map": size,
                          "mean_err": float(error.mean()), "max_err": float(error.max()),
-                         "pixels": int(mask.sum())})
-            calls[kind, samples, size] = lambda render=render, s=s: render(s)
-    return rows, calls
+                         "pixels": int(mask.sum()),
+                         **timing_columns(stats[kind, samples, size], "fwd", "compile_s")})
+    return rows
 
 
 def run(quick=False):
@@ -100,17 +100,12 @@ def run(quick=False):
     samples = (4, 16) if quick else (4, 16, 64)
     sizes = (64,) if quick else (32, 64, 128)
     timing = {"rounds": 3, "max_warmup": 6} if quick else {"rounds": 7}
-    rows, calls = [], {}
-    for kind in LIGHTS:
-        kind_rows, kind_calls = measure(kind, samples, sizes)
-        rows += kind_rows
-        calls |= kind_calls
-    stats = time_settings(calls, **timing)
-    for row in rows:
-        key = row["light"], row["samples"], row["map"]
-        if key in stats:
-            row.update(timing_columns(stats[key], "fwd", "compile_s"))
-    return {"rows": rows}
+    configs = {(kind, n, size): config(kind, n, size)
+               for kind in LIGHTS for n in samples for size in sizes}
+    stats = time_settings({key: (lambda c=c: c[0](c[1])) for key, c in configs.items()},
+                          **timing)
+    return {"rows": [row for kind in LIGHTS
+                     for row in measure(kind, samples, sizes, stats, configs)]}
 
 
 COLUMNS = [("light", "light", "{}"), ("samples", "samples", "{}"), ("map", "map", "{}"),

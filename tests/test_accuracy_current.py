@@ -22,6 +22,7 @@ swapped), which must fail and name the rows.
 """
 
 import itertools
+import json
 import statistics
 import sys
 from pathlib import Path
@@ -32,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import accuracy_shadows  # noqa: E402
 import accuracy_vs_time as vs_time  # noqa: E402
-from accuracy_study import load_published  # noqa: E402
+from accuracy_study import load_published, modules  # noqa: E402
 from common import time_settings  # noqa: E402
 
 pytestmark = pytest.mark.cost(40)  # one timing run shared by the module
@@ -136,7 +137,7 @@ def test_published_times_describe_todays_speed(published, measured):
                                  messages)
 
 
-def test_the_checker_fails_on_a_doctored_json(published):
+def test_the_checker_fails_on_a_doctored_json(published, tmp_path):
     """A study whose figures are today's passes, on a machine twice as slow too; the same
     with one published time ×5, every one ×5, or two rows' times swapped fails and names
     the rows."""
@@ -145,8 +146,18 @@ def test_the_checker_fails_on_a_doctored_json(published):
     assert not off_band(published, {k: 2 * v for k, v in today.items()})
 
     slow = max(published, key=published.get)
-    doctored = {**published, slow: 5 * published[slow]}
-    assert [slow in m for m in off_band(doctored, today)] == [True]
+    study, section, keys, _ = ROWS[slow]
+    studies = load_published()
+    for row in studies[study][section]:
+        if all(row.get(k) == v for k, v in keys.items()):
+            row["fwd_ms"] *= 5
+    for name, results in studies.items():
+        (tmp_path / Path(modules()[name].OUT).name).write_text(json.dumps(results))
+    doctored = published_times(load_published(tmp_path))
+    assert doctored == {**published, slow: 5 * published[slow]}
+    messages = off_band(doctored, today)
+    assert [slow in m for m in messages] == [True]
+    assert FIX in failure("rows", messages)
     everything = {k: 5 * v for k, v in published.items()}
     assert [m.startswith("every row") for m in off_band(everything, today)] == [True]
 
