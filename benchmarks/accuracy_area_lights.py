@@ -9,12 +9,13 @@ radius 0.6) close to the sphere, so that the light's extent matters. Reference: 
 light with REFERENCE_SAMPLES samples (the rectangle's diffuse term is exact at every
 count: Lambert's formula; its samples serve the specular term). The material is glossy
 (ks 0.5, shininess 30), so the sampled specular term shows. Errors in 1/255 units over the
-RGB channels of the clamped image: RMSE and the maximum absolute error. Times: steady-state
-median of forward renders after warm-up, the first call (trace + compile + run) separately;
-'fwd+bwd' is the gradient of an MSE loss with respect to the material and the light.
+RGB channels of the clamped image: RMSE and the maximum absolute error. Times: every row's
+forward render and gradient timed against each other in one interleaved run
+(common.time_settings: warm-up until the time settles, median and quartiles), the first
+call (trace + compile + run) apart; 'fwd+bwd' is the gradient of an MSE loss with respect
+to the material and the light.
 """
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -23,10 +24,13 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import print_table, time_call, write_results  # noqa: E402
+from common import plot_hook, study_main, time_settings, timing_columns, with_spreads  # noqa: E402
 
 import diffshade as ds  # noqa: E402
 
+NAME = "area_lights"
+OUT = "benchmarks/results/accuracy_area_lights.json"
+KINDS = ("rect", "disk", "sphere")
 SIZE = 64
 REFERENCE_SAMPLES = 4096
 AT = (1.2, 1.8, 1.0)
@@ -73,44 +77,54 @@ def loss_grad(s, target):
     return jax.grad(loss, argnums=(0, 1))(s.material, s.lights)
 
 
-def measure(kind, counts, repeats):
-    reference = np.asarray(render(scene(kind, REFERENCE_SAMPLES)), np.float64)
-    rows = []
-    for count in counts:
-        s = scene(kind, count)
-        compile_s, fwd_s, _ = time_call(render, s, repeats=repeats)
-        _, grad_s, _ = time_call(loss_grad, s, jnp.asarray(reference, jnp.float32),
-                                 repeats=repeats)
-        diff = np.asarray(render(s), np.float64)[..., :3] - reference[..., :3]
-        rows.append({"light": kind, "samples": count,
-                     "rmse_255": 255 * float(np.sqrt(np.mean(diff ** 2))),
-                     "max_255": 255 * float(np.abs(diff).max()),
-                     "compile_s": compile_s, "fwd_ms": 1e3 * fwd_s, "grad_ms": 1e3 * grad_s})
-        print(f"{kind}, {count} samples: done", flush=True)
-    return rows
+def calls(kind, count, reference):
+    """{"fwd", "grad"}: zero-argument calls of one row, for common.time_settings."""
+    s, target = scene(kind, count), jnp.asarray(reference, jnp.float32)
+    return {"fwd": lambda: render(s), "grad": lambda: loss_grad(s, target)}
+
+
+def errors(kind, count, reference):
+    diff = np.asarray(render(scene(kind, count)), np.float64)[..., :3] - reference[..., :3]
+    return {"rmse_255": 255 * float(np.sqrt(np.mean(diff ** 2))),
+            "max_255": 255 * float(np.abs(diff).max())}
+
+
+def run(quick=False):
+    """{"rows": per light kind and sample count, the errors against the reference and the
+    times, all rows timed together; "reference_samples"}."""
+    counts = (1, 4, 16) if quick else (1, 4, 16, 64, 256)
+    timing = {"rounds": 3, "max_warmup": 6} if quick else {"rounds": 7}
+    references = {kind: np.asarray(render(scene(kind, REFERENCE_SAMPLES)), np.float64)
+                  for kind in KINDS}
+    timed = {(kind, count, part): fn for kind in KINDS for count in counts
+             for part, fn in calls(kind, count, references[kind]).items()}
+    stats = time_settings(timed, **timing)
+    # the errors' renders come after the timing, so that each first call compiles
+    rows = [{"light": kind, "samples": count, **errors(kind, count, references[kind]),
+             **timing_columns(stats[kind, count, "fwd"], "fwd", "compile_s"),
+             **timing_columns(stats[kind, count, "grad"], "grad")}
+            for kind in KINDS for count in counts]
+    return {"rows": rows, "reference_samples": REFERENCE_SAMPLES}
 
 
 COLUMNS = [("light", "light", "{}"), ("samples", "samples", "{}"),
-           ("rmse_255", "RMSE/255", "{:.3f}"), ("max_255", "max/255", "{:.2f}"),
-           ("fwd_ms", "fwd ms", "{:.1f}"), ("grad_ms", "fwd+bwd ms", "{:.1f}"),
+           ("rmse_255", "RMSE /255", "{:.3f}"), ("max_255", "max /255", "{:.2f}"),
+           ("fwd_ms", "fwd ms", "{:.1f}"), ("fwd_spread", "fwd spread ms", "{}"),
+           ("grad_ms", "fwd+bwd ms", "{:.1f}"), ("grad_spread", "fwd+bwd spread ms", "{}"),
            ("compile_s", "first call s", "{:.1f}")]
 
 
+def tables(results):
+    from accuracy_tables import table
+    return table(with_spreads(results["rows"]), COLUMNS)
+
+
+def plots(results, folder):
+    return plot_hook("draw_area_lights", results, folder)
+
+
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--out", default=None, help="also write the rows as JSON")
-    args = parser.parse_args(argv)
-    counts = (1, 4, 16) if args.quick else (1, 4, 16, 64, 256)
-    rows = []
-    for kind in ("rect", "disk", "sphere"):
-        rows += measure(kind, counts, args.repeats)
-    print()
-    print(f"{SIZE}x{SIZE}, reference: {REFERENCE_SAMPLES} samples; errors in 1/255 units")
-    print_table(rows, COLUMNS)
-    if args.out:
-        write_results(args.out, {"rows": rows, "reference_samples": REFERENCE_SAMPLES})
+    return study_main(sys.modules[__name__], argv)
 
 
 if __name__ == "__main__":

@@ -14,6 +14,7 @@ run (and with the machine's load).
 """
 
 import dataclasses
+import functools
 import json
 import os
 import subprocess
@@ -22,7 +23,7 @@ import time
 
 import jax
 import numpy as np
-from fit_step import time_step
+from common import time_settings, timing_columns
 
 import diffshade as ds
 from data_synth import make_dataset
@@ -151,20 +152,23 @@ def mismatch_rows(size, target_level, fitted):
     return rows
 
 
-def cache_rows(dataset, runs):
-    """Median per-step time of the same Adam step with and without the fragment cache."""
+def cache_rows(dataset, timing):
+    """Per-step time of the same Adam step with and without the fragment cache, the two
+    timed against each other (common.time_settings)."""
     spec, optimizer = FitSpec(), make_optimizer()
     params = to_unconstrained(DEFAULT_INIT, spec)
     state = optimizer.init(params)
     cached = build_cache(dataset, DEFAULT_INIT)
-    rows = []
+    calls = {}
     for name, loss, data in (("cached", make_loss(spec), cached),
                              ("full_render", make_render_loss(spec),
                               render_data(dataset, cached))):
-        first, times = time_step(make_step(loss, optimizer), params, state, data, runs, 3)
-        rows.append({"study": "cache", "path": name, "first_call_s": first,
-                     "step_ms": float(np.median(times) * 1e3)})
-    return rows
+        step = make_step(loss, optimizer)
+        # the same step from the same state each call: the time of one step
+        calls[name] = functools.partial(step, params, state, data)
+    stats = time_settings(calls, **timing)
+    return [{"study": "cache", "path": name,
+             **timing_columns(stats[name], "step", "first_call_s")} for name in calls]
 
 
 # One fit from a fresh interpreter: argv = method size; prints one JSON line.
@@ -214,7 +218,7 @@ def fitting_study(quick=False):
     dataset = make_dataset(size=128, seed=SEED)
     rows = steps_rows(dataset, {10, 30, 100, 300, 1000, 3000})
     rows += method_rows(dataset)
-    rows += cache_rows(dataset, 50)
+    rows += cache_rows(dataset, {"rounds": 25})
     rows += scaling_rows((32, 64, 128, 256), (1, 2, 4, 8))
     rows += noise_rows(128, (1, 2, 4, 8), ((0.0, True), (0.01, False), (0.03, False)))
     rows += noise_rows(32, (1,), ((0.0, True),), seeds=NOISE_SEEDS[:1])  # the quick row

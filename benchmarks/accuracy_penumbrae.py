@@ -12,12 +12,12 @@ the exact sphere's shadow, a 64^2-node midpoint quadrature over the light in Num
 (the floor pixels, a pixel away from the sphere's silhouette, where the visible fraction
 is between 2% and 98%), per unit of the light's brightest unshadowed floor pixel: mean
 and max. 'hard shadow' rows: the error a hard shadow from the light's centre would make
-there (a penumbra-blind render). Times: median of forward renders after warm-up; 'first
+there (a penumbra-blind render). Times: the forward renders of every row timed against
+each other in one interleaved run (common.time_settings: median and quartiles); 'first
 call' is trace + compile + run. Kept apart from accuracy_area_lights.py (the unshadowed
 terms' sample counts), which another study edits.
 """
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -25,11 +25,13 @@ import jax
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import print_table, time_call, write_results  # noqa: E402
+from common import plot_hook, study_main, time_settings, timing_columns, with_spreads  # noqa: E402
 
 import diffshade as ds  # noqa: E402
 from diffshade.analytic import SphereOverPlane  # noqa: E402
 
+NAME = "penumbrae"
+OUT = "benchmarks/results/accuracy_penumbrae.json"
 SIZE = 48
 GEOMETRY = SphereOverPlane()
 LIGHTS = {"disk": ("disk", (-0.5, 2.0, -1.0), (0.0, -1.0, 0.0), 0.5),
@@ -68,47 +70,61 @@ def penumbra(kind):
     return mask, KD * POWER * seen, scale, hard_error
 
 
-def measure(kind, samples_list, map_sizes, repeats):
+def config(kind, samples, map_size):
+    """(jitted forward render, scene) of one row."""
+    settings = ds.RenderSettings(shadow_map_size=map_size, clamp=False)
+    return jax.jit(lambda s: ds.render(s, settings)), scene(kind, samples)
+
+
+def measure(kind, samples_list, map_sizes, stats, configs):
+    """The rows of one light: its hard-shadow row, then per samples and map size the
+    penumbra's error (rendered after the timing, so that "first call" is one)."""
     mask, want, scale, hard_error = penumbra(kind)
-    # columns that do not apply to the penumbra-blind estimate are None (printed as a dash)
+    # columns that do not apply to the penumbra-blind estimate are None (an empty cell)
     rows = [{"light": kind, "samples": "hard shadow", "map": None, "mean_err": hard_error,
              "max_err": None, "pixels": int(mask.sum()), "fwd_ms": None, "compile_s": None}]
     for samples in samples_list:
         for size in map_sizes:
-            settings = ds.RenderSettings(shadow_map_size=size, clamp=False)
-            render = jax.jit(lambda s, settings=settings: ds.render(s, settings))
-            s = scene(kind, samples)
-            compile_s, fwd_s, _ = time_call(render, s, repeats=repeats, warmup=1)
+            render, s = configs[kind, samples, size]
             error = np.abs(np.asarray(render(s), np.float64)[..., 0] - want)[mask] / scale
             rows.append({"light": kind, "samples": samples, "map": size,
                          "mean_err": float(error.mean()), "max_err": float(error.max()),
-                         "pixels": int(mask.sum()), "fwd_ms": 1e3 * fwd_s,
-                         "compile_s": compile_s})
-            print(f"{kind}, {samples} samples, {size}^2 maps: done", flush=True)
+                         "pixels": int(mask.sum()),
+                         **timing_columns(stats[kind, samples, size], "fwd", "compile_s")})
     return rows
+
+
+def run(quick=False):
+    """{"rows": per light, sample count and map size, the penumbra's error and the
+    forward time (all rows timed together), and a hard-shadow row per light}."""
+    samples = (4, 16) if quick else (4, 16, 64)
+    sizes = (64,) if quick else (32, 64, 128)
+    timing = {"rounds": 3, "max_warmup": 6} if quick else {"rounds": 7}
+    configs = {(kind, n, size): config(kind, n, size)
+               for kind in LIGHTS for n in samples for size in sizes}
+    stats = time_settings({key: (lambda c=c: c[0](c[1])) for key, c in configs.items()},
+                          **timing)
+    return {"rows": [row for kind in LIGHTS
+                     for row in measure(kind, samples, sizes, stats, configs)]}
 
 
 COLUMNS = [("light", "light", "{}"), ("samples", "samples", "{}"), ("map", "map", "{}"),
            ("mean_err", "mean err", "{:.3f}"), ("max_err", "max err", "{:.3f}"),
-           ("fwd_ms", "fwd ms", "{:.0f}"), ("compile_s", "first call s", "{:.1f}")]
+           ("fwd_ms", "fwd ms", "{:.1f}"), ("fwd_spread", "fwd spread ms", "{}"),
+           ("compile_s", "first call s", "{:.1f}")]
+
+
+def tables(results):
+    from accuracy_tables import table
+    return table(with_spreads(results["rows"]), COLUMNS)
+
+
+def plots(results, folder):
+    return plot_hook("draw_penumbrae", results, folder)
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--out", default=None, help="also write the rows as JSON")
-    args = parser.parse_args(argv)
-    samples = (4, 16) if args.quick else (4, 16, 64)
-    sizes = (64,) if args.quick else (32, 64, 128)
-    rows = []
-    for kind in LIGHTS:
-        rows += measure(kind, samples, sizes, args.repeats)
-    print()
-    print(f"{SIZE}x{SIZE}, hard raster; penumbra errors per unit of the brightest lit pixel")
-    print_table(rows, COLUMNS)
-    if args.out:
-        write_results(args.out, {"rows": rows})
+    return study_main(sys.modules[__name__], argv)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """What accuracy costs in time: rendering and fitting settings against ground truth.
 
-    python benchmarks/accuracy_vs_time.py                 # the full study (docs/accuracy-vs-time.md
-                                                          # gives its run time)
+    python benchmarks/accuracy_vs_time.py                 # the full study (its JSON's "run"
+                                                          # record gives its run time)
     python benchmarks/accuracy_vs_time.py --quick         # ~1.5 CPU-minutes; CI runs it
     python benchmarks/accuracy_vs_time.py --plots docs/img  # also draw the PNG plots
     python benchmarks/accuracy_vs_time.py --sections fitting --merge  # rerun one section,
@@ -12,8 +12,11 @@ ray-sphere intersection, shaded with the exact normal by the same lighting core)
 supersampled 8x8 per pixel, so tessellation, interpolation, resolution and rasterization
 errors are all visible. Errors are in 1/255 units: RMSE over the image, the maximum
 absolute error, and the RMSE inside the highlights (pixels where the reference's specular
-part exceeds 0.05). Times are steady-state medians after warm-up, compile reported
-separately; 'fwd+bwd' is the gradient of an MSE loss with respect to the material.
+part exceeds 0.05). Times follow common.time_settings: the settings of one table (all
+configurations at one image size for the mesh section) are timed against each other in
+one interleaved run, each warmed up until its time settles; the median and quartiles of
+the rounds are kept, the first call (trace, compile, run) apart as compile_s. 'fwd+bwd'
+is the gradient of an MSE loss with respect to the material.
 
 Every error column is deterministic (no random input; fixed seeds in the fitting study)
 and reproduces to the printed digit on the same machine; the columns ending in _s or _ms
@@ -21,7 +24,6 @@ are timings, which vary from run to run and with the machine's load.
 """
 
 import argparse
-import datetime
 import functools
 import json
 import os
@@ -33,12 +35,22 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import print_table, time_call, write_results  # noqa: E402
+from common import (  # noqa: E402
+    finish_record,
+    print_table,
+    run_record,
+    time_settings,
+    timing_columns,
+    with_spreads,
+    write_results,
+)
 
 import diffshade as ds  # noqa: E402
 from diffshade.analytic import render_analytic_sphere  # noqa: E402
 from diffshade.pipeline.rendering import render_supersampled  # noqa: E402
 
+NAME = "vs_time"
+OUT = "benchmarks/results/accuracy_vs_time.json"
 REFERENCE_SUPERSAMPLE = 8
 HIGHLIGHT_THRESHOLD = 0.05
 
@@ -78,55 +90,82 @@ def errors(image, ref, highlight):
             "highlight_rmse_255": 255 * float(np.sqrt(np.mean(diff[highlight] ** 2)))}
 
 
-def timed(render_fn, scene, target, repeats):
-    """Compile and steady-state times of the forward render and of fwd+bwd (material)."""
+def timed_calls(render_fn, scene, target):
+    """Zero-argument calls of the forward render ("fwd") and of the gradient of an MSE
+    loss with respect to the material ("fwd_bwd"), for common.time_settings."""
     fwd = jax.jit(render_fn)
 
     def loss(material):
         image = render_fn(ds.replace(scene, material=material))
         return jnp.mean((image[..., :3] - target) ** 2)
     grad = jax.jit(jax.grad(loss))
-    compile_s, fwd_s, _ = time_call(fwd, scene, repeats=repeats)
-    _, grad_s, _ = time_call(grad, scene.material, repeats=repeats)
-    return {"compile_s": compile_s, "fwd_ms": 1e3 * fwd_s, "fwd_bwd_ms": 1e3 * grad_s}
+    return {"fwd": lambda: fwd(scene), "fwd_bwd": lambda: grad(scene.material)}
 
 
-def mesh_rows(levels, modes, sizes, repeats):
-    rows = []
-    for size in sizes:
-        ref, highlight = reference(size)
-        target = jnp.asarray(ref[..., :3], jnp.float32)
-        for level in levels:
-            scene = sphere_scene(level, size)
-            for mode in modes:
-                settings = ds.RenderSettings(shading=mode)
-                image = ds.render(scene, settings)
-                row = {"study": "mesh", "subdivisions": level, "shading": mode, "size": size}
-                row.update(errors(image, ref, highlight))
-                row.update(timed(lambda s, st=settings: ds.render(s, st), scene, target, repeats))
-                rows.append(row)
+def time_rows(rows, calls, timing):
+    """Add the time columns to `rows`, timing every row's calls (one timed_calls dict per
+    row) against each other in one interleaved run."""
+    flat = {(i, kind): fn for i, row_calls in enumerate(calls) for kind, fn in row_calls.items()}
+    stats = time_settings(flat, **timing)
+    for i, row in enumerate(rows):
+        row.update(timing_columns(stats[i, "fwd"], "fwd", "compile_s"))
+        row.update(timing_columns(stats[i, "fwd_bwd"], "fwd_bwd"))
     return rows
 
 
-def supersample_rows(level, sizes, factors, repeats):
+def mesh_config(level, mode, size):
+    """(scene, settings, calls) of one mesh row: a hard render of subdivision `level`."""
+    ref, _ = reference(size)
+    scene = sphere_scene(level, size)
+    settings = ds.RenderSettings(shading=mode)
+    calls = timed_calls(lambda s: ds.render(s, settings), scene,
+                        jnp.asarray(ref[..., :3], jnp.float32))
+    return scene, settings, calls
+
+
+def mesh_rows(levels, modes, sizes, timing):
+    """Subdivision x shading x size; the configurations of one size are timed together."""
     rows = []
     for size in sizes:
         ref, highlight = reference(size)
-        target = jnp.asarray(ref[..., :3], jnp.float32)
-        scene = sphere_scene(level, size)
-        settings = ds.RenderSettings(shading="phong")
+        size_rows, calls = [], []
+        for level in levels:
+            for mode in modes:
+                scene, settings, row_calls = mesh_config(level, mode, size)
+                row = {"study": "mesh", "subdivisions": level, "shading": mode, "size": size}
+                row.update(errors(ds.render(scene, settings), ref, highlight))
+                size_rows.append(row)
+                calls.append(row_calls)
+        rows += time_rows(size_rows, calls, timing)
+    return rows
+
+
+def supersample_config(level, size, factor):
+    """(scene, settings, calls) of one supersampling row."""
+    ref, _ = reference(size)
+    scene = sphere_scene(level, size)
+    settings = ds.RenderSettings(shading="phong")
+    calls = timed_calls(lambda s: render_supersampled(s, settings, factor), scene,
+                        jnp.asarray(ref[..., :3], jnp.float32))
+    return scene, settings, calls
+
+
+def supersample_rows(level, sizes, factors, timing):
+    rows, calls = [], []
+    for size in sizes:
+        ref, highlight = reference(size)
         edge = _silhouette(ref)
         for factor in factors:
+            scene, settings, row_calls = supersample_config(level, size, factor)
+            calls.append(row_calls)
             image = np.asarray(render_supersampled(scene, settings, factor))
             row = {"study": "supersample", "subdivisions": level, "shading": "phong",
                    "size": size, "factor": factor,
                    "silhouette_rmse_255": 255 * float(np.sqrt(np.mean(
                        (image[..., :3] - ref[..., :3])[edge] ** 2)))}
             row.update(errors(image, ref, highlight))
-            row.update(timed(lambda s, f=factor, st=settings: render_supersampled(s, st, f), scene,
-                             target, repeats))
             rows.append(row)
-    return rows
+    return time_rows(rows, calls, timing)
 
 
 def _silhouette(ref):
@@ -134,43 +173,67 @@ def _silhouette(ref):
     return (ref[..., 3] > 0.0) & (ref[..., 3] < 1.0)
 
 
-def soft_rows(level, size, sigmas, gammas, ks, repeats):
-    ref, highlight = reference(size)
-    target = jnp.asarray(ref[..., :3], jnp.float32)
+def soft_config(level, size, sigma, gamma, k):
+    """(scene, settings, calls) of one soft-rasterization row."""
+    ref, _ = reference(size)
     scene = sphere_scene(level, size)
-    hard = np.asarray(ds.render(scene, ds.RenderSettings(shading="phong")))
-    rows = []
+    settings = ds.RenderSettings(shading="phong", raster="soft", sigma=sigma, gamma=gamma,
+                                 faces_per_pixel=k)
+    calls = timed_calls(lambda s: ds.render(s, settings), scene,
+                        jnp.asarray(ref[..., :3], jnp.float32))
+    return scene, settings, calls
+
+
+def soft_rows(level, size, sigmas, gammas, ks, timing):
+    ref, highlight = reference(size)
+    hard = np.asarray(ds.render(sphere_scene(level, size), ds.RenderSettings(shading="phong")))
+    rows, calls = [], []
     for sigma in sigmas:
         for gamma in gammas:
             for k in ks:
-                settings = ds.RenderSettings(shading="phong", raster="soft", sigma=sigma,
-                                             gamma=gamma, faces_per_pixel=k)
+                scene, settings, row_calls = soft_config(level, size, sigma, gamma, k)
+                calls.append(row_calls)
                 image = np.asarray(ds.render(scene, settings))
                 row = {"study": "soft", "subdivisions": level, "size": size, "sigma": sigma,
                        "gamma": gamma, "K": k,
                        "vs_hard_rmse_255": 255 * float(np.sqrt(np.mean(
                            (image[..., :3] - hard[..., :3]) ** 2)))}
                 row.update(errors(image, ref, highlight))
-                row.update(timed(lambda s, st=settings: ds.render(s, st), scene, target, repeats))
                 rows.append(row)
-    return rows
+    return time_rows(rows, calls, timing)
 
 
-def precision_rows(level, sizes, repeats):
-    rows = []
+def _under_x64(fn, x64):
+    """fn called with float64 switched on or off, so that float32 and float64 settings can
+    be timed interleaved (each call runs the program compiled under its own flag)."""
+    def call():
+        with jax.enable_x64(x64):
+            return fn()
+    return call
+
+
+def precision_config(level, size, x64):
+    """(scene, settings, calls) of one precision row; build it under jax.enable_x64(x64)."""
+    ref, _ = reference(size)
+    scene = sphere_scene(level, size)
+    settings = ds.RenderSettings(shading="phong")
+    calls = timed_calls(lambda s: ds.render(s, settings), scene, jnp.asarray(ref[..., :3]))
+    return scene, settings, {kind: _under_x64(fn, x64) for kind, fn in calls.items()}
+
+
+def precision_rows(level, sizes, timing):
+    rows, calls = [], []
     for x64 in (False, True):
         with jax.enable_x64(x64):
             for size in sizes:
                 ref, highlight = reference(size)
-                scene = sphere_scene(level, size)
-                target = jnp.asarray(ref[..., :3])
-                settings = ds.RenderSettings(shading="phong")
+                scene, settings, row_calls = precision_config(level, size, x64)
+                calls.append(row_calls)
                 row = {"study": "precision", "subdivisions": level, "size": size,
                        "dtype": "float64" if x64 else "float32"}
                 row.update(errors(ds.render(scene, settings), ref, highlight))
-                row.update(timed(lambda s, st=settings: ds.render(s, st), scene, target, repeats))
                 rows.append(row)
-    return rows
+    return time_rows(rows, calls, timing)
 
 
 def pareto(rows, error_key="rmse_255", time_key="fwd_ms"):
@@ -203,41 +266,53 @@ def configs(quick):
         # compares them with the published ones)
         return {"levels": (1, 3, 5), "modes": ("phong",), "sizes": (64,), "ss_sizes": (48,),
                 "factors": (1, 2), "sigmas": (0.5,), "gammas": (1e-4,), "ks": (4,),
-                "precision_sizes": (48,), "repeats": 2}
+                "precision_sizes": (48,), "timing": {"rounds": 3, "max_warmup": 6}}
     return {"levels": (1, 2, 3, 4, 5, 6), "modes": ("flat", "gouraud", "phong"),
             "sizes": (64, 128, 256, 512), "ss_sizes": (128, 256), "factors": (1, 2, 4),
             "sigmas": (0.1, 0.5, 2.0), "gammas": (1e-4, 1e-2), "ks": (4, 8, 16),
-            "precision_sizes": (128, 256), "repeats": 5}
+            "precision_sizes": (128, 256), "timing": {"rounds": 7}}
 
 
 SECTIONS = ("mesh", "supersample", "soft", "precision", "fitting")
 
 
-def run(quick=False, fitting_study=None, sections=SECTIONS):
-    """The rendering studies and the fitting study (when given) named in `sections`: a
-    dict of row lists, and under "measured" when and under what load each section ran."""
+def run(quick=False, sections=SECTIONS):
+    """The studies named in `sections`: a dict of row lists, and under "measured" the run
+    record (commit, start, minutes, load before and after) of each section."""
     c = configs(quick)
+    timing = c["timing"]
     studies = {
-        "mesh": lambda: pareto(mesh_rows(c["levels"], c["modes"], c["sizes"], c["repeats"])),
-        "supersample": lambda: supersample_rows(5, c["ss_sizes"], c["factors"], c["repeats"]),
+        "mesh": lambda: pareto(mesh_rows(c["levels"], c["modes"], c["sizes"], timing)),
+        "supersample": lambda: supersample_rows(5, c["ss_sizes"], c["factors"], timing),
         "soft": lambda: soft_rows(4, c["ss_sizes"][0], c["sigmas"], c["gammas"], c["ks"],
-                                  c["repeats"]),
-        "precision": lambda: precision_rows(5, c["precision_sizes"], c["repeats"]),
-        "fitting": None if fitting_study is None else lambda: fitting_study(quick),
+                                  timing),
+        "precision": lambda: precision_rows(5, c["precision_sizes"], timing),
+        "fitting": lambda: _fitting_study(quick),
     }
     results, measured = {}, {}
     for name in sections:
-        if studies[name] is None:
-            continue
-        start, load = datetime.datetime.now(datetime.UTC), os.getloadavg()[0]
+        record = run_record()
         results[name] = studies[name]()
-        measured[name] = {"start_utc": start.strftime("%Y-%m-%d %H:%M"),
-                          "minutes": round((datetime.datetime.now(datetime.UTC) - start)
-                                           .total_seconds() / 60, 1),
-                          "load_before": round(load, 1),
-                          "load_after": round(os.getloadavg()[0], 1)}
+        measured[name] = finish_record(record)
     results["measured"] = measured
+    results["reference_supersample"] = REFERENCE_SUPERSAMPLE
     return results
+
+
+def _fitting_study(quick):
+    from accuracy_fitting import fitting_study
+    return fitting_study(quick)
+
+
+def tables(results):
+    """The markdown of the doc block (benchmarks/accuracy_tables.py)."""
+    from accuracy_tables import vs_time_tables
+    return vs_time_tables(results)
+
+
+def plots(results, folder):
+    from accuracy_plots import draw_all
+    return draw_all(results, folder)
 
 
 def report(results):
@@ -276,7 +351,7 @@ def report_fitting(rows):
     for title, columns in FITTING_TABLES:
         chosen = [r for r in rows if r["study"] == title]
         if chosen:
-            print_table(chosen, columns)
+            print_table(with_spreads(chosen), columns)
 
 
 FITTING_TABLES = [
@@ -297,6 +372,7 @@ FITTING_TABLES = [
                   ("shading", "fit shading", "{}"), ("wall_s", "wall s", "{:.2f}"),
                   ("max_rel_error", "max rel err", "{:.1e}"), ("worst", "worst", "{}")]),
     ("cache", [("path", "loss path", "{}"), ("step_ms", "step ms", "{:.1f}"),
+               ("step_spread", "step spread ms", "{}"),
                ("first_call_s", "first call s", "{:.1f}")]),
     ("fresh", [("method", "method", "{}"), ("size", "px", "{}"),
                ("import_s", "import s", "{:.1f}"), ("dataset_s", "dataset s", "{:.1f}"),
@@ -308,7 +384,7 @@ FITTING_TABLES = [
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="a seconds-long subset (CI)")
-    parser.add_argument("--out", default="benchmarks/results/accuracy_vs_time.json")
+    parser.add_argument("--out", default=OUT)
     parser.add_argument("--plots", default=None, help="folder for the PNG plots")
     parser.add_argument("--no-fitting", action="store_true", help="skip the fitting study")
     parser.add_argument("--sections", default=",".join(SECTIONS),
@@ -316,15 +392,13 @@ def main(argv=None):
     parser.add_argument("--merge", action="store_true",
                         help="keep the other sections of the existing --out file")
     args = parser.parse_args(argv)
-    sections = [s for s in args.sections.split(",") if s]
+    sections = [s for s in args.sections.split(",") if s and not (args.no_fitting
+                                                                  and s == "fitting")]
     unknown = [s for s in sections if s not in SECTIONS]
     if unknown:
         parser.error(f"--sections: got {unknown}; expected names from {SECTIONS}")
-    study = None
-    if not args.no_fitting:
-        from accuracy_fitting import fitting_study
-        study = fitting_study
-    results = run(args.quick, study, sections)
+    record = run_record()
+    results = run(args.quick, sections)
     if args.merge and os.path.exists(args.out):
         with open(args.out, encoding="utf-8") as file:
             old = json.load(file)
@@ -333,15 +407,14 @@ def main(argv=None):
                          f"quick={args.quick}")
         results = {**{k: old[k] for k in SECTIONS if k in old and k not in results},
                    **results, "measured": {**old.get("measured", {}), **results["measured"]}}
-    write_results(args.out, {"benchmark": "accuracy_vs_time", "quick": args.quick,
-                             "reference_supersample": REFERENCE_SUPERSAMPLE, **results})
+    payload = {"benchmark": NAME, "quick": args.quick, **results,
+               "run": finish_record(record)}
+    write_results(args.out, payload)
     report(results)
     if args.plots:
-        from accuracy_plots import draw_all
-        draw_all(results, args.plots)
-    return results
+        plots(results, args.plots)
+    return payload
 
 
 if __name__ == "__main__":
     main()
-

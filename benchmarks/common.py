@@ -5,6 +5,7 @@ import platform
 import random
 import statistics
 import subprocess
+import tempfile
 import time
 
 import jax
@@ -120,3 +121,67 @@ def write_results(path, payload):
     payload = {"machine": machine_info(), **payload}
     write_json(path, payload)
     print(f"wrote {path}")
+
+
+def timing_columns(stats, prefix, compile_key=None):
+    """One setting's time_settings entry as flat row columns: `{prefix}_ms` (the median),
+    `{prefix}_q1_ms` and `{prefix}_q3_ms` (its spread), the warm-up calls it took, and the
+    first call's time under `compile_key` (default `{prefix}_compile_s`)."""
+    return {f"{prefix}_ms": stats["median_ms"], f"{prefix}_q1_ms": stats["q1_ms"],
+            f"{prefix}_q3_ms": stats["q3_ms"], f"{prefix}_warmup_calls": stats["warmup_calls"],
+            compile_key or f"{prefix}_compile_s": stats["compile_s"]}
+
+
+def spread(row, prefix):
+    """The "q1–q3" text of a timed column (an empty cell where the row has no quartiles:
+    results measured before time_settings)."""
+    q1, q3 = row.get(f"{prefix}_q1_ms"), row.get(f"{prefix}_q3_ms")
+    return "" if q1 is None or q3 is None else f"{q1:.1f}\u2013{q3:.1f}"
+
+
+def with_spreads(rows, prefixes=("fwd", "fwd_bwd", "grad", "step")):
+    """The rows with a `{prefix}_spread` text column ("q1–q3") beside each timed column."""
+    return [{**row, **{f"{p}_spread": spread(row, p) for p in prefixes if f"{p}_ms" in row}}
+            for row in rows]
+
+
+def plot_hook(name, results, folder):
+    """The paths accuracy_plots.<name>(results, folder) draws, or [] while accuracy_plots has
+    no such function (a study whose plot is not written yet)."""
+    import accuracy_plots
+    draw = getattr(accuracy_plots, name, None)
+    return [] if draw is None else draw(results, folder)
+
+
+def run_study(module, quick=False, out=None, plots=None):
+    """Run a study module of the accuracy-versus-time study (its NAME, OUT, run, tables,
+    plots: benchmarks/accuracy_study.py) and write its JSON to `out` (default module.OUT;
+    for a quick run, a file of that name in the temporary folder) with the run record
+    (commit, start, minutes, load before and after); draw its plots into the folder `plots`
+    when given. Returns the written payload."""
+    record = run_record()
+    results = module.run(quick=quick)
+    payload = {"benchmark": module.NAME, "quick": quick, **results,
+               "run": finish_record(record)}
+    if out is None:
+        # a quick run never replaces the published JSON unless asked to
+        out = (os.path.join(tempfile.gettempdir(), os.path.basename(module.OUT)) if quick
+               else module.OUT)
+    write_results(out, payload)
+    if plots:
+        module.plots(payload, plots)
+    return payload
+
+
+def study_main(module, argv=None):
+    """The command line of one study module: --quick, --out, --plots FOLDER; prints its
+    tables."""
+    import argparse
+    parser = argparse.ArgumentParser(description=module.__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="a seconds-long subset (CI)")
+    parser.add_argument("--out", default=None, help=f"the JSON (default {module.OUT})")
+    parser.add_argument("--plots", default=None, help="folder for the PNG plots")
+    args = parser.parse_args(argv)
+    payload = run_study(module, args.quick, args.out, args.plots)
+    print(module.tables(payload))
+    return payload

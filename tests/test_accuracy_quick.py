@@ -6,7 +6,8 @@ subdivision for Phong shading, supersampling reduces the silhouette error, float
 changes nothing visible, and the linear solver recovers the material. Reproduction: the
 quick rows that are also rows of the full study (the mesh rows at 64 px, the 8-bit fit at
 32 px) match the published benchmarks/results/accuracy_vs_time.json to float rounding,
-and docs/accuracy-vs-time.md prints exactly the tables of that JSON.
+and every generated block of docs/accuracy-vs-time.md is exactly what its study's
+tables() (or, for "choose", accuracy_tables.choose_table) makes of the published JSON.
 """
 
 import json
@@ -18,6 +19,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
+import accuracy_study  # noqa: E402
 import accuracy_tables  # noqa: E402
 import accuracy_vs_time  # noqa: E402
 
@@ -81,6 +83,42 @@ def test_published_errors_reproduce(quick):
 
 
 def test_doc_prints_the_published_tables():
-    doc = (ROOT / "docs" / "accuracy-vs-time.md").read_text()
-    for section in accuracy_tables.sections(PUBLISHED):
-        assert section in doc, section[:200]
+    doc = accuracy_study.doc_blocks((ROOT / "docs" / "accuracy-vs-time.md").read_text())
+    want = accuracy_study.generated_blocks(accuracy_study.load_published())
+    assert sorted(doc) == sorted(want), "the page's blocks and the studies with a JSON differ"
+    for name, text in want.items():
+        assert doc[name] == text, (f"block {name!r} is not its JSON's tables: run "
+                                   "`python benchmarks/accuracy_study.py --docs --no-run`")
+
+
+def test_blocks_are_rewritten_in_place():
+    page = ("intro\n<!-- study:a:begin -->\nold\n<!-- study:a:end -->\nmiddle\n"
+            "<!-- study:b:begin -->\n<!-- study:b:end -->\nend\n")
+    assert accuracy_study.doc_blocks(page) == {"a": "old", "b": ""}
+    new = accuracy_study.rewrite_blocks(page, {"a": "| x |", "b": "y\n\nz", "c": "unused"})
+    assert new == ("intro\n<!-- study:a:begin -->\n| x |\n<!-- study:a:end -->\nmiddle\n"
+                   "<!-- study:b:begin -->\ny\n\nz\n<!-- study:b:end -->\nend\n")
+    assert accuracy_study.doc_blocks(new) == {"a": "| x |", "b": "y\n\nz"}
+    with pytest.raises(ValueError, match="'b'"):
+        accuracy_study.rewrite_blocks(page, {"a": "x"})
+
+
+def test_choose_table_picks_the_cheapest_row_within_each_target():
+    def render(study, fwd_ms, rmse, highlight, **keys):
+        return {"study": study, "subdivisions": 3, "shading": "phong", "size": 64,
+                "fwd_ms": fwd_ms, "rmse_255": rmse, "highlight_rmse_255": highlight, **keys}
+    studies = {"vs_time": {
+        "mesh": [render("mesh", 3.0, 1.5, 0.5), render("mesh", 5.0, 0.9, 2.0, size=128)],
+        "supersample": [render("supersample", 20.0, 0.4, 0.1, factor=2),
+                        render("supersample", 30.0, 0.3, 0.1, factor=4)],
+        "fitting": [{"study": "noise", "quantized": True, "noise_std": 0.0, "size": 32,
+                     "views": 1, "max_rel_error": 1e-2, "wall_s": 0.1}]}}
+    lines = accuracy_tables.choose_table(studies).splitlines()[2:]
+    cells = [[c.strip() for c in line.strip("|").split("|")] for line in lines]
+    assert [c[1:3] for c in cells] == [
+        ["subdivision 3, phong, 64 px", "3.0 ms forward"],
+        ["subdivision 3, phong, 64 px", "3.0 ms forward"],
+        ["subdivision 3, phong, 128 px", "5.0 ms forward"],
+        ["subdivision 3, phong, 64 px, 2× supersampling", "20.0 ms forward"],
+        ["none measured", ""]]
+    assert cells[3][3:] == ["0.40/255", "Supersampling"]
