@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import plot_hook, study_main, time_settings, timing_columns, with_spreads  # noqa: E402
+from common import study_main, time_settings, timing_columns, with_spreads  # noqa: E402
 
 import diffshade as ds  # noqa: E402
 
@@ -120,7 +120,8 @@ def tables(results):
 
 
 def plots(results, folder):
-    return plot_hook("draw_area_lights", results, folder)
+    from accuracy_plots import draw_area_lights
+    return draw_area_lights(results, folder)
 
 
 def main(argv=None):

@@ -311,8 +311,8 @@ def tables(results):
 
 
 def plots(results, folder):
-    from accuracy_plots import draw_all
-    return draw_all(results, folder)
+    from accuracy_plots import draw_all, draw_precision
+    return draw_all(results, folder) + draw_precision(results, folder)
 
 
 def report(results):

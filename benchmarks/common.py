@@ -145,14 +145,6 @@ def with_spreads(rows, prefixes=("fwd", "fwd_bwd", "grad", "step")):
             for row in rows]
 
 
-def plot_hook(name, results, folder):
-    """The paths accuracy_plots.<name>(results, folder) draws, or [] while accuracy_plots has
-    no such function (a study whose plot is not written yet)."""
-    import accuracy_plots
-    draw = getattr(accuracy_plots, name, None)
-    return [] if draw is None else draw(results, folder)
-
-
 def run_study(module, quick=False, out=None, plots=None):
     """Run a study module of the accuracy-versus-time study (its NAME, OUT, run, tables,
     plots: benchmarks/accuracy_study.py) and write its JSON to `out` (default module.OUT;
