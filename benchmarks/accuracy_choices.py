@@ -13,6 +13,7 @@ accuracy_choices_plots.py; `tables` gives the markdown of docs/accuracy-vs-time.
 """
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -146,6 +147,17 @@ def plots(results: dict, folder: str) -> list:
     return plots_part.draw_all(results, folder)
 
 
+def _kept(path, quick, sections):
+    """The sections of an earlier run at `path` (same --quick) that this run does not
+    redo, in SECTIONS order; the run record then describes the sections run last."""
+    if not Path(path).exists():
+        return {}
+    old = json.loads(Path(path).read_text())
+    if old.get("quick") != quick:
+        return {}
+    return {name: old[name] for name in SECTIONS if name in old and name not in sections}
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="a subset of every section")
@@ -160,7 +172,8 @@ def main(argv=None):
         parser.error(f"--sections: got {unknown}; expected names from {list(SECTIONS)}")
     record = run_record()
     results = run(args.quick, sections)
-    write_results(args.out, {"benchmark": NAME, "quick": args.quick, **results,
+    write_results(args.out, {"benchmark": NAME, "quick": args.quick,
+                             **_kept(args.out, args.quick, sections), **results,
                              "run": finish_record(record)})
     print(tables(results))
     if args.plots:

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from accuracy_plots import COLOURS, MARKERS, _axes, _front_line, _key, _legend
 from matplotlib.figure import Figure
+from matplotlib.ticker import NullFormatter
 
 AXIS_LABELS = {"size": "image size (px)", "fwd_ms": "time per render, forward (ms)",
                "fwd_bwd_vertices_ms": "time per gradient w.r.t. the vertices (ms)",
@@ -41,7 +42,7 @@ def _series(ax, rows, colour_of, marker_of, x_key, y_key, order_key=None, join=T
 
 
 def _panel(ax, rows, title, x_key, y_key, ylabel, colour_of, marker_of, order_key=None,
-           front=True, line_at=None):
+           front=True, line_at=None, ticks_at=None):
     handles = []
     if front:
         handles.append(_front_line(ax, rows, x_key, y_key))
@@ -50,7 +51,15 @@ def _panel(ax, rows, title, x_key, y_key, ylabel, colour_of, marker_of, order_ke
         _key(handles, line_at[1], color="gray", lw=0.8)
     handles += _series(ax, rows, colour_of, marker_of, x_key, y_key, order_key)
     _axes(ax, title, AXIS_LABELS.get(x_key, x_key), ylabel)
+    if ticks_at is not None:  # a few sizes: label each
+        values = sorted({r[ticks_at] for r in rows})
+        ax.set_xticks(values, [str(v) for v in values])
+        ax.xaxis.set_minor_formatter(NullFormatter())
     _legend(ax, handles)
+
+
+def _count(n, noun):
+    return f"{n} {noun}" + ("" if n == 1 else "s")
 
 
 ONE_STEP = (1.0, "1/255: one 8-bit step")
@@ -64,7 +73,7 @@ PANELS = {
         ax, rows, "kernels: host against jax", "size", "fwd_ms",
         "time per render, forward (ms)",
         lambda r: f"{r['raster']} raster, kernels='{r['kernels']}'",
-        lambda r: f"{r['raster']} raster", "size", front=False),
+        lambda r: f"{r['raster']} raster", "size", front=False, ticks_at="size"),
     "supersample_levels": lambda ax, rows: _panel(
         ax, rows, "supersampling at subdivisions 3 and 4 (points: factor 1, 2, 4)",
         "fwd_ms", "rmse_255", "RMSE against the analytic sphere (1/255 units)",
@@ -79,7 +88,9 @@ PANELS = {
     "highlight_front": lambda ax, rows: _panel(
         ax, rows, "highlight-error frontier (published mesh and supersample rows)",
         "fwd_ms", "highlight_rmse_255", "highlight RMSE against the exact sphere (1/255)",
-        lambda r: f"{r['shading']} shading", lambda r: f"{r['size']} px", "fwd_ms",
+        lambda r: f"{r['shading']} shading" + (f", {r['factor']}×{r['factor']} samples"
+                                                if r["factor"] > 1 else ""),
+        lambda r: f"{r['size']} px", "fwd_ms",
         line_at=ONE_STEP),
     "soft_shadows": lambda ax, rows: _panel(
         ax, rows, "shadow edge: hard against soft raster", "fwd_ms", "edge_error_px",
@@ -91,8 +102,8 @@ PANELS = {
         ax, rows, "inside a fit (linear solver)", "fit_ms", "max_rel_error",
         "largest relative parameter error",
         lambda r: (("model with shadows" if r["model_shadows"] else "model without shadows")
-                   if r["case"] == "shadows" else f"{r['n_lights']} light(s) per view"),
-        lambda r: "2 views" if r["case"] == "shadows" else f"{r['n_views']} view(s)",
+                   if r["case"] == "shadows" else _count(r["n_lights"], "light") + " per view"),
+        lambda r: "2 views" if r["case"] == "shadows" else _count(r["n_views"], "view"),
         "fit_ms", front=False),
     "fit_resolution": lambda ax, rows: _panel(
         ax, rows, "image size for fitting (linear solver; points: size rising)", "fit_ms",
