@@ -94,11 +94,12 @@ TABLES = {
          ("wrong_px", "wrong px", "{}"), ("edge_px", "edge px", "{}"),
          ("edge_error_px", "edge error px", "{:.3f}"), ("fwd_ms", "fwd ms", TIME)]),
     "fit_effects": (
-        "Inside a fit: shadows, views and lights",
-        "The linear solver (64²). shadows: 2 views of the sphere over a floor, targets "
-        "with shadows, the model with or without them; views × lights: the data_synth "
-        "sphere under noise σ = 0.01 (seed 3).",
-        [("case", "case", "{}"), ("model_shadows", "model shadows", "{}"),
+        "Inside a fit: shadows, an area light, views and lights",
+        "The linear solver (64²). shadows, area light: 2 views of the shadows section's "
+        "sphere over a floor lit by the sun and a point light casting shadows (or a disk "
+        "light of radius 0.5 in its place, targets with 64 samples), the model as given; "
+        "views × lights: the data_synth sphere under noise σ = 0.01 (seed 3).",
+        [("case", "case", "{}"), ("model", "model", "{}"),
          ("n_views", "views", "{}"), ("n_lights", "lights per view", "{}"),
          ("images", "images", "{}"), ("max_rel_error", "max rel err", E),
          ("fit_ms", "fit ms", TIME)]),
@@ -148,14 +149,14 @@ def plots(results: dict, folder: str) -> list:
 
 
 def _kept(path, quick, sections):
-    """The sections of an earlier run at `path` (same --quick) that this run does not
-    redo, in SECTIONS order; the run record then describes the sections run last."""
-    if not Path(path).exists():
-        return {}
-    old = json.loads(Path(path).read_text())
+    """(the sections of an earlier run at `path`, same --quick, that this run does not
+    redo; the run records of the runs they come from, which the JSON keeps in
+    "earlier_runs")."""
+    old = json.loads(Path(path).read_text()) if Path(path).exists() else {}
     if old.get("quick") != quick:
-        return {}
-    return {name: old[name] for name in SECTIONS if name in old and name not in sections}
+        return {}, []
+    kept = {name: old[name] for name in SECTIONS if name in old and name not in sections}
+    return kept, (old.get("earlier_runs", []) + [old["run"]]) if kept else []
 
 
 def main(argv=None):
@@ -172,9 +173,10 @@ def main(argv=None):
         parser.error(f"--sections: got {unknown}; expected names from {list(SECTIONS)}")
     record = run_record()
     results = run(args.quick, sections)
-    write_results(args.out, {"benchmark": NAME, "quick": args.quick,
-                             **_kept(args.out, args.quick, sections), **results,
-                             "run": finish_record(record)})
+    kept, earlier = _kept(args.out, args.quick, sections)
+    write_results(args.out, {"benchmark": NAME, "quick": args.quick, **kept, **results,
+                             "run": {**finish_record(record), "sections": sections},
+                             "earlier_runs": earlier})
     print(tables(results))
     if args.plots:
         for path in plots(results, args.plots):

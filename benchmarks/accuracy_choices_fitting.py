@@ -3,7 +3,8 @@
 - soft_shadows: the shadow edge of soft raster against hard raster, on accuracy_shadows'
   sphere over a floor, against the exact shadow (SphereOverPlane.shadow).
 - fit_effects: the linear solver's recovery error and time with and without shadows in
-  its model (targets with shadows), and against the number of views and of lights.
+  its model (targets with shadows), with an area light modelled with as many samples as
+  the targets' or fewer, and against the number of views and of lights.
 - fit_resolution: the linear solver against image size under noise sigma = 0.01 and on
   8-bit targets (median and largest error over seeds).
 
@@ -74,45 +75,65 @@ def _fit_call(dataset):
 
 
 # ---------------------------------------------------------------- 7. inside a fit
-def shadow_dataset(size, n_views, model_shadows):
-    """Views of accuracy_shadows' sphere over a floor (one material), each lit by its
-    shadow-casting point light and a dimmer sun; targets rendered with the shadows,
-    the model's lights casting them or not (`model_shadows`)."""
+SUN = ((0.3, -1.0, -0.5), 0.3)
+AREA_AT = (-1.0, 1.8, -1.0)  # accuracy_shadows' light position, as a disk facing the origin
+
+
+def key_light(kind, shadows=False, samples=64):
+    """The light that lights the floor scene besides the sun: accuracy_shadows' point
+    light, or a disk of radius 0.5 in its place, facing the origin."""
+    if kind == "point":
+        return ds.point_light(LIGHT, 1.0, ambient=LIGHT_AMBIENT, shadows=shadows)
+    normal = -np.asarray(AREA_AT) / np.linalg.norm(AREA_AT)
+    return ds.area_light(AREA_AT, normal=normal, radius=0.5, color=2.0, ambient=LIGHT_AMBIENT,
+                         samples=samples)
+
+
+def floor_dataset(size, n_views, target_light, model_light):
+    """Views of accuracy_shadows' sphere over a floor (one material), each lit by the sun
+    and a key light: targets rendered with `target_light`, fitted with `model_light`."""
     truth = ds.material(ka=0.25, kd=(0.6, 0.4, 0.3), ks=0.3, shininess=40.0)
-    base = scene(size, True)
     settings = ds.RenderSettings(shadow_map_size=256)
     views = []
     for k in range(n_views):
         angle = np.radians(360.0 * k / n_views)
         eye = (3.2 * np.sin(angle), 4.5, 3.2 * np.cos(angle))
         camera = ds.look_at(eye, (0.0, -1.0, 0.0), width=size, height=size, fov_y=40.0)
-        lights = [ds.point_light(LIGHT, 1.0, ambient=LIGHT_AMBIENT, shadows=True),
-                  ds.directional_light((0.3, -1.0, -0.5), 0.3)]
-        views.append(View(camera, lights, np.zeros((size, size, 3))))
-    data = dataset_of_scene(base, views, truth=truth, settings=settings)
+        views.append(View(camera, [target_light, ds.directional_light(*SUN)],
+                          np.zeros((size, size, 3))))
+    data = dataset_of_scene(scene(size, True), views, truth=truth, settings=settings)
     targets = [np.asarray(ds.render(view_scene(data, i, truth), settings))[..., :3]
                for i in range(n_views)]
-    model = [dataclasses.replace(v, target=t, lights=[
-        ds.point_light(LIGHT, 1.0, ambient=LIGHT_AMBIENT, shadows=model_shadows),
-        ds.directional_light((0.3, -1.0, -0.5), 0.3)]) for v, t in zip(views, targets,
-                                                                       strict=True)]
-    return dataclasses.replace(data, views=model)
+    return dataclasses.replace(data, views=[
+        dataclasses.replace(v, target=t, lights=[model_light, ds.directional_light(*SUN)])
+        for v, t in zip(views, targets, strict=True)])
+
+
+# (case, model, the target's key light, the model's)
+FLOOR_CASES = [
+    ("shadows", "with shadows", lambda: key_light("point", True), lambda: key_light("point", True)),
+    ("shadows", "without shadows", lambda: key_light("point", True), lambda: key_light("point")),
+    ("area light", "disk, 64 samples", lambda: key_light("disk"), lambda: key_light("disk")),
+    ("area light", "disk, 4 samples", lambda: key_light("disk"),
+     lambda: key_light("disk", samples=4)),
+]
 
 
 def fit_effects(quick, rounds):
     size = 32 if quick else 64
-    cases = [("shadows", {"model_shadows": m}) for m in (True, False)]
     counts = ((1, 1), (2, 2)) if quick else ((1, 1), (1, 2), (1, 4), (2, 2), (4, 2), (8, 2))
-    cases += [("views_lights", {"n_views": v, "n_lights": n}) for v, n in counts]
+    cases = [(case, {"model": model}, target, fitted)
+             for case, model, target, fitted in FLOOR_CASES]
+    cases += [("views × lights", {"n_views": v, "n_lights": n}, None, None) for v, n in counts]
     rows, calls = [], {}
-    for kind, params in cases:
-        if kind == "shadows":
-            dataset = shadow_dataset(size, 2, params["model_shadows"])
+    for case, params, target, fitted in cases:
+        if target is not None:
+            dataset = floor_dataset(size, 2, target(), fitted())
         else:
             dataset = make_dataset(size=size, seed=NOISE_SEEDS[0], noise_std=0.01, **params)
         result = fit(dataset, method="linear", with_uncertainty=False)
         calls[f"{len(rows)}"] = _fit_call(dataset)
-        rows.append({"case": kind, "size": size, **params, "images": len(dataset.views),
+        rows.append({"case": case, "size": size, **params, "images": len(dataset.views),
                      "max_rel_error": material_error(result.material, dataset.truth)})
     return _with_times(rows, calls, rounds, "fit")
 

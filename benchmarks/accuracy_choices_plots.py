@@ -5,10 +5,11 @@ the points of one colour are joined in the order of the setting named in the tit
 
 from pathlib import Path
 
-from accuracy_plots import COLOURS, MARKERS, _axes, _front_line, _key, _legend
+from accuracy_plots import MARKERS, _axes, _front_line, _key, _legend
 from matplotlib.figure import Figure
 from matplotlib.ticker import NullFormatter
 
+COLOURS = [f"C{i}" for i in range(10)]  # matplotlib's ten; no plot here needs more
 AXIS_LABELS = {"size": "image size (px)", "fwd_ms": "time per render, forward (ms)",
                "fwd_bwd_vertices_ms": "time per gradient w.r.t. the vertices (ms)",
                "grad_ms": "time per gradient (ms)", "fit_ms": "time per fit (ms)"}
@@ -101,9 +102,9 @@ PANELS = {
     "fit_effects": lambda ax, rows: _panel(
         ax, rows, "inside a fit (linear solver)", "fit_ms", "max_rel_error",
         "largest relative parameter error",
-        lambda r: (("model with shadows" if r["model_shadows"] else "model without shadows")
-                   if r["case"] == "shadows" else _count(r["n_lights"], "light") + " per view"),
-        lambda r: "2 views" if r["case"] == "shadows" else _count(r["n_views"], "view"),
+        lambda r: (f"{r['case']}: model {r['model']}" if "model" in r
+                   else _count(r["n_lights"], "light") + " per view"),
+        lambda r: _count(r.get("n_views", 2), "view"),
         "fit_ms", front=False),
     "fit_resolution": lambda ax, rows: _panel(
         ax, rows, "image size for fitting (linear solver; points: size rising)", "fit_ms",

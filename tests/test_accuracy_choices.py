@@ -108,9 +108,11 @@ def test_hard_shadow_edge_agrees_with_the_shadows_study(quick):
 def test_fits_recover_the_truth_only_with_the_model_they_need(quick):
     _, results = quick
     rows = results["fit_effects"]
-    shadows = {r["model_shadows"]: r["max_rel_error"] for r in rows if r["case"] == "shadows"}
-    assert shadows[True] < 1e-4 and shadows[False] > 1e-2
-    noisy = [r["max_rel_error"] for r in rows if r["case"] == "views_lights"]
+    error = {r["model"]: r["max_rel_error"] for r in rows if "model" in r}
+    assert error["with shadows"] < 1e-4 and error["without shadows"] > 1e-2
+    # the targets' own light model recovers the truth; fewer samples are biased
+    assert error["disk, 64 samples"] < 1e-4 < 1e-3 < error["disk, 4 samples"]
+    noisy = [r["max_rel_error"] for r in rows if r["case"] == "views × lights"]
     assert all(1e-4 < e < 0.1 for e in noisy)  # noise sigma 0.01: not exact, not lost
     eight_bit = next(r for r in results["fit_resolution"] if r["quantized"] and r["size"] == 32)
     study = next(r for r in STUDY["fitting"] if r["study"] == "noise" and r["size"] == 32)
