@@ -32,8 +32,6 @@ DOC = ROOT / "docs" / "accuracy-vs-time.md"
 RESULTS = ROOT / "benchmarks" / "results"
 MODULES = ("accuracy_vs_time", "accuracy_shadows", "accuracy_area_lights",
            "accuracy_penumbrae", "accuracy_choices")
-# studies that may not exist yet in a checkout (written on another branch)
-OPTIONAL = {"accuracy_choices"}
 CHOOSE = "choose"
 BLOCK = re.compile(r"<!-- study:(\w+):begin -->\n(.*?)\n?<!-- study:\1:end -->", re.S)
 
@@ -42,12 +40,7 @@ def modules():
     """{NAME: module} of the study modules present."""
     found = {}
     for name in MODULES:
-        try:
-            module = importlib.import_module(name)
-        except ModuleNotFoundError as error:
-            if name in OPTIONAL and error.name == name:
-                continue
-            raise
+        module = importlib.import_module(name)
         found[module.NAME] = module
     return found
 
