@@ -41,7 +41,17 @@ from numba import carray, cfunc, types
 
 from diffshade.host import active_kernel, candidates, xla_ffi
 from diffshade.host import fragment_kernels as kernels
-from diffshade.host.ffi_check import ANY, BATCH, FLOAT, IMAGES, PER_LAST, TIMES, check, spec
+from diffshade.host.ffi_check import (
+    ANY,
+    BATCH,
+    FLOAT,
+    IMAGES,
+    PER_LAST,
+    TIMES,
+    check,
+    spec,
+    tables,
+)
 from diffshade.host.xla_ffi import (
     BUFFER_DATA,
     BUFFER_DIMS,
@@ -55,7 +65,6 @@ from diffshade.host.xla_ffi import (
     S32,
     S64,
     address_of,
-    attribute,
     buffer_dim,
     buffer_size,
     error,
@@ -73,7 +82,8 @@ from diffshade.numerics import tiny
 #: caching it)
 THREADS = "threads"
 
-_SIGNATURE = types.voidptr(types.voidptr)
+#: the C signature of an FFI handler: XLA_FFI_Error* (XLA_FFI_CallFrame*)
+SIGNATURE = types.voidptr(types.voidptr)
 #: numerics.tiny of each float dtype (numba freezes them as constants)
 _TINY32, _TINY64 = tiny(np.float32), tiny(np.float64)
 
@@ -107,33 +117,34 @@ def _flat(frame, which, index, dtype):
 # are the gradients of the four per-face arrays.
 
 @numba.njit(cache=True, nogil=True)
-def _geometry_inputs(frame, dtype):
+def _geometry_inputs(frame, values, dtype):
     """(ids [P, K], corner_w, corner_z, coeffs, scr, width, height, soft): the kernels'
-    leading arguments."""
+    leading arguments (values: the attributes, as Target.attrs names them)."""
     k = buffer_dim(item(frame, FRAME_ARGS, 0), -1)
     return (_array2(frame, FRAME_ARGS, 0, k, np.int32), _array2(frame, FRAME_ARGS, 1, 3, dtype),
             _array2(frame, FRAME_ARGS, 2, 3, dtype), _array3(frame, FRAME_ARGS, 3, 3, 3, dtype),
-            _array3(frame, FRAME_ARGS, 4, 3, 2, dtype), attribute(frame, "width"),
-            attribute(frame, "height"), attribute(frame, "soft") != 0)
+            _array3(frame, FRAME_ARGS, 4, 3, 2, dtype), values[0], values[1], values[2] != 0)
 
 
 @numba.njit(cache=True, nogil=True)
-def _geometry_forward(frame, dtype, tiny):
-    ids, corner_w, corner_z, coeffs, scr, width, height, soft = _geometry_inputs(frame, dtype)
+def _geometry_forward(frame, values, dtype, tiny):
+    ids, corner_w, corner_z, coeffs, scr, width, height, soft = _geometry_inputs(frame, values,
+                                                                                 dtype)
     k = ids.shape[1]
     kernels.geometry_forward_into(
         ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny,
-        attribute(frame, THREADS), _array3(frame, FRAME_RETS, 0, k, 3, dtype),
+        values[3], _array3(frame, FRAME_RETS, 0, k, 3, dtype),
         _array2(frame, FRAME_RETS, 1, k, dtype), _array2(frame, FRAME_RETS, 2, k, dtype))
 
 
 @numba.njit(cache=True, nogil=True)
-def _geometry_backward(frame, dtype, tiny):
-    ids, corner_w, corner_z, coeffs, scr, width, height, soft = _geometry_inputs(frame, dtype)
+def _geometry_backward(frame, values, dtype, tiny):
+    ids, corner_w, corner_z, coeffs, scr, width, height, soft = _geometry_inputs(frame, values,
+                                                                                 dtype)
     k = ids.shape[1]
     kernels.geometry_backward_into(
         ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny,
-        attribute(frame, THREADS), _array3(frame, FRAME_ARGS, 5, k, 3, dtype),
+        values[3], _array3(frame, FRAME_ARGS, 5, k, 3, dtype),
         _array2(frame, FRAME_ARGS, 6, k, dtype), _array2(frame, FRAME_ARGS, 7, k, dtype),
         _array2(frame, FRAME_RETS, 0, 3, dtype), _array2(frame, FRAME_RETS, 1, 3, dtype),
         _array3(frame, FRAME_RETS, 2, 3, 3, dtype), _array3(frame, FRAME_RETS, 3, 3, 2, dtype))
@@ -144,23 +155,23 @@ def _geometry_backward(frame, dtype, tiny):
 # [R, W, K, C]; backward: the cotangent [R, W, K, C] follows, results g_bary and g_corners.
 
 @numba.njit(cache=True, nogil=True)
-def _interpolate_forward(frame, dtype):
+def _interpolate_forward(frame, values, dtype):
     k = buffer_dim(item(frame, FRAME_ARGS, 0), -1)
     c = buffer_dim(item(frame, FRAME_ARGS, 2), -1)
     kernels.interpolate_forward_into(
         _array2(frame, FRAME_ARGS, 0, k, np.int32), _array3(frame, FRAME_ARGS, 1, k, 3, dtype),
-        _array3(frame, FRAME_ARGS, 2, 3, c, dtype), attribute(frame, THREADS),
+        _array3(frame, FRAME_ARGS, 2, 3, c, dtype), values[0],
         _array3(frame, FRAME_RETS, 0, k, c, dtype))
 
 
 @numba.njit(cache=True, nogil=True)
-def _interpolate_backward(frame, dtype):
+def _interpolate_backward(frame, values, dtype):
     k = buffer_dim(item(frame, FRAME_ARGS, 0), -1)
     c = buffer_dim(item(frame, FRAME_ARGS, 2), -1)
     kernels.interpolate_backward_into(
         _array2(frame, FRAME_ARGS, 0, k, np.int32), _array3(frame, FRAME_ARGS, 1, k, 3, dtype),
         _array3(frame, FRAME_ARGS, 2, 3, c, dtype), _array3(frame, FRAME_ARGS, 3, k, c, dtype),
-        attribute(frame, THREADS), _array3(frame, FRAME_RETS, 0, k, 3, dtype),
+        values[0], _array3(frame, FRAME_RETS, 0, k, 3, dtype),
         _array3(frame, FRAME_RETS, 1, 3, c, dtype))
 
 
@@ -201,23 +212,25 @@ def _member(view, lead, buffer, core):
 
 
 @numba.njit(cache=True, nogil=True)
-def _per_view(frame, index, lead, views):
-    """Argument `index` ([*B], broadcast; float32 or float64) as float64 [views]."""
-    buffer = item(frame, FRAME_ARGS, index)
-    out = np.empty(views)
-    if int32(buffer, BUFFER_DTYPE) == F64:
-        values64 = _flat(frame, FRAME_ARGS, index, np.float64)
-        for v in range(views):
-            out[v] = values64[_member(v, lead, buffer, 0)]
-    else:
-        values32 = _flat(frame, FRAME_ARGS, index, np.float32)
-        for v in range(views):
-            out[v] = values32[_member(v, lead, buffer, 0)]
+def _per_view(frame, lead, views):
+    """Arguments 2 to 6 (near, far, radius, sigma, gamma: each [*B], broadcast; float32 or
+    float64) as float64 [5, views]."""
+    out = np.empty((5, views))
+    for index in range(2, 7):
+        buffer = item(frame, FRAME_ARGS, index)
+        if int32(buffer, BUFFER_DTYPE) == F64:
+            values64 = _flat(frame, FRAME_ARGS, index, np.float64)
+            for v in range(views):
+                out[index - 2, v] = values64[_member(v, lead, buffer, 0)]
+        else:
+            values32 = _flat(frame, FRAME_ARGS, index, np.float32)
+            for v in range(views):
+                out[index - 2, v] = values32[_member(v, lead, buffer, 0)]
     return out
 
 
 @numba.njit(cache=True, nogil=True)
-def _search_inputs(frame, dtype, face_dtype):
+def _search_inputs(frame, values, dtype, face_dtype):
     """What the search of every view needs: (ids [views * H * W * k], dropped [views],
     views, groups (1: one mesh for every view, else one per view), faces of group g
     (_group_faces), clips [views, V, 4], radii [views], params [views, 4] (sigma, gamma,
@@ -239,16 +252,12 @@ def _search_inputs(frame, dtype, face_dtype):
     faces = np.empty((groups, faces_in.shape[1], 3), np.int64)
     for g in range(groups):
         faces[g] = faces_in[_member(g, lead, face_buffer, 2) if groups > 1 else 0]
-    near, far = _per_view(frame, 2, lead, views), _per_view(frame, 3, lead, views)
-    radii = _per_view(frame, 4, lead, views)
+    scalars = _per_view(frame, lead, views)
     params = np.empty((views, 4))
-    params[:, 0] = _per_view(frame, 5, lead, views)
-    params[:, 1] = _per_view(frame, 6, lead, views)
-    params[:, 2], params[:, 3] = near, far
-    return (ids, dropped, views, faces, clips, radii, params, attribute(frame, "width"),
-            attribute(frame, "height"), attribute(frame, "k"),
-            attribute(frame, "cull_backfaces") != 0, attribute(frame, "perspective") != 0,
-            attribute(frame, THREADS))
+    params[:, 0], params[:, 1] = scalars[3], scalars[4]
+    params[:, 2], params[:, 3] = scalars[0], scalars[1]
+    return (ids, dropped, views, faces, clips, scalars[2].copy(), params, values[0], values[1],
+            values[2], values[3] != 0, values[4] != 0, values[5])
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -265,9 +274,9 @@ def _write_group(ids, dropped, g, per_group, found, lost):
 
 
 @numba.njit(cache=True, nogil=True)
-def _search_soft(frame, dtype, face_dtype):
+def _search_soft(frame, values, dtype, face_dtype):
     (ids, dropped, views, faces, clips, radii, params, width, height, k, cull, perspective,
-     _) = _search_inputs(frame, dtype, face_dtype)
+     _) = _search_inputs(frame, values, dtype, face_dtype)
     per_group = views // faces.shape[0]
     pixels = width * height
     for g in range(faces.shape[0]):
@@ -281,9 +290,9 @@ def _search_soft(frame, dtype, face_dtype):
 
 
 @numba.njit(cache=True, nogil=True)
-def _search_hard(frame, dtype, face_dtype):
+def _search_hard(frame, values, dtype, face_dtype):
     (ids, dropped, views, faces, clips, _, _, width, height, k, cull, _,
-     threads) = _search_inputs(frame, dtype, face_dtype)
+     threads) = _search_inputs(frame, values, dtype, face_dtype)
     per_group = views // faces.shape[0]
     for g in range(faces.shape[0]):
         chosen = slice(g * per_group, (g + 1) * per_group)
@@ -352,11 +361,13 @@ def _handler(name, target):
     closure per target over plain constants, which numba freezes: the branches of the
     other bodies are pruned before compiling, and the constants are part of the cache's
     key (a closure over the body's dispatcher would not be cached)."""
-    body, dtype, other, args, rets, attrs = target
+    body, dtype, other = target.body, target.dtype, target.other
+    title, args, rets, attrs = tables(name, target.args, target.rets, target.attrs)
 
     def handler(address):
         frame = address_of(address)
-        message = check(frame, name, args, rets, attrs)
+        values = np.zeros(attrs.shape[0], np.int64)
+        message = check(frame, title, args, rets, attrs, values)
         if message.size > 0:
             return pointer(error(frame, message))
         if metadata_query(frame):
@@ -364,17 +375,17 @@ def _handler(name, target):
         if body == 0:
             _active(frame)
         elif body == 1:
-            _geometry_forward(frame, dtype, other)
+            _geometry_forward(frame, values, dtype, other)
         elif body == 2:
-            _geometry_backward(frame, dtype, other)
+            _geometry_backward(frame, values, dtype, other)
         elif body == 3:
-            _interpolate_forward(frame, dtype)
+            _interpolate_forward(frame, values, dtype)
         elif body == 4:
-            _interpolate_backward(frame, dtype)
+            _interpolate_backward(frame, values, dtype)
         elif body == 5:
-            _search_soft(frame, dtype, other)
+            _search_soft(frame, values, dtype, other)
         else:
-            _search_hard(frame, dtype, other)
+            _search_hard(frame, values, dtype, other)
         return pointer(0)
     handler.__name__ = handler.__qualname__ = f"_handler_{name}"
     return handler
@@ -394,8 +405,8 @@ for _width, _f, _dtype, _tiny in (("f32", F32, np.float32, _TINY32),
         for _body in (5, 6):
             TARGETS[f"diffshade_{_BODIES[_body]}_{_width}_{_ints}"] = _search(
                 _body, _f, _dtype, _i, _int)
-#: target name -> handler (compiled on first use)
-_HANDLERS = {name: _handler(name, target) for name, target in TARGETS.items()}
+#: target name -> handler, a Python function (compile_handler compiles it)
+HANDLERS = {name: _handler(name, target) for name, target in TARGETS.items()}
 _REGISTERED = {}
 _REGISTERING = threading.Lock()
 
@@ -438,17 +449,22 @@ def target_for(base, args):
     return f"diffshade_{base}_{width[floats.pop()]}"
 
 
+def compile_handler(target):
+    """The compiled handler of `target` (numba's cfunc; compiled, or loaded from numba's
+    cache, which it is saved to)."""
+    # starts numba's threading layer, which defines the symbols (allocate_sched, ...) that
+    # the parallel kernels' code refers to: a cfunc loaded from numba's cache does not
+    numba.get_num_threads()
+    return cfunc(SIGNATURE, nogil=True, cache=True)(HANDLERS[target])
+
+
 def _register(target):
     """Compile (or load from numba's cache) and register a handler, once per process (a
     lock: two threads may lower programs at once)."""
     with _REGISTERING:
         if target in _REGISTERED:
             return
-        # starts numba's threading layer, which defines the symbols (allocate_sched, ...)
-        # that the parallel kernels' code refers to: a cfunc loaded from numba's cache
-        # does not start it
-        numba.get_num_threads()
-        handler = cfunc(_SIGNATURE, nogil=True, cache=True)(_HANDLERS[target])
+        handler = compile_handler(target)
         jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(handler.address),
                                     platform="cpu")
         _REGISTERED[target] = handler  # kept alive: XLA holds only its address

@@ -218,21 +218,41 @@ def item(frame, which, index):
     return words(word(frame, which + LIST_ITEMS), index + 1)[index]
 
 
+#: bytes of a row of name_table (names are cut to one less)
+NAME_BYTES = 32
+
+
+def name_table(names):
+    """Attribute names as attribute_index reads them: uint8 [len(names), NAME_BYTES], each
+    row an ASCII name padded with NULs (an array, not a str: numba compiles a function of a
+    str once for every literal it is called with, and slowly)."""
+    table = np.zeros((len(names), NAME_BYTES), np.uint8)
+    for row, name in zip(table, names, strict=True):
+        text = name.encode("ascii")
+        if len(text) >= NAME_BYTES:
+            raise ValueError(f"attribute name: got {name!r}; expected under {NAME_BYTES} "
+                             "ASCII characters")
+        row[:len(text)] = np.frombuffer(text, np.uint8)
+    return table
+
+
 @numba.njit(cache=True, nogil=True)
 def attribute_index(frame, name):
-    """Index of the attribute called `name` (a str), or -1."""
+    """Index of the attribute called `name` (a NUL-padded uint8 row of name_table), or -1."""
+    length = 0
+    while length < name.shape[0] and name[length] != 0:
+        length += 1
     attrs = frame + FRAME_ATTRS
     size = word(attrs, LIST_SIZE)
     names = words(word(attrs, ATTRS_NAMES), size)
     for i in range(size):
         span = names[i]
-        length = word(span, SPAN_LENGTH)
-        if length != len(name):
+        if word(span, SPAN_LENGTH) != length:
             continue
         text = carray(pointer(word(span, 0)), (max(length, 1),), np.uint8)
         same = True
         for j in range(length):
-            if text[j] != ord(name[j]):
+            if text[j] != name[j]:
                 same = False
                 break
         if same:
@@ -246,14 +266,13 @@ def attribute_kind(frame, index):
     attrs = frame + FRAME_ATTRS
     kind = int32(word(attrs, LIST_TYPES), 4 * index)
     if kind != ATTR_SCALAR:
-        return kind, 0
+        return kind, np.int64(0)
     return kind, int32(words(word(attrs, ATTRS_ITEMS), index + 1)[index], 0)
 
 
 @numba.njit(cache=True, nogil=True)
-def attribute(frame, name):
-    """The int64 scalar attribute called `name` (one that ffi_check.check found)."""
-    index = attribute_index(frame, name)
+def attribute_value(frame, index):
+    """The int64 scalar attribute `index` (one whose kind attribute_kind checked)."""
     value = words(word(frame + FRAME_ATTRS, ATTRS_ITEMS), index + 1)[index]
     return word(word(value, SCALAR_VALUE), 0)
 
