@@ -30,6 +30,19 @@ cache because they contain host callbacks (diffshade.io.compile_cache explains w
 lists the seconds per program (by its name in the log; wall seconds, so they grow with
 the machine's load).
 Writes JSON (default benchmarks/results/time_to_first_result.json).
+
+With --fresh-install it measures what a new user meets instead, each run with empty numba
+and JAX caches (new temporary folders) and the compilation cache on, as after `pip
+install`: the first image (`diffshade render --builtin sphere -o out/first.png`) and the
+README's main job (`diffshade synth -o out/data`, then `diffshade fit out/data -o out/fit`:
+two processes, timed together), each the median over --runs. On a fresh install a run
+takes the JAX kernels while the host kernels compile in the background
+(diffshade.host.warmup); the benchmark waits for that warm-up after each run (it is not
+part of the figure, but it shares the machine with the run it was started by), then times
+the same render once more: the run after the warm-up. Writes
+benchmarks/results/time_to_first_result_fresh_install.json by default.
+
+    python benchmarks/time_to_first_result.py --fresh-install [--runs 3]
 """
 
 import argparse
@@ -77,11 +90,16 @@ _PER_PROGRAM = {"tracing_s": r"Finished tracing (\S+) for jit" + _SECONDS,
                 "compile_s": r"Finished XLA compilation of jit\((\S+)\)" + _SECONDS}
 
 
+RENDER = ["render", "--builtin", "sphere", "-o", "out/first.png"]
+#: what a user's environment may set that would change a fresh install's run
+_USER_CHOICES = ("DIFFSHADE_WARMUP", "DIFFSHADE_KERNELS", "JAX_COMPILATION_CACHE_DIR")
+
+
 def _env(cache_dir, numba_dir):
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+    env = {k: v for k, v in os.environ.items() if k not in _USER_CHOICES}
+    env = dict(env, PYTHONPATH=os.pathsep.join(
         [ROOT] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]),
         NUMBA_CACHE_DIR=numba_dir)
-    env.pop("JAX_COMPILATION_CACHE_DIR", None)
     if cache_dir is None:
         env["DIFFSHADE_COMPILE_CACHE"] = "0"
     else:
@@ -140,6 +158,49 @@ def run_instrumented(args, cwd, cache_dir, numba_dir):
             "not_cacheable_host_callbacks": no_cache}
 
 
+def wait_for_warmup(cache_dir, numba_dir):
+    """Until the background compilation a fresh install's run started is done."""
+    subprocess.run([sys.executable, "-c", "from diffshade.host import warmup; warmup.wait()"],
+                   env=_env(cache_dir, numba_dir), check=True)
+
+
+def fresh_install(cwd, runs):
+    """{first_image, main_job, synth, fit, after_warmup: [(wall, CPU) seconds]} of `runs`
+    fresh installs (module docstring)."""
+    rows = {"first_image": [], "synth": [], "fit": [], "main_job": [], "after_warmup": []}
+    for i in range(runs):
+        for name, commands in (("first_image", [RENDER]), ("main_job", [SYNTH, FIT])):
+            cache_dir = os.path.join(cwd, f"fresh_{name}_{i}")
+            numba_dir = cache_dir + "_numba"
+            times = [run_wall(args, cwd, cache_dir, numba_dir) for args in commands]
+            rows[name].append(tuple(map(sum, zip(*times, strict=True))))
+            if name == "main_job":
+                rows["synth"].append(times[0])
+                rows["fit"].append(times[1])
+            wait_for_warmup(cache_dir, numba_dir)
+            if name == "first_image":
+                rows["after_warmup"].append(run_wall(RENDER, cwd, cache_dir, numba_dir))
+    return rows
+
+
+def fresh_install_main(runs, out):
+    results = {"load_average_before": os.getloadavg(), "commands": {
+        "first_image": "diffshade " + " ".join(RENDER),
+        "main_job": f"diffshade {' '.join(SYNTH)} && diffshade {' '.join(FIT)}"}}
+    with tempfile.TemporaryDirectory() as cwd:
+        rows = fresh_install(cwd, runs)
+    results["load_average_after"] = os.getloadavg()
+    for name, times in rows.items():
+        wall, cpu = (statistics.median(t[i] for t in times) for i in (0, 1))
+        results[name] = {"runs": times, "median_wall_s": wall, "median_cpu_s": cpu}
+        print(f"{name} (median of {runs}): {wall:.1f} s wall / {cpu:.1f} s CPU")
+    print("load average before / after:", results["load_average_before"],
+          results["load_average_after"])
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    from common import write_results
+    write_results(out, results)
+
+
 def cold_warm(args, cwd, runs):
     """{cold, warm, off: [(wall, CPU) seconds]} of `runs` processes each."""
     walls = {"cold": [], "warm": [], "off": []}
@@ -147,6 +208,7 @@ def cold_warm(args, cwd, runs):
         cache_dir = os.path.join(cwd, f"cache_{args[0]}_{i}")
         numba_dir = cache_dir + "_numba"
         walls["cold"].append(run_wall(args, cwd, cache_dir, numba_dir))
+        wait_for_warmup(cache_dir, numba_dir)
         walls["warm"].append(run_wall(args, cwd, cache_dir, numba_dir))
         walls["off"].append(run_wall(args, cwd, None, numba_dir))
     return walls
@@ -158,10 +220,18 @@ def main():
     parser.add_argument("--quick", action="store_true", help="one run of each")
     parser.add_argument("--fit-only", action="store_true",
                         help="time only `fit` (synth runs once, untimed, to make the data)")
-    parser.add_argument("--out", default=os.path.join(ROOT, "benchmarks", "results",
-                                                      "time_to_first_result.json"))
+    parser.add_argument("--fresh-install", action="store_true",
+                        help="time the first image and the README's main job on a fresh "
+                             "install instead")
+    parser.add_argument("--out", help="the JSON to write (default: benchmarks/results/"
+                                      "time_to_first_result.json, or "
+                                      "time_to_first_result_fresh_install.json)")
     opts = parser.parse_args()
     runs = 1 if opts.quick else opts.runs
+    name = "time_to_first_result" + ("_fresh_install" if opts.fresh_install else "")
+    out = opts.out or os.path.join(ROOT, "benchmarks", "results", name + ".json")
+    if opts.fresh_install:
+        return fresh_install_main(runs, out)
     results = {"load_average_before": os.getloadavg()}
     with tempfile.TemporaryDirectory() as cwd:
         if opts.fit_only:
@@ -197,7 +267,7 @@ def main():
           results["load_average_after"])
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     from common import write_results
-    write_results(opts.out, results)
+    write_results(out, results)
 
 
 if __name__ == "__main__":

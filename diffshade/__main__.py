@@ -1,5 +1,5 @@
-"""`python -m diffshade` runs the command line (diffshade.cli)."""
+"""`python -m diffshade` runs the command line (diffshade.cli.program)."""
 
-from diffshade.cli import main
+from diffshade.cli import program
 
-raise SystemExit(main())
+raise SystemExit(program())

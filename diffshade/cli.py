@@ -25,6 +25,7 @@ import sys
 
 import numpy as np
 
+from diffshade.host import warmup
 from diffshade.io import compile_cache
 from diffshade.io.images import write_npy, write_png
 from diffshade.io.scenefile import load_scene
@@ -34,7 +35,7 @@ from diffshade.scene.camera import MAX_IMAGE_SIZE
 from diffshade.scene.scene import replace
 from diffshade.settings import SHADING_MODES, RenderSettings
 
-__all__ = ["COMMANDS", "build_parser", "main"]
+__all__ = ["COMMANDS", "build_parser", "main", "program"]
 
 _USER_ERRORS = (ValueError, OSError)
 _OUTPUT_KINDS = (".png", ".npy")
@@ -160,6 +161,15 @@ def _one_line(err):
     return " ".join(text.split())
 
 
+def program() -> int:
+    """The `diffshade` program (its console script, `python -m diffshade`): main on the
+    process's arguments, after the cold start of a fresh install (diffshade.host.warmup:
+    where numba has not compiled the host kernels yet, this run uses the JAX kernels while
+    they compile in the background)."""
+    warmup.cold_start()
+    return main()
+
+
 def main(argv=None) -> int:
     """Run the command line on argv (default sys.argv[1:]); returns the exit status."""
     compile_cache.enable()
@@ -176,4 +186,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(program())

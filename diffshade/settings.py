@@ -23,6 +23,9 @@ Structural (static):
   higher-order derivatives; 'auto' (default): 'host' when JAX's default backend is the
   CPU with one device, 'jax' elsewhere (nothing then leaves the device; and the host
   kernels' callbacks do not shard: under XLA's SPMD partitioner they deadlock).
+  DIFFSHADE_KERNELS=host or jax in the environment (read when a program is traced) says
+  what 'auto' means instead; the command line sets it to 'jax' for a run on a fresh
+  install, while the host kernels compile (diffshade.host.warmup).
 - shadow_map_size: texels a side of each shadow map (diffshade.shading.shadows), for the lights
   with shadows=True; a scene without such a light compiles no shadow pass.
 
@@ -37,18 +40,21 @@ Continuous (data):
 """
 
 import dataclasses
+import os
 
 import jax
 import numpy as np
 
-__all__ = ["KERNELS", "RASTER_MODES", "SHADING_MODES", "SPECULAR_MODELS", "SPOT_EDGES",
-           "RenderSettings"]
+__all__ = ["AUTO_KERNELS", "KERNELS", "RASTER_MODES", "SHADING_MODES", "SPECULAR_MODELS",
+           "SPOT_EDGES", "RenderSettings"]
 
 SHADING_MODES = ("phong", "gouraud", "flat", "flat_last")
 SPECULAR_MODELS = ("blinn", "phong")
 SPOT_EDGES = ("hard", "smooth")
 RASTER_MODES = ("hard", "soft")
 KERNELS = ("auto", "host", "jax")
+#: the environment variable that says what kernels="auto" means ("host" or "jax")
+AUTO_KERNELS = "DIFFSHADE_KERNELS"
 # sigma, gamma and spot_softness divide float32 values: below ~1e-38 their reciprocal
 # overflows and the soft blend (or the smooth spot edge) turns into inf - inf = NaN
 MIN_SCALE = 1e-30
@@ -105,9 +111,15 @@ class RenderSettings:
 
     def use_host_kernels(self) -> bool:
         """Whether the fragment ops run as compiled host kernels (see `kernels`)."""
-        if self.kernels == "auto":
+        kernels = self.kernels
+        if kernels == "auto":
+            kernels = os.environ.get(AUTO_KERNELS) or "auto"
+            if kernels not in KERNELS:
+                raise ValueError(f"{AUTO_KERNELS} (environment): got {kernels!r}; expected "
+                                 f"one of {KERNELS}")
+        if kernels == "auto":
             return jax.default_backend() == "cpu" and jax.local_device_count() == 1
-        return self.kernels == "host"
+        return kernels == "host"
 
 
 def _check_type(name, value):

@@ -53,6 +53,10 @@ from diffshade.scene.mesh import Mesh  # noqa: E402
 # Tests run it in-process and in subprocesses; they must not write into the user's cache
 # folder, nor switch the cache on for the rest of the session.
 os.environ["DIFFSHADE_COMPILE_CACHE"] = "0"
+# A command run in a subprocess would otherwise, where numba's cache is empty, render with
+# the JAX kernels and start compiling the host ones in the background
+# (diffshade.host.warmup); tests/test_warmup.py tests that on its own.
+os.environ["DIFFSHADE_WARMUP"] = "0"
 
 
 @pytest.fixture(scope="session")

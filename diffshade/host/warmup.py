@@ -1,0 +1,139 @@
+"""A fresh install's first run: the host kernels compile in the background, the run uses JAX's.
+
+numba compiles the FFI handlers (ffi.py) the first time a program uses them and keeps them
+in its cache. On a fresh install that cache is empty, and compiling the handlers of a
+render (the hard search, the fragment geometry, the interpolation: COMMAND_TARGETS) costs
+tens of seconds of CPU; the same render through the jax.numpy kernels (RenderSettings
+kernels='jax') compiles in a few. So the command line (diffshade.cli.program) calls
+`cold_start()` first: where numba's cache lacks one of those handlers (`pending`), it sets
+DIFFSHADE_KERNELS=jax in its own environment (settings.AUTO_KERNELS: kernels='auto' then
+means 'jax' in that process) and starts `python -m diffshade.host.warmup TARGET ...`, a
+detached process of low priority that compiles the pending handlers into numba's cache
+(`start`). The runs after it find them there and use the host kernels. The two paths
+render the same images (to float rounding: tests/test_tile_search.py, test_transforms.py).
+
+Nothing happens where DIFFSHADE_WARMUP=0 or DIFFSHADE_KERNELS is set in the environment,
+where 'auto' does not mean the host kernels anyway (another backend, several devices), or
+where the handlers are not used (DIFFSHADE_FFI=0, ffi.unavailable). One warm-up process
+at a time compiles into a numba cache (a lock file, `lock_path`); a second one exits.
+"""
+
+import fcntl
+import hashlib
+import os
+import subprocess
+import sys
+import tempfile
+
+from diffshade.settings import AUTO_KERNELS, RenderSettings
+
+#: the environment variable that turns the cold start off ("0")
+SWITCH = "DIFFSHADE_WARMUP"
+#: the FFI targets the commands use with default settings (render, synth and fit: float32
+#: hard raster)
+COMMAND_TARGETS = ("diffshade_search_hard_f32_i32", "diffshade_geometry_forward_f32",
+                   "diffshade_interpolate_forward_f32")
+#: the warm-up process's niceness: it gives way to the run it was started by
+NICENESS = 10
+
+
+def pending(targets=COMMAND_TARGETS):
+    """The targets whose handler numba's cache does not hold (a list, in order). Asks the
+    cache's index without compiling or loading anything; where the index cannot be read,
+    none are pending (the run then compiles what it needs, as without a cold start)."""
+    from numba.core.caching import FunctionCache
+    from numba.core.registry import cpu_target
+
+    from diffshade.host import ffi
+
+    try:
+        codegen = cpu_target.target_context.codegen()
+        missing = []
+        for target in targets:
+            cache = FunctionCache(ffi.HANDLERS[target])
+            index = cache._cache_file._load_index()  # numba's own cache lookup, less the load
+            if cache._index_key(ffi.SIGNATURE, codegen) not in index:
+                missing.append(target)
+        return missing
+    except Exception:  # another numba's cache internals: behave as before the cold start
+        return []
+
+
+def applies():
+    """Whether a command run may start cold (module docstring: what turns it off)."""
+    from diffshade.host import ffi, hostcall
+
+    if os.environ.get(SWITCH) == "0" or os.environ.get(AUTO_KERNELS):
+        return False
+    if os.environ.get(hostcall.FFI_SWITCH) == "0":
+        return False
+    return RenderSettings().use_host_kernels() and ffi.unavailable() is None
+
+
+def cold_start():
+    """For a command run: where the host kernels it uses are not compiled yet, run this
+    process on the JAX kernels and start compiling them in the background. Returns the
+    targets being compiled (empty: nothing changed)."""
+    if not applies():
+        return []
+    missing = pending()
+    if missing:
+        os.environ[AUTO_KERNELS] = "jax"
+        start(missing)
+    return missing
+
+
+def start(targets):
+    """Start the detached warm-up process compiling `targets` into numba's cache."""
+    env = {k: v for k, v in os.environ.items() if k != AUTO_KERNELS}
+    subprocess.Popen([sys.executable, "-m", "diffshade.host.warmup", *targets], env=env,
+                     stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                     stderr=subprocess.DEVNULL, start_new_session=True)
+
+
+def lock_path():
+    """The lock file of the warm-ups of this numba cache (NUMBA_CACHE_DIR, else the one
+    beside the package): held while one compiles."""
+    from diffshade.host import ffi
+
+    place = os.environ.get("NUMBA_CACHE_DIR", "") + "\0" + os.path.abspath(ffi.__file__)
+    digest = hashlib.sha256(place.encode()).hexdigest()[:16]
+    return os.path.join(tempfile.gettempdir(), f"diffshade-warmup-{os.getuid()}-{digest}.lock")
+
+
+def wait():
+    """Return once no warm-up of this numba cache is compiling (benchmarks time the runs
+    after one)."""
+    with open(lock_path(), "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+
+
+def compile_targets(targets):
+    """Compile the handlers of `targets` into numba's cache, unless another warm-up of
+    this cache holds the lock; True where they were compiled here."""
+    from diffshade.host import ffi
+
+    with open(lock_path(), "a") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return False
+        for target in targets:
+            ffi.compile_handler(target)
+        return True
+
+
+def main(argv):
+    """python -m diffshade.host.warmup [TARGET ...] (default: COMMAND_TARGETS)."""
+    from diffshade.host import ffi
+
+    unknown = [t for t in argv if t not in ffi.TARGETS]
+    if unknown:
+        raise SystemExit(f"diffshade.host.warmup: got targets {unknown}; expected names of "
+                         "diffshade.host.ffi.TARGETS")
+    os.nice(NICENESS)
+    compile_targets(argv or COMMAND_TARGETS)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -1,0 +1,81 @@
+"""A fresh install's first run (diffshade/host/warmup.py): where numba's cache lacks the
+handlers a command uses, the run takes the JAX kernels and a background process compiles
+the handlers into the cache; DIFFSHADE_KERNELS says what kernels='auto' means."""
+
+import fcntl
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from diffshade.host import warmup
+from diffshade.settings import AUTO_KERNELS, RenderSettings
+
+# prints what cold_start did, the start of the warm-up process recorded instead of run
+_COLD_START = """
+import json, os
+from diffshade.host import warmup
+started = []
+warmup.start = started.extend
+missing = warmup.cold_start()
+print(json.dumps([missing, os.environ.get("DIFFSHADE_KERNELS"), started]))
+"""
+
+_PENDING = """
+import json, sys
+from diffshade.host import warmup
+print(json.dumps(warmup.pending(sys.argv[1:])))
+"""
+
+
+def _env(numba_dir, **extra):
+    env = {k: v for k, v in os.environ.items() if k not in (warmup.SWITCH, AUTO_KERNELS)}
+    return env | {"NUMBA_CACHE_DIR": str(numba_dir)} | extra
+
+
+def _run(code, env, *args):
+    done = subprocess.run([sys.executable, "-c", code, *args], env=env, capture_output=True,
+                          text=True, timeout=600, check=True)
+    return json.loads(done.stdout.splitlines()[-1])
+
+
+def test_auto_kernels_follow_the_environment(monkeypatch):
+    monkeypatch.setenv(AUTO_KERNELS, "jax")
+    assert not RenderSettings().use_host_kernels()
+    assert RenderSettings(kernels="host").use_host_kernels()
+    monkeypatch.setenv(AUTO_KERNELS, "host")
+    assert RenderSettings().use_host_kernels()
+    assert not RenderSettings(kernels="jax").use_host_kernels()
+    monkeypatch.setenv(AUTO_KERNELS, "gpu")
+    with pytest.raises(ValueError, match=f"{AUTO_KERNELS} \\(environment\\): got 'gpu'"):
+        RenderSettings().use_host_kernels()
+
+
+def test_cold_start_on_an_empty_numba_cache(tmp_path):
+    targets = list(warmup.COMMAND_TARGETS)
+    assert _run(_COLD_START, _env(tmp_path)) == [targets, "jax", targets]
+    # switched off, or the kernels chosen by the user: nothing changes
+    assert _run(_COLD_START, _env(tmp_path, DIFFSHADE_WARMUP="0")) == [[], None, []]
+    assert _run(_COLD_START, _env(tmp_path, DIFFSHADE_KERNELS="host")) == [[], "host", []]
+
+
+@pytest.mark.cost(15)
+def test_warmup_compiles_into_numba_cache(tmp_path):
+    env = _env(tmp_path)
+    asked = ["diffshade_active", "diffshade_geometry_forward_f32"]
+    assert _run(_PENDING, env, *asked) == asked
+    subprocess.run([sys.executable, "-m", "diffshade.host.warmup", "diffshade_active"],
+                   env=env, check=True, timeout=600)
+    assert _run(_PENDING, env, *asked) == ["diffshade_geometry_forward_f32"]
+    bad = subprocess.run([sys.executable, "-m", "diffshade.host.warmup", "diffshade_nothing"],
+                         env=env, capture_output=True, text=True, timeout=600)
+    assert bad.returncode != 0 and "got targets ['diffshade_nothing']" in bad.stderr
+
+
+def test_one_warmup_at_a_time(tmp_path, monkeypatch):
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    with open(warmup.lock_path(), "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        assert warmup.compile_targets(["diffshade_active"]) is False
