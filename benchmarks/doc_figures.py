@@ -62,6 +62,7 @@ def readme_rows(data):
     fwd, fb = theirs["forward"]["median_s"], theirs["forward_backward"]["median_s"]
     recovery = {c["label"]: c for c in data["fit_recovery.json"]["configs"]}
     first = data["time_to_first_result.json"]["fit"]
+    fresh = data["time_to_first_result_fresh_install.json"]
     adam, linear = data["memory_views.json"]["rows"], data["memory_views_linear.json"]["rows"]
     views = " / ".join(str(r["views"]) for r in adam)
     peer_cmd = "`python benchmarks/peers.py --rounds 3` (needs `pip install '.[peers]'`), "
@@ -93,6 +94,13 @@ def readme_rows(data):
          f"{first['off_median_wall_s']:.1f} s",
          "`python benchmarks/time_to_first_result.py --fit-only`, "
          + cite("time_to_first_result.json")),
+        ("on a fresh install (empty numba and JAX caches): the first image (`diffshade render "
+         "--builtin sphere`) / the first line above's `synth` and `fit` together",
+         f"{fresh['first_image']['median_wall_s']:.1f} / "
+         f"{fresh['main_job']['median_wall_s']:.1f} s (CPU "
+         f"{fresh['first_image']['median_cpu_s']:.1f} / {fresh['main_job']['median_cpu_s']:.1f} s)",
+         "`python benchmarks/time_to_first_result.py --fresh-install`, "
+         + cite("time_to_first_result_fresh_install.json")),
         (f"peak memory of a fit against views ({views}), {adam[0]['size']}², chunks of "
          f"{adam[0]['chunk']}: Adam / default method",
          " / ".join(gib(r["peak_steps"]) for r in adam) + " GiB / "
@@ -231,8 +239,9 @@ def search_batched(data):
 #: name: (page, function, the JSON files it reads)
 BLOCKS = {
     "readme": ("README.md", readme, ("peers.json", "fit_recovery.json",
-                                     "time_to_first_result.json", "memory_views.json",
-                                     "memory_views_linear.json")),
+                                     "time_to_first_result.json",
+                                     "time_to_first_result_fresh_install.json",
+                                     "memory_views.json", "memory_views_linear.json")),
     "peers": ("docs/performance.md", peers_table, ("peers.json",)),
     "scaling": ("docs/performance.md", scaling_table, ("scaling.json",)),
     "first-result": ("docs/performance.md", first_result,
