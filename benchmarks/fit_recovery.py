@@ -62,19 +62,21 @@ def _flat(values):
 
 def run_config(materials, warmup_material, *, quantize, method, steps, size, shape="icosphere",
                png=None):
-    """(per-fit errors [n, p], per-fit seconds [n], warm-up seconds, parameter names, and
-    the rounding bounds relative to the truth [n, p] for PNG targets, else None).
+    """(per-fit errors [n, p], per-fit seconds [n], per-fit CPU seconds [n] (this
+    process, all threads: less sensitive to other jobs on the machine than the wall time),
+    warm-up seconds, parameter names, and the rounding bounds relative to the truth [n, p]
+    for PNG targets, else None).
     png: None (float or linearly quantized targets) or the colour space the 8-bit sRGB
     PNG targets are decoded as."""
     def one(mat):
         dataset = make_dataset(shape, material=mat, size=size, quantize_8bit=quantize)
         if png:
             dataset = png_targets(dataset, png)
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.process_time()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             result = fit(dataset, method=method, steps=steps, with_uncertainty=png == "srgb")
-        seconds = time.perf_counter() - start
+        seconds = (time.perf_counter() - start, time.process_time() - cpu)
         names = value_names(result.errors)
         truth = _flat({k: getattr(mat, k) for k in result.errors})
         bound = result.uncertainty.rounding_bound if result.uncertainty else None
@@ -89,9 +91,11 @@ def run_config(materials, warmup_material, *, quantize, method, steps, size, sha
         seconds.append(sec)
         bounds.append(bound)
         print(f"  fit {i + 1}/{len(materials)}: worst {100 * err.max():.3f} % "
-              f"({names[int(err.argmax())]}), {sec:.2f} s", file=sys.stderr)
+              f"({names[int(err.argmax())]}), {sec[0]:.2f} s ({sec[1]:.2f} s CPU)",
+              file=sys.stderr)
     bounds = None if any(b is None for b in bounds) else np.array(bounds)
-    return np.array(errors), np.array(seconds), warm_seconds, names, bounds
+    seconds = np.array(seconds)
+    return np.array(errors), seconds[:, 0], seconds[:, 1], warm_seconds[0], names, bounds
 
 
 def passes(label, errors):
@@ -111,6 +115,7 @@ def print_table(configs, names, n):
                  for c in configs]
         print(f"{name:<12}" + "".join(f"{cell:>24}" for cell in cells))
     rows = [("time/fit (s)", lambda c: f"{np.median(c['seconds']):.2f}"),
+            ("CPU/fit (s)", lambda c: f"{np.median(c['cpu_seconds']):.2f}"),
             ("compile+fit (s)", lambda c: f"{c['warmup_seconds']:.1f}"),
             ("bar", lambda c: c["bar"])]
     for label, cell in rows:
@@ -153,7 +158,7 @@ def main_srgb(args, warmup, materials):
         rows = {}
         for title, png in SRGB_PLAN:
             print(f"{shape}, {title}:", file=sys.stderr)
-            errors, seconds, _, names, bounds = run_config(
+            errors, seconds, _, _, names, bounds = run_config(
                 materials, warmup, quantize=False, method=args.method, steps=None,
                 size=args.size, shape=shape, png=png)
             rows[title] = {"errors": errors, "bounds": bounds, "seconds": seconds}
@@ -191,12 +196,12 @@ def main(argv=None):
     configs = []
     for title, label, quantize, method, steps in plan:
         print(f"{title}:", file=sys.stderr)
-        errors, seconds, warm, names, _ = run_config(materials, warmup, quantize=quantize,
-                                                     method=method, steps=steps,
-                                                     size=args.size)
+        errors, seconds, cpu, warm, names, _ = run_config(
+            materials, warmup, quantize=quantize, method=method, steps=steps, size=args.size)
         ok = passes(label, errors)
         configs.append({"title": title, "label": label, "method": method, "steps": steps,
                         "quantize_8bit": quantize, "errors": errors, "seconds": seconds,
+                        "cpu_seconds": cpu,
                         "warmup_seconds": warm,
                         "bar": ("PASS" if ok else "FAIL") if label in BARS else "-"})
     print_table(configs, names, args.n)
@@ -207,11 +212,14 @@ def write_json(args, configs, names, materials):
     out = {"n": args.n, "seed": args.seed, "size": args.size, "init": {
         "ka": 0.3, "kd": 0.5, "ks": 0.3, "shininess": float(DEFAULT_INIT.shininess)},
         "parameters": names, "bars": BARS, "configs": [
-            {**{k: v for k, v in c.items() if k not in ("errors", "seconds")},
+            {**{k: v for k, v in c.items() if k not in ("errors", "seconds", "cpu_seconds")},
              "median": dict(zip(names, np.median(c["errors"], 0).tolist(), strict=True)),
              "worst": dict(zip(names, c["errors"].max(0).tolist(), strict=True)),
              "errors": c["errors"].tolist(), "seconds_per_fit": c["seconds"].tolist(),
-             "median_seconds_per_fit": float(np.median(c["seconds"]))} for c in configs],
+             "median_seconds_per_fit": float(np.median(c["seconds"])),
+             "cpu_seconds_per_fit": c["cpu_seconds"].tolist(),
+             "median_cpu_seconds_per_fit": float(np.median(c["cpu_seconds"]))}
+            for c in configs],
         "materials": [{"ka": np.asarray(m.ka).tolist(), "kd": np.asarray(m.kd).tolist(),
                        "ks": np.asarray(m.ks).tolist(), "shininess": float(m.shininess)}
                       for m in materials]}

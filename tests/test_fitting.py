@@ -23,7 +23,13 @@ from fitting.report.misfit import _neighbour_squares
 from fitting.report.result import _render_rgb
 from fitting.report.uncertainty import uncertainty
 from fitting.solve import make_optimizer, make_step
-from fitting.solve.linear import box_least_squares, normal_equations
+from fitting.solve.linear import (
+    _fixed_profile,
+    _grid_minimum,
+    _solve,
+    box_least_squares,
+    normal_equations,
+)
 from fitting.spec import (
     material_values,
     param_labels,
@@ -428,6 +434,42 @@ def test_normal_equations_match_the_rendered_parts(small):
     design, target = np.concatenate(design), np.concatenate(target)
     np.testing.assert_allclose(gram, design.T @ design, rtol=2e-5)
     np.testing.assert_allclose(rhs, design.T @ target, rtol=2e-5)
+
+
+@pytest.mark.parametrize("spec, gains", [
+    (FitSpec(), None),
+    (FitSpec(ka="grey", kd="rgb", ks="grey"), None),
+    (FitSpec(ka=None, kd="rgb", ks="rgb"), [[1.0, 1.0, 1.0], [0.8, 1.1, 1.3]]),
+])
+def test_search_profile_equals_the_general_solve(small, spec, gains):
+    """The shininess search's profile (ambient and diffuse sums taken once) against the
+    mean squared residual of the solve from normal_equations, at shininess on both sides
+    of the truth's, with fixed coefficients and per-view gains."""
+    data = build_cache(small, ds.material(ka=0.3, kd=0.5, ks=(0.2, 0.3, 0.4), shininess=20.0))
+    gains = None if gains is None else np.asarray(gains)
+    misfit = _fixed_profile(data, spec, gains)
+    for log_shininess in np.log([3.0, 35.0, 400.0]):
+        np.testing.assert_allclose(misfit(log_shininess),
+                                   _solve(log_shininess, data, spec, gains)[1], rtol=1e-9,
+                                   atol=1e-12)  # the truth: a residual of rounding
+    assert _fixed_profile(data, FitSpec(ks=None), None) is None  # the specular part is in y
+
+
+@pytest.mark.parametrize("size", [23, 24])
+def test_grid_minimum_finds_the_best_grid_point_of_a_convex_profile(size):
+    """Coarse to fine, on half the points and two: for every position of the minimum of a
+    convex profile, the grid point a full evaluation finds best."""
+    grid = np.linspace(0.0, 7.6, size)
+    for centre in np.linspace(-0.5, 8.1, 173):
+        taken = []
+
+        def profile(g, centre=centre, taken=taken):
+            taken.append(g)
+            return (g - centre) ** 2 + 0.3 * abs(g - centre)
+        best, values = _grid_minimum(profile, grid)
+        assert len(taken) <= size // 2 + 3
+        assert best == int(np.argmin([profile(g) for g in grid]))
+        assert values[best] == profile(grid[best])
 
 
 # ---- uncertainty ----

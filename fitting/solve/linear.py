@@ -21,9 +21,12 @@ by the Levenberg-Marquardt polish that follows in `fit` (Gouraud's per-vertex cl
 likewise only exact after the polish).
 
 The outer problem in log-shininess is 1-D: evaluated on a log grid (so that a flat or
-multi-modal profile cannot trap it), then refined by Brent's bounded method around the
-best grid point (to 1e-6 in log-shininess, which the float64 sums resolve). This removes
-the ks-shininess ridge that slows plain gradient descent.
+multi-modal profile cannot trap it; every other point first, then the two beside the best
+of those), then refined by Brent's bounded method around the best grid point (to 1e-6 in
+log-shininess, which the float64 sums resolve). This removes the ks-shininess ridge that
+slows plain gradient descent. Only the specular part changes with shininess: where the
+specular coefficient is fitted, the search takes the other parts' sums once and reads only
+the specular part at each shininess (`_fixed_profile`).
 
 Per-view gains (fitting.spec.gains) multiply a view's parts, so with the gains fixed the
 coefficients are still a linear problem, and with the coefficients fixed each view's gain
@@ -214,14 +217,86 @@ def _solve(log_shininess, data, spec, gains=None):
     return coef, float(coef @ gram @ coef - 2 * coef @ rhs + sq) / max(float(count), 1.0)
 
 
+def _dot(a, b):
+    """a . b of two vectors, by einsum: BLAS (np.dot, @) starts its threads for vectors
+    this long, which costs milliseconds a call where the cores are busy."""
+    return float(np.einsum("i,i->", a, b))
+
+
+def _channel_rows(a, w):
+    """[3 channels, V * N] of a [V, N, 3] array, only where w > 0 (w: the same shape)."""
+    return [np.moveaxis(a, -1, 0)[c][np.moveaxis(w, -1, 0)[c] > 0] for c in range(3)]
+
+
+def _fixed_profile(data, spec, gains):
+    """misfit(log_shininess) -> _solve's mean squared residual, for a search that varies
+    shininess alone: where the specular coefficient is fitted, only the specular part
+    changes with shininess, so the ambient and diffuse parts, the usable pixels, the
+    right-hand side y and their sums are taken once, each evaluation computes the parts
+    program once more and reads only its specular part (the sums over the usable
+    pixel-channels, in float64, as normal_equations takes them). None where that does not
+    hold (a fixed specular coefficient: the specular part is then in y; views summed
+    chunk by chunk: their parts are not all in memory at once)."""
+    if spec.ks is None or (isinstance(data, ShardedViews) and data.local):
+        return None
+    base = fit_data(data)
+    stacked = batched(base)
+    view_gain = np.ones((len(base.views), 1, 3)) if gains is None else gains[:, None, :]
+    material = _unit_material(base.material, spec, np.float64(0.0))
+    parts, target, weight = host_parts(material, None, base)
+    parts = parts.map(lambda a: a * view_gain)
+    w = _usable(target, weight, base.settings)
+    y = target - _offset(parts, spec, base.material)
+    rows = [_channel_rows(x, w) for x in (parts.ambient, parts.diffuse, w * y, w)]
+    ambient, diffuse, wy, weights = rows
+    fixed = [np.array([[_dot(weights[c] * p, q) for q in (ambient[c], diffuse[c])]
+                       for p in (ambient[c], diffuse[c])]) for c in range(3)]
+    fixed_rhs = [np.array([_dot(ambient[c], wy[c]), _dot(diffuse[c], wy[c])])
+                 for c in range(3)]
+    sq, count = float(np.sum(w * y * y)), float(np.sum(w))
+    select = _selection(spec)
+
+    def misfit(log_shininess):
+        unit = _unit_material(base.material, spec, log_shininess)
+        specular = np.asarray(view_parts(unit, None, stacked)[0].specular, np.float64)
+        specular = _channel_rows(specular * view_gain, w)
+        gram, rhs = np.zeros((3, 3, 3)), np.zeros((3, 3))
+        for c in range(3):
+            ws = weights[c] * specular[c]
+            gram[c, :2, :2] = fixed[c]
+            gram[c, 2, :2] = gram[c, :2, 2] = _dot(ws, ambient[c]), _dot(ws, diffuse[c])
+            gram[c, 2, 2] = _dot(ws, specular[c])
+            rhs[c] = (*fixed_rhs[c], _dot(specular[c], wy[c]))
+        gram = np.einsum("ick,jcl,ckl->ij", select, select, gram)
+        rhs = np.einsum("ick,ck->i", select, rhs)
+        coef = box_least_squares(gram, rhs, 0.0, spec.upper)
+        return float(coef @ gram @ coef - 2 * coef @ rhs + sq) / max(count, 1.0)
+    return misfit
+
+
+def _grid_minimum(misfit, grid):
+    """(index of the best point of the grid, misfit at the points, inf where not taken),
+    coarse to fine: every other point (and the last), then the two beside the best of
+    those, whose best is then beside two points taken."""
+    profile = np.full(len(grid), np.inf)
+    for i in sorted({*range(0, len(grid), 2), len(grid) - 1}):
+        profile[i] = misfit(grid[i])
+    coarse = int(np.argmin(profile))
+    for i in (coarse - 1, coarse + 1):
+        if 0 <= i < len(grid) and profile[i] == np.inf:
+            profile[i] = misfit(grid[i])
+    return int(np.argmin(profile)), profile
+
+
 def _search_shininess(data, spec, shininess_range, grid_size, gains=None):
-    """Best log-shininess: the best point of a log grid, refined by bounded Brent."""
+    """Best log-shininess: the best point of a log grid (_grid_minimum), refined by
+    bounded Brent."""
+    misfit = _fixed_profile(data, spec, gains) or (lambda g: _solve(g, data, spec, gains)[1])
     grid = np.linspace(np.log(shininess_range[0]), np.log(shininess_range[1]), grid_size)
-    profile = np.array([_solve(g, data, spec, gains)[1] for g in grid])
-    best = int(np.argmin(profile))
+    best, profile = _grid_minimum(misfit, grid)
     lo, hi = grid[max(best - 1, 0)], grid[min(best + 1, grid_size - 1)]
-    refined = minimize_scalar(lambda g: _solve(g, data, spec, gains)[1], bounds=(lo, hi),
-                              method="bounded", options={"xatol": 1e-6})
+    refined = minimize_scalar(misfit, bounds=(lo, hi), method="bounded",
+                              options={"xatol": 1e-6})
     return float(refined.x) if refined.fun <= profile[best] else float(grid[best])
 
 
