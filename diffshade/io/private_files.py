@@ -46,10 +46,14 @@ def _owner():
     return os.geteuid()
 
 
+def _owned(info):
+    """Ours, or root's (who can change anything anyway)."""
+    return info.st_uid in (_owner(), 0)
+
+
 def _check(path, info, kind):
-    """Refuse what is not ours (or root's, who can change anything anyway) or is writable
-    by group or others."""
-    if info.st_uid not in (_owner(), 0):
+    """Refuse what is not ours or is writable by group or others."""
+    if not _owned(info):
         raise Untrusted(f"{kind} {path!r} belongs to user id {info.st_uid}, not to this user "
                         f"({_owner()})")
     if info.st_mode & _LOOSE:
