@@ -28,7 +28,7 @@ The store keeps the programs of the current source only (an edit of diffshade or
 fitting starts it afresh; the other folders are removed).
 
 What is read from the cache is run, so it is held to the rules ssh holds ~/.ssh to
-(diffshade.io.private_files; docs/cli.md, "The compilation cache"):
+(diffshade.io.private_files; docs/cli.md, "Time to first result", Trust):
 - the folders are created with mode 0700; the cache directory, `programs` and its folder
   of this environment's programs, and every entry, must be this user's and not writable
   by group or others, else they are refused with a warning and the programs compile
