@@ -21,6 +21,7 @@ from diffshade import cli
 from fitting.checkpoint import load_checkpoint, read_checkpoint
 
 STEPS = 4
+pytestmark = pytest.mark.cost(5)  # one short fit shared by the module
 
 
 @pytest.fixture(scope="module")

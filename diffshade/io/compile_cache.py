@@ -33,36 +33,25 @@ What is read from the cache is run, so it is held to the rules ssh holds ~/.ssh 
   of this environment's programs, and every entry, must be this user's and not writable
   by group or others, else they are refused with a warning and the programs compile
   normally (for JAX's cache where diffshade configures it: diffshade.io.xla_cache);
-- an entry is JSON and XLA's executable, never pickle (diffshade.io.executables): its first
-  line names the format, its second is JSON with its full key, which is compared with
-  the key of the call, and the SHA-256 and length of the executable that follows;
-- an entry over MAX_ENTRY_BYTES is refused before it is read; one of another key
-  (renamed or copied), or damaged, or whose program fails on its first call, is removed
-  and the program compiled again.
+- an entry is JSON and XLA's executable, never pickle (diffshade.io.program_entries): its
+  full key is compared with the key of the call; an entry over its size limit is refused
+  before it is read; one of another key (renamed or copied), or damaged, or whose program
+  fails on its first call, is removed and the program compiled again.
 """
 
-import contextlib
 import functools
 import hashlib
 import inspect
-import json
 import os
 import platform
-import shutil
 import sys
 
 import jax
 import numpy as np
 
-from diffshade.io import executables, xla_cache
-from diffshade.io.private_files import (
-    Untrusted,
-    check_folder,
-    private_folder,
-    read_private,
-    warn_once,
-    write_private,
-)
+from diffshade.io import xla_cache
+from diffshade.io.private_files import Untrusted, private_folder, warn_once
+from diffshade.io.program_entries import PLAIN, read_entry, remove, write_entry
 
 __all__ = ["FAST_COMPILE", "LIGHT_COMPILE", "StoredProgram", "cache_dir", "enable",
            "environment_key", "store_dir", "stored_jit"]
@@ -129,10 +118,6 @@ FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive
 LIGHT_COMPILE = {"xla_backend_optimization_level": 1}
 
 STORE_FOLDER = "programs"
-_MAGIC = b"diffshade-program 2\n"
-_PLAIN = "plain jit"  # what a call the store keeps no program for gets: jit's
-# far above any program of diffshade's (a few MB at most); an entry beyond it is damage
-MAX_ENTRY_BYTES = 256 * 2**20
 _store = None  # the store's folder while enable() has it on; None: every call goes to jit
 _environment = None  # (hash of what every stored program depends on, its folder name)
 
@@ -249,79 +234,6 @@ def _fresh_compile(lowered):
         compilation_cache.reset_cache()
 
 
-# ---- entries: JSON with the full key, then XLA's executable ----
-
-
-def _entry_bytes(key, header=None, code=b""):
-    """An entry's content; header None: the key's calls go to jit (no executable)."""
-    head = {"key": key, "program": header, "code_bytes": len(code),
-            "code_sha256": hashlib.sha256(code).hexdigest()}
-    return _MAGIC + json.dumps(head, allow_nan=False).encode() + b"\n" + code
-
-
-def _parse_entry(blob, key):
-    """(header, code) of an entry of `key`; ValueError when it is another key's or
-    damaged."""
-    if not blob.startswith(_MAGIC):
-        raise ValueError("not a program entry")
-    line, _, code = blob[len(_MAGIC):].partition(b"\n")
-    head = json.loads(line)
-    if not isinstance(head, dict) or head.get("key") != key:
-        raise ValueError("an entry of another program")
-    if head.get("code_bytes") != len(code) or \
-            head.get("code_sha256") != hashlib.sha256(code).hexdigest():
-        raise ValueError("a damaged executable")
-    return head["program"], code
-
-
-def _remove(path):
-    with contextlib.suppress(OSError):
-        os.remove(path)
-
-
-_folders = {}  # folder -> whether it is private (checked once per process)
-
-
-def _trusted(folder) -> bool:
-    """Whether the store's `folder` (and `programs` above it) may be used; warns once if
-    not. A folder not there yet is trusted (private_folder creates it so)."""
-    if folder not in _folders:
-        try:
-            for path in (os.path.dirname(folder), folder):
-                if os.path.exists(path):
-                    check_folder(path)
-            _folders[folder] = True
-        except (Untrusted, OSError) as err:
-            warn_once(f"{err}; the program store is not used, programs compile normally")
-            _folders[folder] = False
-    return _folders[folder]
-
-
-def _read_entry(path, key, in_tree, device):
-    """The Compiled program stored at path for `key`, _PLAIN for a key whose calls go to
-    jit, or None when there is none or it cannot be used: an untrusted entry is left (with
-    a warning), a damaged or another key's entry is removed, to be written anew."""
-    if not _trusted(os.path.dirname(path)):
-        return None
-    try:
-        blob = read_private(path, MAX_ENTRY_BYTES)
-    except Untrusted as err:
-        warn_once(f"{err}; not loaded, the program is compiled")
-        return None
-    except (ValueError, OSError):
-        blob = b""  # unreadable or over the limit: damaged
-    if blob is None:
-        return None
-    try:
-        header, code = _parse_entry(blob, key)
-        if header is None:
-            return _PLAIN
-        return executables.rebuild(header, code, in_tree, device)
-    except Exception:  # any damage (XLA's deserializer has its own errors): compile afresh
-        _remove(path)
-        return None
-
-
 def _storable(compiled) -> bool:
     """Whether an executable can be loaded in another process: not when XLA's program
     has custom calls (LAPACK's, for a matrix inverse, and the like): on CPU the
@@ -331,38 +243,6 @@ def _storable(compiled) -> bool:
         return "custom-call" not in compiled.as_text()
     except Exception:
         return False
-
-
-def _entry_of(key, compiled, device):
-    """The entry of `compiled` (None, or one that cannot be described or is over the
-    limit: an entry that sends the key's calls to jit)."""
-    if compiled is not None:
-        with contextlib.suppress(executables.Unstorable):
-            blob = _entry_bytes(key, *executables.describe(compiled, device))
-            if len(blob) <= MAX_ENTRY_BYTES:
-                return blob
-    return _entry_bytes(key)
-
-
-def _write_entry(path, key, compiled, device):
-    """Write the entry of `compiled` (None: of jit's) to path, atomically (mode 0600); an
-    untrusted folder, and a full or read-only disk, are skipped."""
-    folder = os.path.dirname(path)
-    if not _trusted(folder):
-        return
-    blob = _entry_of(key, compiled, device)
-    try:
-        fresh = not os.path.isdir(folder)
-        private_folder(folder)
-        if fresh:  # programs of other sources or versions are never read again
-            store = os.path.dirname(folder)
-            for name in os.listdir(store):
-                other = os.path.join(store, name)
-                if other != folder and len(name) == 64 and os.path.isdir(other):
-                    shutil.rmtree(other, ignore_errors=True)
-        write_private(path, blob)
-    except (Untrusted, OSError):
-        return
 
 
 class StoredProgram:
@@ -414,7 +294,7 @@ class StoredProgram:
         try:  # a program loaded from the store, on its first call
             out = compiled(**dynamic)
         except Exception:  # whatever the entry holds, it is not this call's program
-            _remove(self.unproven.pop(memo))
+            remove(self.unproven.pop(memo))
             self.loaded[memo] = None
             return self.jitted(*args, **kwargs)
         self.unproven.pop(memo)
@@ -458,18 +338,18 @@ class StoredProgram:
             return None
         name = hashlib.sha256(key[1].encode()).hexdigest()
         path = os.path.join(_store, key[0], f"{name}.bin")
-        entry = _read_entry(path, key, memo[0], device)
-        if entry is _PLAIN:
+        entry = read_entry(path, key, memo[0], device)
+        if entry is PLAIN:
             return None
         if entry is not None:
             self.unproven[memo] = path
             return entry
         lowered = self.jitted.lower(**arguments)
         if _has_host_callbacks(lowered) or "custom_call" in lowered.as_text():
-            _write_entry(path, key, None, device)  # this and later processes go to jit
+            write_entry(path, key, None, device)  # this and later processes go to jit
             return None
         compiled = _fresh_compile(lowered)
-        _write_entry(path, key, compiled if _storable(compiled) else None, device)
+        write_entry(path, key, compiled if _storable(compiled) else None, device)
         return compiled
 
 

@@ -20,10 +20,13 @@ import stat
 import sys
 import tempfile
 
-__all__ = ["Untrusted", "check_folder", "private_folder", "read_private", "warn_once",
-           "write_private"]
+__all__ = ["MAX_ENTRY_BYTES", "Untrusted", "check_folder", "private_folder", "read_private",
+           "warn_once", "write_private"]
 
 FOLDER_MODE = 0o700
+# far above any compiled program of diffshade's (a few MB at most): an entry beyond it is
+# damage, refused before it is read
+MAX_ENTRY_BYTES = 256 * 2**20
 _LOOSE = stat.S_IWGRP | stat.S_IWOTH
 
 

@@ -23,14 +23,18 @@ import pathlib
 from jax._src import compilation_cache
 from jax._src.compilation_cache_interface import CacheInterface
 
-from diffshade.io.private_files import Untrusted, read_private, warn_once, write_private
+from diffshade.io.private_files import (
+    MAX_ENTRY_BYTES,
+    Untrusted,
+    read_private,
+    warn_once,
+    write_private,
+)
 
-__all__ = ["MAX_ENTRY_BYTES", "PrivateCache", "guard"]
+__all__ = ["PrivateCache", "guard"]
 
 MAGIC = b"diffshade-xla-cache 1\n"
 SUFFIX = ".xla"
-# far above any program of diffshade's (a few MB at most); an entry beyond it is damage
-MAX_ENTRY_BYTES = 256 * 2**20
 _guarded = set()  # the folders whose JAX cache is a PrivateCache
 
 
