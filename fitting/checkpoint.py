@@ -245,7 +245,8 @@ def check_checkpoint(data):
     _check_keys(data, "", FIELDS)
     _check_meta(data["meta"])
     _check_spec(data["spec"])
-    material_from_dict(data["init"], "init")
+    if isinstance(material_from_dict(data["init"], "init"), dict):  # objects by name
+        _fail("init.objects", data["init"]["objects"], "a list, one material per object")
     _check_run(data)
     _check_arrays(data["params"], "params", finite=True)
     _check_arrays(data["optimizer_state"], "optimizer_state", finite=False)

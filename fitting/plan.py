@@ -71,8 +71,7 @@ def _check_agrees(args, spec, meta, checkpoint):
 def _check_init(args, init, dataset, checkpoint):
     """On --resume, the checkpoint's init must be the dataset's objects' and an --init
     given must be the checkpoint's (for every object)."""
-    count = object_total(dataset)
-    given = len(init) if isinstance(init, dict) else object_count(init)
+    count, given = object_total(dataset), object_count(init)
     if given != count:
         raise ValueError(f"checkpoint {checkpoint!r}: init: got materials for {given or 1} "
                          f"object(s); expected {count or 1}, the dataset's objects")

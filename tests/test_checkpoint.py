@@ -64,6 +64,8 @@ CASES = {  # name: (change, the field the message names)
     "init": (_set(["init", "kd"], "red"), "init: kd"),
     "init for two objects": (lambda d: d.update(init={"objects": [d["init"], d["init"]]}),
                              "init"),
+    "init by object name": (lambda d: d.update(init={"objects": {"a": d["init"]}}),
+                            "init.objects"),
     "params NaN": (_set(["params", 1, "data", 1], "nan"), "params[1].data[1]"),
     "params null": (_set(["params"], None), "params"),
     "params entry": (_set(["params", 0], None), "params[0]"),

@@ -115,7 +115,8 @@ def _entry_of(key, compiled, device):
     """The entry of `compiled` (None, or one that cannot be described or is over the
     limit: an entry that sends the key's calls to jit)."""
     if compiled is not None:
-        with contextlib.suppress(executables.Unstorable):
+        # Unstorable, or anything a JAX whose internals differ raises: not kept either
+        with contextlib.suppress(Exception):
             blob = _entry_bytes(key, *executables.describe(compiled, device))
             if len(blob) <= MAX_ENTRY_BYTES:
                 return blob
