@@ -4,7 +4,13 @@ JAX decides once per process whether it uses a cache, at the first compilation, 
 behaviour is checked in a fresh interpreter: the files that appear in the cache folder,
 and JAX's own log of a cache hit in a second process. (The test session itself runs with
 DIFFSHADE_COMPILE_CACHE=0, set in conftest.py, so in-process CLI tests write nothing
-into the user's cache.)"""
+into the user's cache.)
+
+The store's trust rules are checked against what an attacker or an accident leaves in
+the folder: crafted entries whose checksums are right (a pickle that would make a folder
+if it were loaded), entries swapped or grown to 8 GB, folders and entries that group or
+another user can write; the reference is the program's value computed with numpy, and
+whether the payload's folder exists afterwards."""
 
 import hashlib
 import json
