@@ -62,7 +62,8 @@ from diffshade.scene.objects import object_names, split_mesh, unstack_material
 from diffshade.scene.scene import Scene, make_scene, object_count, scene_object
 from diffshade.settings import DATA_FIELDS, RenderSettings
 
-__all__ = ["FORMAT_VERSION", "SceneFileError", "load_scene", "load_scenes", "read_json",
+__all__ = ["FORMAT_VERSION", "SceneFileError", "camera_to_dict", "load_scene", "load_scenes",
+           "read_json",
            "save_scene", "scene_from_dict", "scene_to_dict", "scenes_from_dict"]
 
 FORMAT_VERSION = 1
@@ -622,7 +623,9 @@ def _is_pinhole_look_at(camera):
             and not np.any(np.asarray(camera.dist)))
 
 
-def _camera_to_dict(camera):
+def camera_to_dict(camera) -> dict:
+    """A scene file's camera object: the look-at keys, or the OpenCV ones for a camera
+    with an off-centre principal point, fx != fy or distortion."""
     if not _is_pinhole_look_at(camera):
         opencv = camera_to_opencv(camera)
         return {**{k: _plain(opencv[k]) for k in ("K", "R", "t", "dist")},
@@ -677,7 +680,7 @@ def scene_to_dict(scene: Scene, settings: RenderSettings, mesh_ref=None) -> dict
     rectangles, area disks, sphere).
     """
     return {"version": FORMAT_VERSION, **_geometry_to_dict(scene, mesh_ref),
-            "camera": _camera_to_dict(scene.camera), "lights": _lights_to_list(scene.lights),
+            "camera": camera_to_dict(scene.camera), "lights": _lights_to_list(scene.lights),
             "global_ambient": _rgb(scene.global_ambient), "background": _rgb(scene.background),
             "local_viewer": scene.local_viewer, "two_sided": scene.two_sided,
             "settings": _settings_to_dict(settings)}
