@@ -68,9 +68,16 @@ def render_analytic_sphere(scene, settings, center=(0.0, 0.0, 0.0), radius=1.0, 
     """The exact sphere lit like `scene` (its lights, material, viewer model, background):
     [H, W, 4] RGBA, alpha = fraction of samples that hit. The scene's mesh is ignored."""
     cam = scene.camera
+    ndc = _sample_ndc(cam.width, cam.height, supersample, cam.eye.dtype)
+    return sphere_at_ndc(scene, settings, ndc, center, radius)
+
+
+def sphere_at_ndc(scene, settings, ndc, center=(0.0, 0.0, 0.0), radius=1.0):
+    """The exact sphere lit like `scene`, seen through NDC points ndc [..., S, 2] of its
+    camera (S samples per pixel, averaged): [..., 4] RGBA."""
+    cam = scene.camera
     dtype = cam.eye.dtype
     center = jnp.asarray(center, dtype)
-    ndc = _sample_ndc(cam.width, cam.height, supersample, dtype)
     origins, dirs = camera_rays(cam, ndc)
     t, hit = intersect_sphere(origins, dirs, center, radius)
     points = origins + jnp.where(hit, t, 0.0)[..., None] * dirs
@@ -87,6 +94,7 @@ def render_analytic_sphere(scene, settings, center=(0.0, 0.0, 0.0), radius=1.0, 
 
 render_analytic_sphere = jax.jit(render_analytic_sphere,
                                  static_argnames=("radius", "supersample"))
+sphere_at_ndc = jax.jit(sphere_at_ndc, static_argnames=("radius",))
 
 
 
