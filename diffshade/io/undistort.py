@@ -14,6 +14,7 @@ docs/calibrated-cameras.md measures what the resampling costs.
 
 import dataclasses
 
+import jax.numpy as jnp
 import numpy as np
 
 from diffshade.scene.calibration import distort, opencv_intrinsics
@@ -22,7 +23,7 @@ from diffshade.scene.camera import Camera
 
 def pinhole(camera: Camera) -> Camera:
     """camera without lens distortion: the image the renderer draws."""
-    return dataclasses.replace(camera, dist=np.zeros_like(camera.dist))
+    return dataclasses.replace(camera, dist=jnp.zeros_like(camera.dist))
 
 
 def _normalized_grid(K, width, height):
