@@ -14,6 +14,7 @@ import json
 import os
 import re
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -84,6 +85,14 @@ def test_opencv_camera_projects_as_opencv_does_and_converts_back():
     for key, want in (("K", K), ("R", rotation()), ("t", T), ("dist", np.zeros(5))):
         np.testing.assert_allclose(back[key], want, atol=1e-12, err_msg=key)
     assert (back["width"], back["height"]) == (W, H)
+
+
+def test_float32_cameras_project_to_a_thousandth_of_a_pixel():
+    with jax.enable_x64(False):
+        camera = ds.camera_from_opencv(K, rotation(), T, W, H)
+        assert camera.eye.dtype == camera.shift.dtype == jnp.float32
+        np.testing.assert_allclose(diffshade_pixels(camera, points()),
+                                   opencv_project(K, rotation(), T, points()), atol=1e-3)
 
 
 def test_look_at_camera_converts_to_the_opencv_camera_that_projects_alike():
