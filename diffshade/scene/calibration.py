@@ -36,7 +36,7 @@ def _matrix(name, value, shapes, expected):
             raise TypeError(type(value).__name__)
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
-        raise ValueError(f"{name}: got {value!r}; expected {expected}") from None
+        raise ValueError(f"{name}: got {_show(value)}; expected {expected}") from None
     if arr.shape not in shapes or not np.all(np.isfinite(arr)):
         raise ValueError(f"{name}: got {_show(value)}; expected {expected}")
     return arr
