@@ -11,7 +11,7 @@ import os
 from typing import NamedTuple
 
 from fitting.checkpoint import checkpoint_run, load_checkpoint, material_dict, read_checkpoint
-from fitting.data.views import material_for
+from fitting.data.views import material_for, object_total
 from fitting.inputs import (
     check_output,
     dataset_fingerprint,
@@ -21,7 +21,7 @@ from fitting.inputs import (
 )
 from fitting.solve.distribute import device_list
 from fitting.solve.options import PLACEMENT, FitOptions
-from fitting.spec.params import DEFAULT_INIT, FitSpec, start_material
+from fitting.spec.params import DEFAULT_INIT, FitSpec, object_count, start_material
 
 CHECKPOINT = "checkpoint.json"
 
@@ -69,7 +69,12 @@ def _check_agrees(args, spec, meta, checkpoint):
 
 
 def _check_init(args, init, dataset, checkpoint):
-    """On --resume, an --init given must be the checkpoint's (for every object)."""
+    """On --resume, the checkpoint's init must be the dataset's objects' and an --init
+    given must be the checkpoint's (for every object)."""
+    count, given = object_total(dataset), object_count(init)
+    if given != count:
+        raise ValueError(f"checkpoint {checkpoint!r}: init: got materials for {given or 1} "
+                         f"object(s); expected {count or 1}, the dataset's objects")
     if args.init is not None:
         given = material_dict(material_for(dataset, parse_material(args.init, "--init"),
                                            "--init"))
@@ -126,6 +131,9 @@ def prepare(args):
             raise ValueError(f"DATASET: {args.dataset!r} holds other targets than the dataset "
                              f"the checkpoint {checkpoint!r} was made with")
         state = load_checkpoint(checkpoint, [v.lights for v in dataset.views])
+        if options.budget < state.step:
+            raise ValueError(f"--steps: got {options.steps}; the checkpoint {checkpoint!r} "
+                             f"is at step {state.step}; expected at least {state.step}")
         state.options = options
     every = args.checkpoint_every or meta.get("checkpoint_every") or 500
     return dataset, Plan(spec, init, options, state, every, fingerprint)
