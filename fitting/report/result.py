@@ -266,9 +266,14 @@ def result_dict(result, init, truth, extra=None) -> dict:
 
 
 def _std_errors(result):
-    """{name: standard error, or None (at a bound)}; {} without an uncertainty report."""
+    """{name: (standard error, or None at a bound; rounding bound or None)}; {} without an
+    uncertainty report."""
     report = result.uncertainty
-    return {} if report is None else {n: s for n, (_, s) in report.as_dict().items()}
+    if report is None:
+        return {}
+    bounds = report.rounding_bound
+    return {n: (s, None if s is None or bounds is None else float(bounds[i]))
+            for i, (n, (_, s)) in enumerate(report.as_dict().items())}
 
 
 def _material_rows(result, truth, se):
@@ -288,6 +293,9 @@ def _material_rows(result, truth, se):
     yield from _value_rows(result.values, truth, errors, se, result.at_bound)
 
 
+_NONE = (None, None)  # no standard error, no rounding bound
+
+
 def _or_zero(value):
     """An absent optional term (ks, kt: None) is 0."""
     return 0.0 if value is None else value
@@ -300,7 +308,7 @@ def _value_rows(values, truth, errors, se, at_bound, prefix=""):
         fitted = np.atleast_1d(np.asarray(value, np.float64))
         if name in GAIN_NAMES:  # per-view gains: no true value, one row per scalar
             for label, v in zip(value_names({name: value}), fitted.ravel(), strict=True):
-                yield label, None, v, se.get(label), label in at_bound, None
+                yield label, None, v, se.get(label, _NONE), label in at_bound, None
             continue
         true = None if truth is None else np.atleast_1d(np.asarray(
             _or_zero(getattr(truth, name)), np.float64))
@@ -310,46 +318,65 @@ def _value_rows(values, truth, errors, se, at_bound, prefix=""):
             label = prefix + (name if count == 1 else f"{name}[{'rgb'[c]}]")
             key = label if label in se or label in at_bound else prefix + name
             yield (label, None if true is None else true[min(c, true.size - 1)],
-                   fitted[min(c, fitted.size - 1)], se.get(key), key in at_bound,
+                   fitted[min(c, fitted.size - 1)], se.get(key, _NONE), key in at_bound,
                    None if error is None else error[min(c, error.size - 1)])
 
 
 def _rows(result, truth):
-    """(label, true or None, fitted, standard error or None, at a bound, relative error
-    or None): the material's rows (per channel when the truth is known), then the
-    lights' (no truth)."""
+    """(label, true or None, fitted, (standard error or None, rounding bound or None), at a
+    bound, relative error or None): the material's rows (per channel when the truth is
+    known), then the lights' (no truth)."""
     se = _std_errors(result)
     yield from _material_rows(result, truth, se)
     lights = {"lights": result.values["lights"]} if "lights" in result.values else {}
     flat = [float(x) for leaf in jax.tree.leaves(lights) for x in np.ravel(leaf)]
     for label, value in zip(value_names(lights), flat, strict=True):
-        yield label, None, value, se.get(label), label in result.at_bound, None
+        yield label, None, value, se.get(label, _NONE), label in result.at_bound, None
 
 
 def _cell(value, fmt, width):
     return f"{'' if value is None else format(value, fmt):>{width}}"
 
 
+ROBUST_NOTE = ("± is the robust (sandwich) standard error, as the model does not explain "
+               "the images: the residuals are correlated, and the Gauss-Newton one would "
+               "understate the error (docs/fitting.md)")
+
+
+def _spread_columns(result):
+    """(the ± column's title, whether a rounding column follows), from the report."""
+    report = result.uncertainty
+    robust = report is not None and report.kind == "robust"
+    return ("± robust" if robust else "± s.e."), (
+        report is not None and report.rounding_bound is not None)
+
+
 def comparison_table(result, truth=None, status=None) -> str:
     """The true-versus-recovered table: one row per fitted scalar with the true value, the
-    fitted value, its standard error ('at bound' where it has none) and the relative error
-    (true and error columns only when `truth` is known); warnings and notes below.
-    status: the end of the first line (default: result.status in words)."""
+    fitted value, its standard error ('at bound' where it has none; the robust one, titled
+    '± robust', when the model does not explain the images), the worst-case shift the
+    8-bit rounding of the targets can cause (a 'rounding' column, 8-bit targets only) and
+    the relative error (true and error columns only when `truth` is known); warnings and
+    notes below. status: the end of the first line (default: result.status in words)."""
     status = STATUS_LABELS.get(result.status, result.status) if status is None else status
     steps = f"{result.n_steps} step{'' if result.n_steps == 1 else 's'}"
     head = (f"method {result.method}: loss {result.loss:.4g} after {steps}, "
             f"{result.wall_time:.2f} s{', ' + status if status else ''}")
     known = truth is not None
+    title, rounding = _spread_columns(result)
     width = max([12] + [len(row[0]) + 1 for row in _rows(result, truth)])
     lines = [head, f"{'parameter':<{width}}" + (f"{'true':>11}" if known else "")
-             + f"{'fitted':>11}{'± s.e.':>11}" + (f"{'rel. error':>12}" if known else "")]
-    for label, true, fitted, std, bounded, error in _rows(result, truth):
+             + f"{'fitted':>11}{title:>11}" + (f"{'rounding':>11}" if rounding else "")
+             + (f"{'rel. error':>12}" if known else "")]
+    for label, true, fitted, (std, bound), bounded, error in _rows(result, truth):
         spread = f"{'at bound':>11}" if bounded else _cell(std, ".2g", 11)
+        spread += _cell(None if bounded else bound, ".2g", 11) if rounding else ""
         lines.append(f"{label:<{width}}" + (_cell(true, ".5g", 11) if known else "")
                      + _cell(fitted, ".5g", 11) + spread
                      + (_cell(None if error is None else 100 * error, ".3g", 11) + "%"
                         if known and error is not None else ""))
     notes = result.uncertainty.notes if result.uncertainty else ()
+    notes = (*notes, *([ROBUST_NOTE] if title == "± robust" else ()))
     return "\n".join(lines + [f"warning: {w}" for w in result.warnings]
                      + [f"note: {n}" for n in notes])
 
