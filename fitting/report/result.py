@@ -13,13 +13,20 @@
                    object (`object_reports`)
     loss.png       the loss history (matplotlib, Agg canvas, log y)
     view_000.png   per view: target | initial | fitted | ERROR_GAIN x |fitted - target|,
-                   as diffshade.render renders them (`_render_rgb`), separated by grey
+                   as diffshade.render renders them (`render_rgb`), separated by grey
                    bars; computed in linear colour and written sRGB-encoded, as every PNG
                    (docs/color.md)
-    residual_000.npy    per view: fitted - target, linear float32 [H, W, 3] (signed)
+    residual_000.npy    per view: fitted - target, linear float32 [H, W, 3] (signed), every
+                   pixel
     residual_000.png    per view: |fitted - target| / residual_scale, clipped to 1, written
-                   sRGB-encoded; residual_scale (in result.json) is the 99th percentile of
-                   |fitted - target| over the kept pixels of all views (at least 1/255)
+                   sRGB-encoded, on the pixels the fit counted (black elsewhere);
+                   residual_scale (in result.json) is the 99th percentile of
+                   |fitted - target| over the counted pixels of all views (at least 1/255)
+    mask_000.png   per view: white where the fit counted the pixel (covered, inside the
+                   view's mask, unsaturated, edge_margin away from the silhouette)
+
+The files are numbered by `ids` (default 0, 1, ...: the dataset's own view numbers when
+views were held out of the fit, fitting.report.holdout).
 
 `comparison_table(result, truth)` is the true-versus-recovered table (with standard
 errors; "at bound" for a value at a bound, which has none), one row per fitted scalar.
@@ -386,7 +393,7 @@ def comparison_table(result, truth=None, status=None) -> str:
 _render_fragments = stored_jit(render_fragments, compiler_options=FAST_COMPILE)
 
 
-def _render_rgb(dataset, index, material, lights=None):
+def render_rgb(dataset, index, material, lights=None):
     """View `index` rendered with `material` (and `lights`, default the view's): [H, W, 3]
     float64, equal to diffshade.render up to float rounding. The geometry is the fit's,
     fixed: the fragments come from fitting.model.cache.fixed_fragments and the shading runs in
@@ -422,22 +429,33 @@ def residual_scale(residuals, kept) -> float:
     return max(float(np.percentile(values, 99)) if values.size else 0.0, 1.0 / 255.0)
 
 
-def write_result(out_dir, dataset, result, init, extra=None, title="", kept=None) -> list:
+def counted_mask(shape, kept):
+    """[H, W] bool: True at the flat pixel indices `kept` of an image of `shape`."""
+    mask = np.zeros(shape[0] * shape[1], bool)
+    mask[np.asarray(kept, np.int64)] = True
+    return mask.reshape(shape[:2])
+
+
+def write_result(out_dir, dataset, result, init, extra=None, title="", kept=None,
+                 ids=None) -> list:
     """Write the result files (module docstring) into out_dir; returns their paths.
-    kept: per view, the flat indices of the pixels the fit counted (fitting.model.cache; default
-    every pixel), for residual_scale."""
+    kept: per view, the flat indices of the pixels the fit counted (fitting.model.cache;
+    default every pixel), for residual_scale, the residual images and the masks; ids: the
+    number of each view in the file names (default 0, 1, ...)."""
     out_dir = os.fspath(out_dir)
     count = len(dataset.views)
+    ids = list(range(count)) if ids is None else list(ids)
     materials = view_materials(result.material, result.values, count)  # per-view gains
     lights = panel_lights(result.lights)
-    fitted = [_render_rgb(dataset, i, materials[i], lights[i]) for i in range(count)]
+    fitted = [render_rgb(dataset, i, materials[i], lights[i]) for i in range(count)]
     residuals = [f - v.target for f, v in zip(fitted, dataset.views, strict=True)]
     kept = kept or [np.arange(v.target.shape[0] * v.target.shape[1]) for v in dataset.views]
     scale = residual_scale(residuals, kept)
     files = {"material": "material.mtl", "loss_curve": "loss.png",
-             "views": [f"view_{i:03d}.png" for i in range(count)],
-             "residuals": [f"residual_{i:03d}.npy" for i in range(count)],
-             "residual_images": [f"residual_{i:03d}.png" for i in range(count)]}
+             "views": [f"view_{i:03d}.png" for i in ids],
+             "residuals": [f"residual_{i:03d}.npy" for i in ids],
+             "residual_images": [f"residual_{i:03d}.png" for i in ids],
+             "masks": [f"mask_{i:03d}.png" for i in ids]}
     extra = dict(extra or {}) | {"files": files, "error_gain": ERROR_GAIN,
                                  "residual_scale": scale}
     paths = [write_text(os.path.join(out_dir, files["material"]),
@@ -448,12 +466,15 @@ def write_result(out_dir, dataset, result, init, extra=None, title="", kept=None
                        loss_curve(result.loss_history, title))]
     given = panel_lights([v.lights for v in dataset.views])
     for i in range(count):
-        image = panel(dataset.views[i].target, _render_rgb(dataset, i, init, given[i]),
+        image = panel(dataset.views[i].target, render_rgb(dataset, i, init, given[i]),
                       fitted[i])
         paths.append(write_png(os.path.join(out_dir, files["views"][i]), image))
     for i, r in enumerate(residuals):
+        counted = counted_mask(r.shape, kept[i])
         paths.append(write_npy(os.path.join(out_dir, files["residuals"][i]),
                                r.astype(np.float32)))
         paths.append(write_png(os.path.join(out_dir, files["residual_images"][i]),
-                               np.clip(np.abs(r) / scale, 0.0, 1.0)))
+                               np.clip(np.abs(r) / scale, 0.0, 1.0) * counted[..., None]))
+        paths.append(write_png(os.path.join(out_dir, files["masks"][i]),
+                               counted.astype(np.float64), color_space="linear"))
     return paths
