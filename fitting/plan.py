@@ -142,7 +142,7 @@ def prepare(args):
     fitted = tuple(i for i in range(len(dataset.views)) if i not in holdout)
     held = None
     if holdout:
-        dataset, held = split_views(dataset, holdout)
+        dataset, held = split_views(dataset, holdout, "--holdout")
     if saved is None:  # one start for every object, or one per object
         init = start_material(material_for(dataset, init, "--init"), spec)
     else:

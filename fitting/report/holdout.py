@@ -25,16 +25,16 @@ from fitting.model.cache import view_samples
 from fitting.report.result import ERROR_GAIN, PANEL_GAP, counted_mask, render_rgb
 
 
-def split_views(dataset, holdout):
+def split_views(dataset, holdout, name="holdout"):
     """(the dataset of the views not in `holdout`, the dataset of those in it, in order),
-    sharing everything else; ValueError naming --holdout for an index out of range or
-    for holding out every view."""
+    sharing everything else; ValueError naming `name` for an index out of range or for
+    holding out every view."""
     count = len(dataset.views)
     wrong = [i for i in holdout if not 0 <= i < count]
     if wrong or len(set(holdout)) == count:
         expected = (f"view indices below {count}" if wrong
                     else f"at most {count - 1} of the {count} views (one must be fitted)")
-        raise ValueError(f"--holdout: got {','.join(map(str, holdout))}; expected {expected}")
+        raise ValueError(f"{name}: got {','.join(map(str, holdout))}; expected {expected}")
     kept = [v for i, v in enumerate(dataset.views) if i not in holdout]
     held = [dataset.views[i] for i in holdout]
     return dataset_with(dataset, kept), dataset_with(dataset, held)
