@@ -15,6 +15,7 @@ import diffshade as ds
 from data_synth import make_dataset, save_dataset
 from diffshade import cli
 from fitting.data.folder import load_dataset
+from fitting.report.holdout import rounding_limits
 
 TRUTH = ds.material(ka=0.3, kd=(0.6, 0.4, 0.3), ks=0.4, shininess=25.0)
 SIZE = 24
@@ -57,8 +58,7 @@ def reference_psnr(dataset, index, material):
 
     def psnr(a, b):
         return 10 * np.log10(1 / np.mean((a[counted] - b[counted]) ** 2))
-    srgb = [np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
-            for x in (fitted, target)]
+    srgb = [srgb_encode(x) for x in (fitted, target)]
     return psnr(fitted, target), psnr(*srgb), int(counted.sum())
 
 
@@ -80,8 +80,10 @@ def test_holdout_fits_the_other_views_and_scores_the_held_one(data, tmp_path, ca
     assert entry["pixels"] == pixels
     assert entry["psnr_linear"] == pytest.approx(linear, abs=0.01)
     assert entry["psnr_srgb"] == pytest.approx(srgb, abs=0.01)
-    # 8-bit targets of the right model: the error is the rounding, ~59 dB (1/255 steps)
-    assert 50 < entry["psnr_linear"] < 70
+    # 8-bit linear targets of the right model: the error is the rounding, whose uniform
+    # error over 1/255 steps allows 10 log10(12 * 255^2) dB
+    assert entry["psnr_linear_8bit"] == pytest.approx(10 * np.log10(12 * 255**2))
+    assert abs(entry["psnr_linear"] - entry["psnr_linear_8bit"]) < 2
     row = stdout.splitlines()[stdout.splitlines().index(next(
         line for line in stdout.splitlines() if line.startswith("held-out view"))) + 1]
     assert row.split()[:3] == ["1", str(pixels), f"{entry['psnr_linear']:.2f}"]
@@ -100,6 +102,33 @@ def test_bad_holdout_is_one_line_and_writes_nothing(data, tmp_path, capsys, hold
     code, _, err = run_cli(["fit", data, "-o", out, "--holdout", holdout], capsys)
     assert code == 2 and err.startswith(f"diffshade: error: {expected}"), err
     assert len(err.splitlines()) == 1 and not out.exists()
+
+
+def srgb_encode(x):
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
+
+
+def srgb_decode(y):
+    return np.where(y <= 0.04045, y / 12.92, ((y + 0.055) / 1.055) ** 2.4)
+
+
+def test_rounding_limits_of_8bit_targets():
+    """Linear codes: 10 log10(3 / h^2) with h = 0.5/255 on linear values; sRGB codes: that
+    on sRGB values, and on linear values h is half the code's interval through the curve
+    (the larger side), computed here code by code."""
+    rng = np.random.default_rng(3)
+    codes = rng.integers(1, 255, size=(6, 5, 3))
+    counted = rng.random((6, 5)) < 0.7
+    flat = 10 * np.log10(3 / (0.5 / 255) ** 2)
+    linear, _ = rounding_limits(codes / 255.0, counted)
+    assert linear == pytest.approx(flat)
+    linear, srgb = rounding_limits(srgb_decode(codes / 255.0), counted)
+    half = [max(srgb_decode((c + 0.5) / 255) - srgb_decode(c / 255),
+                srgb_decode(c / 255) - srgb_decode((c - 0.5) / 255))
+            for c in codes[counted].ravel()]
+    assert srgb == pytest.approx(flat)
+    assert linear == pytest.approx(10 * np.log10(3 / np.mean(np.square(half))), rel=1e-6)
+    assert rounding_limits(codes / 255.0 + 1e-3, counted) == (None, None)
 
 
 def two_camera_scene(folder):

@@ -10,8 +10,13 @@ unsaturated, `edge_margin` pixels inside the silhouette: fitting.model.cache.kep
     PSNR = 10 log10(1 / MSE)   (peak 1; MSE over the counted pixels and the 3 channels)
 
 once on linear values and once on sRGB-encoded ones (both clipped to [0, 1], as an image
-shows them). `write_panels` writes per view holdout_NNN.png: target | prediction |
-ERROR_GAIN x |prediction - target| on the counted pixels (sRGB-encoded, as every PNG);
+shows them). For 8-bit targets it also gives the PSNR that their rounding alone allows (a
+perfect prediction against targets rounded to the nearest code: the error uniform over
+half a code step h either side, MSE = mean(h^2) / 3). Linear codes allow 10 log10(12 *
+255^2) = 58.9 dB on linear values (on sRGB values less in the darks, where the sRGB curve
+is steep, and more in the lights); sRGB codes 58.9 dB on sRGB values. `write_panels` writes
+per view holdout_NNN.png: target | prediction | ERROR_GAIN x |prediction - target| on the
+counted pixels (sRGB-encoded, as every PNG);
 `holdout_results` computes everything first, so that nothing is written on an error.
 """
 
@@ -23,6 +28,7 @@ import numpy as np
 from diffshade.io import encode, write_png
 from fitting.model.cache import view_samples
 from fitting.report.result import ERROR_GAIN, PANEL_GAP, counted_mask, render_rgb
+from fitting.report.uncertainty import rounding_encoding, steps_in
 
 
 def split_views(dataset, holdout, name="holdout"):
@@ -55,15 +61,40 @@ def psnr(prediction, target, mask) -> float:
     return float("inf") if mse == 0.0 else float(10.0 * np.log10(1.0 / mse))
 
 
+def _psnr_of_halfsteps(half) -> float:
+    """The PSNR of an error uniform on [-h, h] per value: 10 log10(3 / mean(h^2))."""
+    return float(10.0 * np.log10(3.0 / np.mean(np.asarray(half, np.float64) ** 2)))
+
+
+def rounding_limits(target, counted):
+    """(linear, sRGB) PSNR that the 8-bit rounding of `target` [H, W, 3] (linear values)
+    allows over the counted pixels (module docstring), or (None, None) when the target is
+    not 8-bit codes or no pixel counts."""
+    encoding = rounding_encoding([target])
+    values = np.asarray(target, np.float64)[counted]
+    if encoding is None or not values.size:
+        return None, None
+    if encoding == "srgb":
+        return _psnr_of_halfsteps(steps_in(values, "srgb")), _psnr_of_halfsteps(
+            np.full(values.shape, 0.5 / 255.0))
+    half = 0.5 / 255.0
+    srgb = (encode(np.minimum(values + half, 1.0), "srgb")
+            - encode(np.maximum(values - half, 0.0), "srgb")) / 2.0
+    return _psnr_of_halfsteps(np.full(values.shape, half)), _psnr_of_halfsteps(srgb)
+
+
 def evaluate(dataset, index, material, edge_margin=1):
     """(prediction [H, W, 3] linear, counted [H, W] bool, {"pixels", "psnr_linear",
-    "psnr_srgb"}) of view `index` of `dataset` rendered with `material`."""
+    "psnr_srgb", "psnr_linear_8bit", "psnr_srgb_8bit"}) of view `index` of `dataset`
+    rendered with `material` (the last two: rounding_limits, None unless 8-bit)."""
     view = dataset.views[index]
     prediction = render_rgb(dataset, index, material)
     counted = counted_mask(view.target.shape, view_samples(dataset, index, edge_margin).pixels)
     shown = [np.clip(x, 0.0, 1.0) for x in (prediction, view.target)]
+    limits = rounding_limits(view.target, counted)
     scores = {"pixels": int(counted.sum()), "psnr_linear": psnr(*shown, counted),
-              "psnr_srgb": psnr(*(encode(x, "srgb") for x in shown), counted)}
+              "psnr_srgb": psnr(*(encode(x, "srgb") for x in shown), counted),
+              "psnr_linear_8bit": limits[0], "psnr_srgb_8bit": limits[1]}
     return prediction, counted, scores
 
 
@@ -95,9 +126,15 @@ def write_panels(out_dir, panels) -> list:
 
 
 def holdout_table(entries) -> str:
-    """The printed table: one row per held-out view with its counted pixels and PSNRs."""
-    lines = [f"{'held-out view':<14}{'pixels':>8}{'PSNR linear':>14}{'PSNR sRGB':>12}"]
+    """The printed table: one row per held-out view with its counted pixels and PSNRs, and
+    for 8-bit targets the PSNRs their rounding allows."""
+    limits = any(e["psnr_linear_8bit"] is not None for e in entries)
+    lines = [f"{'held-out view':<14}{'pixels':>8}{'PSNR linear':>14}{'PSNR sRGB':>12}"
+             + (f"{'8-bit limit: linear':>22}{'sRGB':>11}" if limits else "")]
     for e in entries:
-        lines.append(f"{e['view']:<14}{e['pixels']:>8}{e['psnr_linear']:>11.2f} dB"
-                     f"{e['psnr_srgb']:>9.2f} dB")
+        row = (f"{e['view']:<14}{e['pixels']:>8}{e['psnr_linear']:>11.2f} dB"
+               f"{e['psnr_srgb']:>9.2f} dB")
+        if e["psnr_linear_8bit"] is not None:
+            row += f"{e['psnr_linear_8bit']:>19.2f} dB{e['psnr_srgb_8bit']:>8.2f} dB"
+        lines.append(row)
     return "\n".join(lines)
