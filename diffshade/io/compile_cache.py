@@ -159,8 +159,9 @@ def _cpu_identity() -> str:
 def environment_key() -> str:
     """Hash of everything a stored program depends on besides its own arguments: the
     source of diffshade and fitting, the Python, JAX and jaxlib versions, the backend, its
-    device, the host CPU and XLA_FLAGS (computed once per process; the JAX settings that
-    can change within a process are each call's: _jax_settings)."""
+    device, the host CPU, XLA_FLAGS and DIFFSHADE_KERNELS (what kernels="auto" means: a
+    first run's programs are built for the JAX kernels; computed once per process; the JAX
+    settings that can change within a process are each call's: _jax_settings)."""
     global _environment
     if _environment is None:
         import jaxlib
@@ -171,7 +172,8 @@ def environment_key() -> str:
         device = jax.devices()[0]
         settings = [sys.version, jax.__version__, jaxlib.__version__, jax.default_backend(),
                     device.platform, device.device_kind, device.client.platform_version,
-                    platform.machine(), _cpu_identity(), os.environ.get("XLA_FLAGS", "")]
+                    platform.machine(), _cpu_identity(), os.environ.get("XLA_FLAGS", ""),
+                    os.environ.get("DIFFSHADE_KERNELS", "")]
         digest.update(repr(settings).encode())
         _environment = digest.hexdigest()
     return _environment
