@@ -13,7 +13,7 @@ import os
 
 import numpy as np
 
-from diffshade.io import read_json
+from diffshade.io import check_writable, read_json
 from diffshade.scene import material
 from fitting.data.folder import fingerprint, load_dataset, material_from_dict
 from fitting.spec.params import FIT_NAMES, MODED, FitSpec
@@ -105,15 +105,11 @@ def fit_spec(fit_text=None, grey_text=None) -> FitSpec:
 
 
 def check_output(path):
-    """--output: a new path, or an existing folder, in a writable place."""
+    """--output: a new path, or an existing writable folder, in a writable place (checked
+    before the fit, so that it never fails only when the results are written)."""
     if os.path.exists(path) and not os.path.isdir(path):
         raise ValueError(f"--output: {path!r} is a file; expected a folder for the results")
-    ancestor = os.path.dirname(os.path.abspath(path))
-    while not os.path.exists(ancestor):
-        ancestor = os.path.dirname(ancestor)
-    if not os.path.isdir(ancestor) or not os.access(ancestor, os.W_OK | os.X_OK):
-        raise ValueError(f"--output: cannot create or write {path!r} ({ancestor!r} is not a "
-                         "writable folder)")
+    check_writable(path, "--output", "folder")
 
 
 def load_checked_dataset(path, color_space=None):
