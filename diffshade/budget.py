@@ -12,8 +12,9 @@ A request beyond either raises `SizeError` (a ValueError), one line naming the k
 value, the bytes needed and what is available.
 
 The formulas are upper bounds, not predictions. The per-unit byte counts below were set
-above what XLA's own memory analysis reports for renders made with kernels='jax'
-(tests/test_budget.py checks that they stay above it):
+above what XLA's own memory analysis reports for small renders made with kernels='jax'
+(tests/test_budget.py checks that they stay above it) and above the peak memory of
+large ones (1024 and 2048 pixels a side, either kernels):
 - a render: BASE_BYTES (its small arrays and constants) + pixels x (PIXEL_BYTES + slots x
   SLOT_BYTES), slots being the fragments kept per pixel (faces_per_pixel in soft raster
   or for a transparent scene, else 1), plus the mesh (faces x FACE_BYTES) and the shadow
@@ -35,7 +36,7 @@ __all__ = ["MAX_ELEMENTS", "SizeError", "available_bytes", "check", "image_bytes
 
 MAX_ELEMENTS = 2**31 - 1
 BASE_BYTES = 16 * 2**20
-PIXEL_BYTES = 1024
+PIXEL_BYTES = 512
 SLOT_BYTES = 256
 FACE_BYTES = 1024
 DEPTH_BYTES = 8  # a stored shadow-map depth (float64 under jax_enable_x64)

@@ -355,7 +355,8 @@ def break_dataset(folder, how):
 
 @pytest.mark.parametrize("how, message", [
     ("missing_scene_file", "scene file not found: "),
-    ("wrong_target_size", "views[1].target: got shape (32, 33, 3); expected (32, 32, 3)"),
+    ("wrong_target_size", "views[1]: 'view_001.npy': got an image of 33x32 pixels; "
+                          "expected 32x32, the size of its camera"),
     ("nan_target", "target image of view 1 (view_001.npy) contains NaN at pixel "
                    "(row 5, column 7)"),
     ("bad_dataset_json", "dataset.json: line 1, column 2: invalid JSON"),

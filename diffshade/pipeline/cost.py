@@ -41,23 +41,22 @@ def _shadow_counts(lights):
 
 
 def _terms(scene, settings, views, pixels, slots, shadows):
-    """{(key, value shown): bytes} of each setting's share of the render; shadows: the
-    scene's _shadow_counts."""
+    """{(key, value shown): bytes} of each setting's share of the render (its fixed
+    budget.BASE_BYTES aside); shadows: the scene's _shadow_counts."""
     cam, side = scene.camera, settings.shadow_map_size
     cubes, flat, sample_cubes, most = shadows
     per_pixel = budget.render_bytes(pixels, 1 if slots == 1 else 0)
-    terms = {("camera width x height", f"{cam.width}x{cam.height}"):
-             budget.BASE_BYTES + views * per_pixel,
+    terms = {("camera width x height", f"{cam.width}x{cam.height}"): views * per_pixel,
              ("mesh faces", scene.mesh.faces.shape[0]):
                  views * budget.mesh_bytes(scene.mesh.faces.shape[0])}
     if slots > 1:
         terms[("faces_per_pixel", slots)] = views * pixels * slots * budget.SLOT_BYTES
     if cubes or flat or sample_cubes:
-        terms[("shadow_map_size", side)] = views * budget.shadow_bytes(
-            side, cubes + (1 if sample_cubes else 0), flat)
-    if sample_cubes:
-        kept = budget.CUBE * sample_cubes * side * side * budget.DEPTH_BYTES
-        terms[("samples", most)] = views * kept
+        maps = budget.shadow_bytes(side, cubes + sample_cubes, flat)
+        samples = budget.CUBE * sample_cubes * side * side * budget.DEPTH_BYTES
+        terms[("shadow_map_size", side)] = views * (maps - samples)
+        if sample_cubes:  # the area lights' sample maps, kept all at once
+            terms[("samples", most)] = views * samples
     return terms
 
 
@@ -68,6 +67,18 @@ def _largest_array(views, pixels, slots, side, shadows):
     texels = side * side if cubes or flat or sample_cubes else 0
     maps = budget.CUBE * texels * max(3, sample_cubes)
     return views * max(pixels * slots * 3, maps)
+
+
+def _described(cam, factor, views, slots, faces, map_side):
+    """The request in words: 'a 64x64 render with 8 fragment slots a pixel, 80 faces and
+    shadow maps of 256x256 texels'."""
+    items = ["1 fragment slot a pixel" if slots == 1 else f"{slots} fragment slots a pixel",
+             f"{faces} faces"]
+    if map_side:
+        items.append(f"shadow maps of {map_side}x{map_side} texels")
+    return (f"a {cam.width * factor}x{cam.height * factor} render"
+            f"{f' of {views} views' if views > 1 else ''} with {', '.join(items[:-1])} and "
+            f"{items[-1]}")
 
 
 class RenderCost(NamedTuple):
@@ -91,11 +102,10 @@ def render_cost(scene, settings, views=1, factor=1) -> RenderCost:
     shadows = _shadow_counts(scene.lights)
     terms = _terms(scene, settings, views, pixels, slots, shadows)
     (key, value), _ = max(terms.items(), key=lambda item: item[1])
-    what = (f"a {cam.width * factor}x{cam.height * factor} render"
-            f"{f' of {views} views' if views > 1 else ''} with {slots} fragment slots a "
-            f"pixel and {scene.mesh.faces.shape[0]} faces")
+    what = _described(cam, factor, views, slots, scene.mesh.faces.shape[0],
+                      settings.shadow_map_size if any(shadows) else None)
     elements = _largest_array(views, pixels, slots, settings.shadow_map_size, shadows)
-    return RenderCost(sum(terms.values()), elements, key, value, what)
+    return RenderCost(budget.BASE_BYTES + sum(terms.values()), elements, key, value, what)
 
 
 def check_render(scene, settings, views=1, factor=1):
