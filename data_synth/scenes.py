@@ -26,7 +26,7 @@ import numpy as np
 
 import diffshade as ds
 from data_synth.materials import random_material
-from diffshade import budget
+from diffshade.budget import check, image_bytes
 from diffshade.numerics import float_dtype
 from diffshade.scene import MAX_IMAGE_SIZE, transform_points
 from fitting.data.views import Dataset, View, view_scene
@@ -133,9 +133,8 @@ def _check_counts(n_views, n_lights, size, noise_std):
     if size > MAX_IMAGE_SIZE:
         raise ValueError(f"size: got {size}; expected at most {MAX_IMAGE_SIZE} pixels a side")
     images = n_views * n_lights
-    budget.check("size", size, images * budget.image_bytes(size, size, TARGET_CHANNELS),
-                 f"a dataset of {images} images of {size}x{size} pixels",
-                 size * size * TARGET_CHANNELS)
+    check("size", size, images * image_bytes(size, size, TARGET_CHANNELS),
+          f"a dataset of {images} images of {size}x{size} pixels", size * size * TARGET_CHANNELS)
 
 
 def _check_gains(gains, n_images):
