@@ -116,3 +116,13 @@ def test_an_array_beyond_int32_is_refused_whatever_the_memory(monkeypatch):
     with pytest.raises(budget.SizeError, match=r"faces_per_pixel: got 10000000; .* needs an "
                        r"array of 3840000000 values; expected at most 2147483647"):
         ds.render(small_scene(), settings)
+
+
+def test_a_batch_of_views_is_costed_as_all_of_them(monkeypatch):
+    """One 16x8 view fits 17 MiB (16 MiB + 16·8·768 + 20·1024 bytes); 100 at once do not."""
+    monkeypatch.setenv(budget.LIMIT_VARIABLE, "17M")
+    scene = small_scene()
+    assert render_cost(scene, ds.RenderSettings()).bytes <= 17 * 2**20
+    with pytest.raises(budget.SizeError, match=r"^camera width x height: got 16x8; a 16x8 "
+                       r"render of 100 views with"):
+        ds.render_views(scene, [scene.camera] * 100)

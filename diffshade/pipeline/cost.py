@@ -30,7 +30,9 @@ def _shadow_counts(lights):
             continue
         flags = shadow_flags(group, jax.tree.leaves(group)[0].shape[0])
         casting = sum(flags)
-        if kind in AREA_KINDS and casting:
+        if not casting:
+            continue
+        if kind in AREA_KINDS:
             sample_cubes += casting * group.samples
             most = max(most, group.samples)
         elif kind == "point":

@@ -140,17 +140,23 @@ def _shade_active(scene, proj, frags, active, light, axis_name, host):
                      axis_name=axis_name, host=host)
 
 
-def check_arguments(scene, settings, views=1, factor=1):
-    """Raise a clear TypeError unless scene is a Scene and settings a RenderSettings, and
-    budget.SizeError when rendering it (from `views` cameras, at `factor` x its resolution)
-    needs more memory than is available (checked before jit, at the API boundary)."""
+def _check_types(scene, settings):
     if not isinstance(scene, Scene):
         raise TypeError(f"scene: got {type(scene).__name__}; expected Scene "
                         "(diffshade.make_scene)")
     if not isinstance(settings, RenderSettings):
         raise TypeError(f"settings: got {type(settings).__name__}; expected RenderSettings")
+
+
+def check_arguments(scene, settings, views=1, factor=1, camera=None):
+    """Raise a clear TypeError unless scene is a Scene and settings a RenderSettings, and
+    budget.SizeError when rendering it (from `views` cameras of `camera`'s size, default
+    the scene's own, at `factor` x their resolution) needs more memory than is available
+    (checked before jit, at the API boundary)."""
+    _check_types(scene, settings)
     settings.validate()
-    check_render(scene, settings, views, factor)
+    costed = scene if camera is None else dataclasses.replace(scene, camera=camera)
+    check_render(costed, settings, views, factor)
 
 
 def _checked(jitted):
@@ -259,11 +265,10 @@ def render_views(scene, cameras, settings=DEFAULT_SETTINGS):
     """Render one scene from N cameras as one batched call: [N, H, W, 4]. cameras: a
     sequence of Camera of one image size (or a stacked Camera, see stack_cameras); the
     scene's own camera is ignored."""
+    _check_types(scene, settings)
     cameras = stack_cameras(cameras)
     views = jax.tree.leaves(cameras)[0].shape[0]
-    check_arguments(scene, settings)  # the scene's own camera may be of another size
-    first = jax.tree.map(lambda a: a[0], cameras)
-    check_arguments(dataclasses.replace(scene, camera=first), settings, views)
+    check_arguments(scene, settings, views, camera=jax.tree.map(lambda a: a[0], cameras))
     return _render_views(scene, cameras, settings)
 
 
