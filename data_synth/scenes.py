@@ -134,7 +134,8 @@ def _check_counts(n_views, n_lights, size, noise_std):
         raise ValueError(f"size: got {size}; expected at most {MAX_IMAGE_SIZE} pixels a side")
     images = n_views * n_lights
     check("size", size, images * image_bytes(size, size, TARGET_CHANNELS),
-          f"a dataset of {images} images of {size}x{size} pixels", size * size * TARGET_CHANNELS)
+          f"a dataset of {images} images of {size}x{size} pixels", size * size * TARGET_CHANNELS,
+          host=True)
 
 
 def _check_gains(gains, n_images):

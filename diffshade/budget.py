@@ -7,7 +7,8 @@ them with two caps (docs/cli.md, "Sizes and memory"):
 - the memory available: DIFFSHADE_MEMORY_LIMIT (bytes, or a number with a K, M, G or T
   suffix, powers of 1024) when set, else the free memory of JAX's default device (an
   accelerator's, from its memory statistics; the CPU's: MemAvailable of /proc/meminfo, or
-  the available pages of os.sysconf where there is no /proc).
+  the available pages of os.sysconf where there is no /proc); what numpy holds on the
+  host (decoded images, a synthetic dataset's targets) is compared with the host's.
 A request beyond either raises `SizeError` (a ValueError), one line naming the key, the
 value, the bytes needed and what is available.
 
@@ -88,13 +89,13 @@ def _device_available():
     return free, f"free memory of {device.device_kind}"
 
 
-def available_bytes():
+def available_bytes(host=False):
     """(bytes, where the figure comes from): the memory a request may use (module
-    docstring)."""
+    docstring); host=True: the host's, for what is held in numpy (a decoded image)."""
     limit = _limit_from_environment()
     if limit is not None:
         return limit, LIMIT_VARIABLE
-    return _device_available() or _host_available()
+    return (None if host else _device_available()) or _host_available()
 
 
 def show_bytes(count):
@@ -105,14 +106,14 @@ def show_bytes(count):
     return f"{count} bytes"
 
 
-def check(key, value, needed, what, elements=0):
-    """Raise SizeError unless `needed` bytes fit the memory available and `elements`
-    (the largest array's values) fit MAX_ELEMENTS. key, value: the setting to name;
-    what: the request in words ('a render of 64x64 pixels')."""
+def check(key, value, needed, what, elements=0, host=False):
+    """Raise SizeError unless `needed` bytes fit the memory available (host=True: the
+    host's) and `elements` (the largest array's values) fit MAX_ELEMENTS. key, value: the
+    setting to name; what: the request in words ('a render of 64x64 pixels')."""
     if elements > MAX_ELEMENTS:
         raise SizeError(f"{key}: got {value}; {what} needs an array of {elements} values; "
                         f"expected at most {MAX_ELEMENTS} (2^31 - 1) values in one array")
-    available, source = available_bytes()
+    available, source = available_bytes(host)
     if needed > available:
         raise SizeError(f"{key}: got {value}; {what} needs {show_bytes(needed)} of memory; "
                         f"expected at most {show_bytes(available)}, the memory available "

@@ -218,7 +218,7 @@ def _check_decoded_size(path, found):
     budget.check("path", repr(path), budget.image_bytes(found.width, found.height,
                                                           found.channels),
                  f"decoding its {found.width}x{found.height} pixels of {found.channels} "
-                 "channels", pixels * found.channels)
+                 "channels", pixels * found.channels, host=True)
 
 
 def _read(path):
