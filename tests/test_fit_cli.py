@@ -406,6 +406,19 @@ def test_fit_rejects_bad_options(data_root, tmp_path, capsys, args, message):
     assert listing(tmp_path) == []
 
 
+def test_fit_of_views_beyond_memory_is_refused_before_compiling(data_root, tmp_path, capsys,
+                                                               monkeypatch):
+    """A 32x32 view of 320 faces needs 16 MiB + 32·32·768 + 320·1024 bytes
+    (docs/cli.md, "Sizes and memory"): 17 MiB is too little."""
+    monkeypatch.setenv("DIFFSHADE_MEMORY_LIMIT", "17M")
+    code, out, err = run_cli(["fit", data_root / "clean", "-o", tmp_path / "result"], capsys)
+    needed = 16 * 2**20 + SIZE * SIZE * 768 + 320 * 1024
+    assert code == 2 and out == ""
+    assert (f"camera width x height: got {SIZE}x{SIZE}; a {SIZE}x{SIZE} render with 1 fragment "
+            f"slot a pixel and 320 faces needs 17.9 MB ({needed} bytes)") in one_error_line(err)
+    assert listing(tmp_path) == []
+
+
 def test_fit_rejects_missing_dataset_and_file_output(data_root, tmp_path, capsys):
     code, _, err = run_cli(["fit", tmp_path / "nowhere", "-o", tmp_path / "result"], capsys)
     assert code == 2 and "DATASET: folder not found" in one_error_line(err)
