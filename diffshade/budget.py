@@ -37,7 +37,7 @@ __all__ = ["MAX_ELEMENTS", "SizeError", "available_bytes", "check", "image_bytes
 
 MAX_ELEMENTS = 2**31 - 1
 BASE_BYTES = 16 * 2**20
-PIXEL_BYTES = 512
+PIXEL_BYTES = 256
 SLOT_BYTES = 256
 FACE_BYTES = 1024
 DEPTH_BYTES = 8  # a stored shadow-map depth (float64 under jax_enable_x64)
