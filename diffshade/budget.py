@@ -15,11 +15,11 @@ value, the bytes needed and what is available.
 The formulas are upper bounds, not predictions. The per-unit byte counts below were set
 above what XLA's own memory analysis reports for small renders made with kernels='jax'
 (tests/test_budget.py checks that they stay above it) and above the peak memory of
-large ones (1024 and 2048 pixels a side, either kernels):
-- a render: BASE_BYTES (its small arrays and constants) + pixels x (PIXEL_BYTES + slots x
-  SLOT_BYTES), slots being the fragments kept per pixel (faces_per_pixel in soft raster
-  or for a transparent scene, else 1), plus the mesh (faces x FACE_BYTES) and the shadow
-  maps;
+large ones, compilation included (benchmarks/memory_budget.py):
+- a render: BASE_BYTES (compiling it, its small arrays and constants) + pixels x
+  (PIXEL_BYTES + slots x SLOT_BYTES), slots being the fragments kept per pixel
+  (faces_per_pixel in soft raster or for a transparent scene, else 1), plus the mesh
+  (faces x FACE_BYTES) and the shadow maps;
 - a shadow map side M: each map is rasterized at M x M texels (a texel costs what a hard
   raster's pixel does, PIXEL_BYTES + SLOT_BYTES) and kept as M x M depths; a point light
   has 6 maps (a cube), an area or sphere light 6 per sample, kept all at once while the
@@ -36,7 +36,7 @@ __all__ = ["MAX_ELEMENTS", "SizeError", "available_bytes", "check", "image_bytes
            "mesh_bytes", "render_bytes", "shadow_bytes"]
 
 MAX_ELEMENTS = 2**31 - 1
-BASE_BYTES = 16 * 2**20
+BASE_BYTES = 512 * 2**20
 PIXEL_BYTES = 256
 SLOT_BYTES = 256
 FACE_BYTES = 1024

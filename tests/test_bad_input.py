@@ -611,7 +611,7 @@ def test_cli_render_size_beyond_memory_names_the_bytes(tmp_path, capsys, monkeyp
             str(tmp_path / "img.png")]
     assert cli.main(argv) == 2
     faces = 20 * 4**4
-    needed = 16 * 2**20 + 16384**2 * (256 + 256) + faces * 1024
+    needed = 512 * 2**20 + 16384**2 * (256 + 256) + faces * 1024
     assert one_error_line(capsys) == (
         f"diffshade: error: camera width x height: got 16384x16384; a 16384x16384 render with "
         f"1 fragment slot a pixel and {faces} faces needs {needed / 1e9:.3g} GB ({needed} "

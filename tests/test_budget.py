@@ -51,7 +51,7 @@ def test_render_cost_is_the_documented_sum():
     settings = ds.RenderSettings(raster="soft", faces_per_pixel=4, shadow_map_size=32)
     cost = render_cost(small_scene(lights=lights), settings)
     pixels, texels = 16 * 8, 32 * 32
-    image = 16 * 2**20 + pixels * 256 + pixels * 4 * 256 + 20 * 1024
+    image = 512 * 2**20 + pixels * 256 + pixels * 4 * 256 + 20 * 1024
     kept_maps = 6 * (1 + 5) * texels * 8  # the point light's cube and one per sample
     one_cube_rasterized = 6 * texels * (256 + 256)
     assert cost.bytes == image + kept_maps + one_cube_rasterized
@@ -102,7 +102,7 @@ def test_a_render_beyond_the_limit_is_refused_before_compiling(monkeypatch):
     monkeypatch.setenv(budget.LIMIT_VARIABLE, "1M")
     with pytest.raises(budget.SizeError) as info:
         ds.render(small_scene(), ds.RenderSettings())
-    needed = 16 * 2**20 + 16 * 8 * (256 + 256) + 20 * 1024
+    needed = 512 * 2**20 + 16 * 8 * (256 + 256) + 20 * 1024
     assert str(info.value) == (
         f"camera width x height: got 16x8; a 16x8 render with 1 fragment slot a pixel and 20 "
         f"faces needs {budget.show_bytes(needed)} of memory; expected at most 1.05 MB "
@@ -119,10 +119,11 @@ def test_an_array_beyond_int32_is_refused_whatever_the_memory(monkeypatch):
 
 
 def test_a_batch_of_views_is_costed_as_all_of_them(monkeypatch):
-    """One 16x8 view fits 17 MiB (16 MiB + 16·8·512 + 20·1024 bytes); 100 at once do not."""
-    monkeypatch.setenv(budget.LIMIT_VARIABLE, "17M")
+    """One 16x8 view fits 513 MiB (512 MiB + 16·8·512 + 20·1024 bytes); 100 at once do
+    not."""
+    monkeypatch.setenv(budget.LIMIT_VARIABLE, "513M")
     scene = small_scene()
-    assert render_cost(scene, ds.RenderSettings()).bytes <= 17 * 2**20
+    assert render_cost(scene, ds.RenderSettings()).bytes <= 513 * 2**20
     with pytest.raises(budget.SizeError, match=r"^camera width x height: got 16x8; a 16x8 "
                        r"render of 100 views with"):
         ds.render_views(scene, [scene.camera] * 100)

@@ -408,14 +408,14 @@ def test_fit_rejects_bad_options(data_root, tmp_path, capsys, args, message):
 
 def test_fit_of_views_beyond_memory_is_refused_before_compiling(data_root, tmp_path, capsys,
                                                                monkeypatch):
-    """A 32x32 view of 320 faces needs 16 MiB + 32·32·512 + 320·1024 bytes
-    (docs/cli.md, "Sizes and memory"): 16.5 MiB is too little."""
-    monkeypatch.setenv("DIFFSHADE_MEMORY_LIMIT", "16.5M")
+    """A 32x32 view of 320 faces needs 512 MiB + 32·32·512 + 320·1024 bytes
+    (docs/cli.md, "Sizes and memory"): 512.5 MiB is too little."""
+    monkeypatch.setenv("DIFFSHADE_MEMORY_LIMIT", "512.5M")
     code, out, err = run_cli(["fit", data_root / "clean", "-o", tmp_path / "result"], capsys)
-    needed = 16 * 2**20 + SIZE * SIZE * 512 + 320 * 1024
+    needed = 512 * 2**20 + SIZE * SIZE * 512 + 320 * 1024
     assert code == 2 and out == ""
     assert (f"camera width x height: got {SIZE}x{SIZE}; a {SIZE}x{SIZE} render with 1 fragment "
-            f"slot a pixel and 320 faces needs 17.6 MB ({needed} bytes)") in one_error_line(err)
+            f"slot a pixel and 320 faces needs 538 MB ({needed} bytes)") in one_error_line(err)
     assert listing(tmp_path) == []
 
 
