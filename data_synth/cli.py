@@ -22,7 +22,7 @@ import shutil
 import uuid
 
 from data_synth.scenes import make_dataset
-from diffshade.io import load_scenes
+from diffshade.io import check_writable, load_scenes
 from diffshade.settings import SHADING_MODES
 from fitting.data.folder import save_dataset
 from fitting.inputs import non_negative_float, parse_material, positive_int
@@ -64,14 +64,17 @@ def register(subparsers):
 
 
 def _check_output(path):
-    """DATASET may be new, an empty folder or a dataset folder (replaced)."""
+    """DATASET may be new, an empty folder or a dataset folder (replaced), in a writable
+    folder."""
     if not os.path.exists(path):
+        check_writable(path, "--output", "replaced")
         return
     if not os.path.isdir(path):
         raise ValueError(f"--output: {path!r} is a file; expected a dataset folder to write")
     if os.listdir(path) and not os.path.isfile(os.path.join(path, "dataset.json")):
         raise ValueError(f"--output: {path!r} is a folder with other files in it; expected a "
                          "new path, an empty folder or a dataset folder to replace")
+    check_writable(path, "--output", "replaced")
 
 
 def _replace_folder(new, target):
@@ -96,7 +99,10 @@ def save_dataset_atomically(dataset, out_dir) -> str:
     parent, name = os.path.split(out_dir)
     os.makedirs(parent, exist_ok=True)
     tmp = os.path.join(parent, f".{name}.{uuid.uuid4().hex[:12]}.tmp")
-    os.mkdir(tmp)  # not tempfile.mkdtemp: its 0o700 would outlive the rename
+    try:
+        os.mkdir(tmp)  # not tempfile.mkdtemp: its 0o700 would outlive the rename
+    except OSError as err:  # the user's path, not the hidden temporary, is what failed
+        raise type(err)(err.errno, err.strerror, out_dir) from None
     try:
         save_dataset(dataset, tmp)
         _replace_folder(tmp, out_dir)

@@ -26,8 +26,9 @@ import numpy as np
 
 import diffshade as ds
 from data_synth.materials import random_material
+from diffshade.budget import check, image_bytes
 from diffshade.numerics import float_dtype
-from diffshade.scene import transform_points
+from diffshade.scene import MAX_IMAGE_SIZE, transform_points
 from fitting.data.views import Dataset, View, view_scene
 
 SHAPES = ("icosphere", "torus", "box")
@@ -35,6 +36,8 @@ GLOBAL_AMBIENT = 0.4
 LIGHT_INTENSITY = 0.7
 CAMERA_DISTANCE = 3.2
 POINT_LIGHT_DISTANCE = 5.0
+#: the values held per target pixel while a dataset is made (the render's RGBA)
+TARGET_CHANNELS = 4
 
 
 def _normalizing_model(vertices, rotate_deg=(0.0, 0.0, 0.0)):
@@ -127,6 +130,12 @@ def _check_counts(n_views, n_lights, size, noise_std):
             raise ValueError(f"{name}: got {value!r}; expected a positive integer")
     if not (np.isfinite(noise_std) and noise_std >= 0):
         raise ValueError(f"noise_std: got {noise_std!r}; expected a number >= 0")
+    if size > MAX_IMAGE_SIZE:
+        raise ValueError(f"size: got {size}; expected at most {MAX_IMAGE_SIZE} pixels a side")
+    images = n_views * n_lights
+    check("size", size, images * image_bytes(size, size, TARGET_CHANNELS),
+          f"a dataset of {images} images of {size}x{size} pixels", size * size * TARGET_CHANNELS,
+          host=True)
 
 
 def _check_gains(gains, n_images):

@@ -28,7 +28,7 @@ import numpy as np
 
 from diffshade.host import warmup
 from diffshade.io import compile_cache
-from diffshade.io.images import write_npy, write_png
+from diffshade.io.images import check_writable, write_npy, write_png
 from diffshade.io.scenefile import load_material, load_scenes
 from diffshade.pipeline.rendering import render, render_parts
 from diffshade.scene.builtin import BUILTIN_SCENES, builtin_scene
@@ -141,6 +141,7 @@ def _run_render(args):
     if kind.lower() not in _OUTPUT_KINDS:
         raise _UsageError(f"--output: got {args.output!r}; expected a path ending in "
                           f"{' or '.join(_OUTPUT_KINDS)}")
+    check_writable(args.output, "--output")
     scene, settings = _scene_and_settings(args)
     if args.shading:
         settings = dataclasses.replace(settings, shading=args.shading)

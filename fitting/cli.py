@@ -148,10 +148,11 @@ def register(subparsers):
                         help="start and held-fixed values (default 0.3,0.5,0.3,20; with "
                              "several objects, for each, or a file {\"objects\": ...} "
                              "with one per object)")
-    parser.add_argument("--color-space", choices=COLOR_SPACES,
+    parser.add_argument("--color-space", type=str.lower, choices=COLOR_SPACES,
                         help="decode every PNG/JPEG target as this, overriding the dataset's "
                              "'color_space' keys and the files' own tags (default: as they "
-                             "say, else srgb; .npy targets are linear; docs/color.md)")
+                             "say, else srgb; .npy targets are linear; any case; "
+                             "docs/color.md)")
     for field in dataclasses.fields(FitOptions):
         _add_option(parser, field.name)
     parser.add_argument("--checkpoint-every", type=positive_int, metavar="N",

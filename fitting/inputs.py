@@ -13,10 +13,12 @@ import os
 
 import numpy as np
 
-from diffshade.io import read_json
+from diffshade.io import check_writable, read_json
+from diffshade.pipeline import check_render
 from diffshade.scene import material
 from fitting.data.folder import fingerprint, load_dataset, material_from_dict
-from fitting.spec.params import FIT_NAMES, MODED, FitSpec
+from fitting.data.views import material_for, view_scene
+from fitting.spec.params import DEFAULT_INIT, FIT_NAMES, MODED, FitSpec
 
 DEFAULT_FIT = tuple(name for name, value in FitSpec().fitted.items() if value)
 
@@ -105,25 +107,32 @@ def fit_spec(fit_text=None, grey_text=None) -> FitSpec:
 
 
 def check_output(path):
-    """--output: a new path, or an existing folder, in a writable place."""
+    """--output: a new path, or an existing writable folder, in a writable place (checked
+    before the fit, so that it never fails only when the results are written)."""
     if os.path.exists(path) and not os.path.isdir(path):
         raise ValueError(f"--output: {path!r} is a file; expected a folder for the results")
-    ancestor = os.path.dirname(os.path.abspath(path))
-    while not os.path.exists(ancestor):
-        ancestor = os.path.dirname(ancestor)
-    if not os.path.isdir(ancestor) or not os.access(ancestor, os.W_OK | os.X_OK):
-        raise ValueError(f"--output: cannot create or write {path!r} ({ancestor!r} is not a "
-                         "writable folder)")
+    check_writable(path, "--output", "folder")
 
 
 def load_checked_dataset(path, color_space=None):
-    """fitting.data.folder.load_dataset, after checking that DATASET is a folder.
-    color_space: 'srgb' or 'linear' decodes every image target so (--color-space)."""
+    """fitting.data.folder.load_dataset, after checking that DATASET is a folder, and
+    each view checked against the memory budget. color_space: 'srgb' or 'linear' decodes
+    every image target so (--color-space)."""
     if not os.path.exists(path):
         raise FileNotFoundError(f"DATASET: folder not found: {path!r}")
     if not os.path.isdir(path):
         raise ValueError(f"DATASET: {path!r} is a file; expected a dataset folder")
-    return load_dataset(path, color_space)
+    dataset = load_dataset(path, color_space)
+    _check_memory(dataset)
+    return dataset
+
+
+def _check_memory(dataset):
+    """Rasterizing each view must fit the memory budget (diffshade.budget: its image size,
+    mesh and the shadow maps of its lights), checked before anything is compiled."""
+    start = material_for(dataset, DEFAULT_INIT)
+    for i in range(len(dataset.views)):
+        check_render(view_scene(dataset, i, start), dataset.settings)
 
 
 def dataset_fingerprint(dataset) -> str:

@@ -558,3 +558,251 @@ def test_fit_without_truth_works_and_reports_no_errors():
         np.testing.assert_allclose(result.values[name], np.broadcast_to(getattr(truth, name),
                                                                         np.shape(result.values[name])),
                                    rtol=1e-3, err_msg=name)
+
+
+# ------------------------------------------------- sizes beyond memory (issue 26)
+# DIFFSHADE_MEMORY_LIMIT fixes the budget, so that each case is refused on any machine.
+
+LIMIT = "4G"
+SMALL_CAMERA = {"eye": [0, 0, 3], "target": [0, 0, 0], "width": 8, "height": 8}
+SIZE_SCENES = {
+    "camera_16384.json": ({**GOOD, "camera": {**SMALL_CAMERA, "width": 16384, "height": 16384}},
+                          "camera width x height: got 16384x16384"),
+    "faces_per_pixel.json": ({**GOOD, "settings": {"raster": "soft", "faces_per_pixel": 10**7}},
+                             "faces_per_pixel: got 10000000"),
+    "shadow_map_size.json": ({**GOOD, "lights": [{"type": "point", "position": [1, 1, 2],
+                                                  "shadows": True}],
+                              "settings": {"shadow_map_size": 10**6}},
+                             "shadow_map_size: got 1000000"),
+    "area_samples.json": ({**GOOD, "lights": [{"type": "area", "center": [0, 2, 2],
+                                               "normal": [0, -1, -1], "radius": 0.3,
+                                               "samples": 4096, "shadows": True}]},
+                          "samples: got 4096"),
+    "torus.json": ({**GOOD, "mesh": {"builtin": {"torus": {"major_segments": 65536,
+                                                           "minor_segments": 65536}}}},
+                   "mesh.builtin.torus.major_segments, mesh.builtin.torus.minor_segments: "
+                   "got 65536 x 65536"),
+}
+
+
+def assert_costed(line):
+    """The refusal says what the request needs and what is available."""
+    assert re.search(r"needs (\S+ [kMGT]?B \(\d+ bytes\) of memory; expected at most 4.29 GB "
+                     r"\(4294967296 bytes\)|an array of \d+ values; expected at most "
+                     r"2147483647)", line), line
+
+
+@pytest.mark.parametrize("name", SIZE_SCENES)
+def test_cli_render_of_a_scene_beyond_memory_is_refused(tmp_path, capsys, monkeypatch, name):
+    monkeypatch.setenv("DIFFSHADE_MEMORY_LIMIT", LIMIT)
+    data, key = SIZE_SCENES[name]
+    (tmp_path / name).write_text(json.dumps(data))
+    assert cli.main(["render", str(tmp_path / name), "-o", str(tmp_path / "img.png")]) == 2
+    line = one_error_line(capsys)
+    assert f"{name}: {key}" in line or line.startswith(f"diffshade: error: {key}"), line
+    assert_costed(line)
+    assert os.listdir(tmp_path) == [name]
+
+
+def test_cli_render_size_beyond_memory_names_the_bytes(tmp_path, capsys, monkeypatch):
+    """The crash of issue 26 (an XLA abort): now one line, before anything is compiled."""
+    monkeypatch.setenv("DIFFSHADE_MEMORY_LIMIT", LIMIT)
+    argv = ["render", "--builtin", "sphere", "--size", "16384x16384", "-o",
+            str(tmp_path / "img.png")]
+    assert cli.main(argv) == 2
+    faces = 20 * 4**4
+    needed = 512 * 2**20 + 16384**2 * (256 + 256) + faces * 1024
+    assert one_error_line(capsys) == (
+        f"diffshade: error: camera width x height: got 16384x16384; a 16384x16384 render with "
+        f"1 fragment slot a pixel and {faces} faces needs {needed / 1e9:.3g} GB ({needed} "
+        "bytes) of memory; expected at most 4.29 GB (4294967296 bytes), the memory available "
+        "(DIFFSHADE_MEMORY_LIMIT; set DIFFSHADE_MEMORY_LIMIT to change it)")
+    assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize("size, shown", [("16384", "6 images of 16384x16384 pixels needs 51.5 GB"),
+                                         ("100000", "expected at most 16384 pixels a side")])
+def test_cli_synth_size_beyond_memory_is_refused_before_allocating(tmp_path, capsys,
+                                                                   monkeypatch, size, shown):
+    monkeypatch.setenv("DIFFSHADE_MEMORY_LIMIT", LIMIT)
+    assert cli.main(["synth", "--size", size, "-o", str(tmp_path / "data")]) == 2
+    line = one_error_line(capsys)
+    assert f"size: got {size};" in line and shown in line, line
+    assert os.listdir(tmp_path) == []
+
+
+def test_a_huge_torus_is_refused_before_its_arrays_exist():
+    with pytest.raises(ValueError) as info:
+        ds.torus(1.0, 0.3, 65536, 65536)
+    assert_clear(info, "major_segments, minor_segments", "65536 x 65536")
+
+
+# ------------------------------------------------------ image files (issue 26)
+
+
+def png_header_only(width, height):
+    """A PNG whose IHDR claims width x height and whose pixel data is garbage: decoding it
+    would fail, so a size error proves that the size was read first."""
+    import struct
+    import zlib
+
+    def chunk(kind, payload):
+        return (struct.pack(">I", len(payload)) + kind + payload
+                + struct.pack(">I", zlib.crc32(kind + payload)))
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", b"garbage")
+            + chunk(b"IEND", b""))
+
+
+def test_an_image_beyond_memory_is_refused_from_its_header(tmp_path, monkeypatch):
+    monkeypatch.setenv("DIFFSHADE_MEMORY_LIMIT", LIMIT)
+    path = tmp_path / "huge.png"
+    path.write_bytes(png_header_only(20_000, 20_000))
+    needed = 20_000**2 * 3 * 8
+    with pytest.raises(ValueError) as info:
+        ds.read_image(path)
+    assert_clear(info, "path", "huge.png")
+    assert "decoding its 20000x20000 pixels of 3 channels needs" in str(info.value)
+    assert f"({needed} bytes)" in str(info.value)
+
+
+def rgb_pixels():
+    pixels = np.zeros((6, 8, 3), np.uint8)
+    pixels[..., 0], pixels[..., 1], pixels[..., 2] = 200, 100, 30
+    pixels[2:4, 3:6] = (10, 240, 120)
+    return pixels
+
+
+def srgb_linear(codes):
+    return ds.io.srgb_to_linear(np.asarray(codes, np.float64) / 255.0)
+
+
+def test_a_cmyk_jpeg_is_read_as_rgb_not_as_four_channels(tmp_path):
+    from PIL import Image
+    pixels = rgb_pixels()
+    Image.fromarray(pixels).convert("CMYK").save(tmp_path / "cmyk.jpg", quality=100)
+    image = ds.read_image(tmp_path / "cmyk.jpg")
+    assert image.shape == (6, 8, 3)
+    # JPEG's chroma subsampling blurs the colour edges: compare away from them
+    np.testing.assert_allclose(image[0, 0], srgb_linear(pixels[0, 0]), atol=0.01)
+
+
+def test_palette_and_grey_alpha_images_convert_as_defined(tmp_path):
+    from PIL import Image
+    pixels = rgb_pixels()
+    palette = Image.fromarray(pixels).convert("P", palette=Image.Palette.ADAPTIVE, colors=4)
+    palette.save(tmp_path / "palette.png", transparency=palette.getpixel((0, 0)))
+    image = ds.read_image(tmp_path / "palette.png")
+    assert image.shape == (6, 8, 4)
+    np.testing.assert_allclose(image[3, 4, :3], srgb_linear(pixels[3, 4]), atol=1e-6)
+    assert image[0, 0, 3] == 0.0 and image[3, 4, 3] == 1.0
+    grey = np.stack([pixels[..., 0], np.full((6, 8), 128, np.uint8)], -1)
+    Image.fromarray(grey, "LA").save(tmp_path / "grey_alpha.png")
+    image = ds.read_image(tmp_path / "grey_alpha.png")
+    assert image.shape == (6, 8, 2)
+    np.testing.assert_allclose(image[0, 0], [srgb_linear(200), 128 / 255], atol=1e-6)
+
+
+def test_a_mode_without_conversion_is_refused_by_name(tmp_path):
+    from PIL import Image
+    Image.new("LAB", (4, 4)).save(tmp_path / "lab.tif")
+    with pytest.raises(ValueError) as info:
+        ds.read_image(tmp_path / "lab.tif")
+    assert_clear(info, "path", "lab.tif")
+    assert "colour mode 'LAB' (CIE L*a*b* colour) has no conversion to RGB" in str(info.value)
+
+
+def write_png_as(path, fmt):
+    from PIL import Image
+    Image.fromarray(rgb_pixels()).save(path, format=fmt)
+
+
+# file name -> (how to make it, what the message says after the file's path)
+MISLABELLED = {
+    "empty.png": (lambda p: p.write_bytes(b""), "is empty (0 bytes); expected an image file"),
+    "jpeg.png": (lambda p: write_png_as(p, "JPEG"),
+                 "holds a JPEG image; expected a PNG image, as its extension '.png' says"),
+    "png.npy": (lambda p: write_png_as(p, "PNG"), "holds a PNG image; expected a NumPy array "
+                "(.npy), as its extension '.npy' says"),
+    "npy.jpg": (lambda p: np.save(open(p, "wb"), np.zeros((2, 2, 3))),
+                "holds a NumPy array (.npy); expected a JPEG image"),
+    "text.png": (lambda p: p.write_text("hello"), "holds no image format diffshade reads "
+                 "(first bytes 68 65 6c 6c 6f); expected a PNG image"),
+    "pickle.npy": (lambda p: np.save(open(p, "wb"), np.array([{}], object), allow_pickle=True),
+                   "holds Python objects (object), which only unpickling could read; "
+                   "expected an array of numbers"),
+    "text.img": (lambda p: p.write_text("hello"), "holds no image format diffshade reads; "
+                 "expected PNG, JPEG"),
+}
+
+
+@pytest.mark.parametrize("name", MISLABELLED)
+def test_an_image_file_is_judged_by_its_content_and_named(tmp_path, name):
+    make, shown = MISLABELLED[name]
+    make(tmp_path / name)
+    with pytest.raises(ValueError) as info:
+        ds.read_image(tmp_path / name)
+    assert str(info.value) == f"path: {str(tmp_path / name)!r} {shown}" or \
+        str(info.value).startswith(f"path: {str(tmp_path / name)!r} {shown}"), info.value
+
+
+def test_a_jpeg_named_jpg_with_no_extension_rule_is_read_by_content(tmp_path):
+    write_png_as(tmp_path / "photo.image", "JPEG")
+    assert ds.read_image(tmp_path / "photo.image").shape == (6, 8, 3)
+
+
+@pytest.mark.parametrize("space", ["sRGB", "SRGB", "Linear"])
+def test_colour_space_names_are_read_in_any_case(tmp_path, space):
+    ds.write_png(tmp_path / "img.png", np.full((2, 2, 3), 0.25), color_space=space)
+    np.testing.assert_allclose(ds.read_image(tmp_path / "img.png", space), 0.25, atol=3e-3)
+    args = cli.build_parser().parse_args(["fit", "data", "-o", "out", "--color-space", space])
+    assert args.color_space == space.lower()
+
+
+# ------------------------------------------------------ output paths (issue 26)
+
+
+@pytest.fixture
+def read_only(tmp_path):
+    """A folder no one may write into: its mode bits, and for root (whom those do not
+    stop) the immutable attribute."""
+    folder = tmp_path / "read_only"
+    folder.mkdir()
+    folder.chmod(0o555)
+    root = os.geteuid() == 0
+    if root:
+        subprocess.run(["chattr", "+i", str(folder)], check=True)
+    yield folder
+    if root:
+        subprocess.run(["chattr", "-i", str(folder)], check=True)
+    folder.chmod(0o755)
+
+
+def test_write_into_a_read_only_folder_names_the_path_not_a_temporary(read_only):
+    target = read_only / "img.png"
+    with pytest.raises(OSError) as info:
+        ds.write_png(target, np.zeros((2, 2, 3)))
+    assert info.value.filename == str(target) and ".tmp" not in str(info.value)
+
+
+OUTPUTS = {
+    "render": (lambda ro: ["render", "--builtin", "box", "-o", str(ro / "img.png")],
+               "--output: cannot write '{ro}/img.png': the folder '{ro}' is not writable"),
+    "render_new_folder": (lambda ro: ["render", "--builtin", "box", "-o",
+                                      str(ro / "new" / "img.png")],
+                          "--output: cannot write '{ro}/new/img.png': the folder '{ro}' is"),
+    "synth": (lambda ro: ["synth", "--size", "8", "-o", str(ro / "data")],
+              "--output: cannot write '{ro}/data': the folder '{ro}' is not writable"),
+    "fit_existing_folder": (lambda ro: ["fit", "no-such-dataset", "-o", str(ro)],
+                            "--output: cannot write '{ro}': the folder '{ro}' is not "
+                            "writable"),
+}
+
+
+@pytest.mark.parametrize("name", OUTPUTS)
+def test_an_unwritable_output_is_refused_before_the_work(read_only, capsys, name):
+    argv, shown = OUTPUTS[name]
+    assert cli.main(argv(read_only)) == 2
+    line = one_error_line(capsys)
+    assert shown.format(ro=read_only) in line and ".tmp" not in line, line
+    assert os.listdir(read_only) == []

@@ -229,13 +229,15 @@ def test_dataset_key_and_argument_decide_the_decoding(sphere, tmp_path):
     cases = [(None, None, None, as_srgb), ("linear", None, None, as_linear),
              ("linear", ["srgb", None], None, as_srgb),  # the view's key wins
              ("linear", ["srgb", None], "linear", as_linear),  # the argument wins
-             (None, None, "linear", as_linear)]
+             (None, None, "linear", as_linear),
+             ("LINEAR", ["sRGB", None], None, as_srgb)]  # names in any case
     for i, (key, view_keys, argument, want) in enumerate(cases):
         folder = png_only(sphere, tmp_path / f"d{i}", key, view_keys)
         got = load_dataset(folder, argument).views[0].target
         np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-9, err_msg=str(i))
-    folder = png_only(sphere, tmp_path / "bad", "sRGB")
-    with pytest.raises(ValueError, match="dataset.json: color_space: got 'sRGB'; expected"):
+    folder = png_only(sphere, tmp_path / "bad", "adobe-rgb")
+    with pytest.raises(ValueError, match="dataset.json: color_space: got 'adobe-rgb'; "
+                       "expected"):
         load_dataset(folder)
 
 

@@ -356,7 +356,8 @@ def break_dataset(folder, how):
 
 @pytest.mark.parametrize("how, message", [
     ("missing_scene_file", "scene file not found: "),
-    ("wrong_target_size", "views[1].target: got shape (32, 33, 3); expected (32, 32, 3)"),
+    ("wrong_target_size", "views[1]: 'view_001.npy': got an image of 33x32 pixels; "
+                          "expected 32x32, the size of its camera"),
     ("nan_target", "target image of view 1 (view_001.npy) contains NaN at pixel "
                    "(row 5, column 7)"),
     ("bad_dataset_json", "dataset.json: line 1, column 2: invalid JSON"),
@@ -403,6 +404,19 @@ def test_fit_rejects_bad_options(data_root, tmp_path, capsys, args, message):
                              capsys)
     assert code == 2 and out == ""
     assert message in one_error_line(err)
+    assert listing(tmp_path) == []
+
+
+def test_fit_of_views_beyond_memory_is_refused_before_compiling(data_root, tmp_path, capsys,
+                                                               monkeypatch):
+    """A 32x32 view of 320 faces needs 512 MiB + 32·32·512 + 320·1024 bytes
+    (docs/cli.md, "Sizes and memory"): 512.5 MiB is too little."""
+    monkeypatch.setenv("DIFFSHADE_MEMORY_LIMIT", "512.5M")
+    code, out, err = run_cli(["fit", data_root / "clean", "-o", tmp_path / "result"], capsys)
+    needed = 512 * 2**20 + SIZE * SIZE * 512 + 320 * 1024
+    assert code == 2 and out == ""
+    assert (f"camera width x height: got {SIZE}x{SIZE}; a {SIZE}x{SIZE} render with 1 fragment "
+            f"slot a pixel and 320 faces needs 538 MB ({needed} bytes)") in one_error_line(err)
     assert listing(tmp_path) == []
 
 

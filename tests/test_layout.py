@@ -30,7 +30,7 @@ PACKAGES = ("diffshade", "fitting", "data_synth")
 #: that names it or the folder it is in (a package's own name covers only its __init__).
 FLOORS = {
     "diffshade": [
-        ("foundation", ["diffshade.numerics", "diffshade.settings"]),
+        ("foundation", ["diffshade.numerics", "diffshade.settings", "diffshade.budget"]),
         ("host", ["diffshade.host"]),
         ("scene", ["diffshade.scene"]),
         ("raster", ["diffshade.raster"]),
@@ -54,7 +54,8 @@ FLOORS = {
 }
 #: what fitting and data_synth may import diffshade through: the package, the floors' packages
 #: and the foundation's modules (host has no public face)
-PUBLIC_FACES = ("diffshade", "diffshade.numerics", "diffshade.settings", "diffshade.scene",
+PUBLIC_FACES = ("diffshade", "diffshade.numerics", "diffshade.settings", "diffshade.budget",
+                "diffshade.scene",
                 "diffshade.raster", "diffshade.shading", "diffshade.composite",
                 "diffshade.pipeline", "diffshade.io")
 #: which packages each package may import

@@ -164,3 +164,99 @@ def test_the_unmutated_files_load(folder):
     assert len(dataset.views) == 3 and dataset.views[1].mask is not None
     scenes, _ = ds.load_scenes(folder / "scene.json")
     assert [s.camera.width for s in scenes] == [8, 8]
+
+
+# ---- a view's target and mask, and why no pixel of it counts (issue 26)
+
+
+def one_view(root, image, meta=None, **entry):
+    """A dataset folder of one view of an 8 x 6 camera whose target file is `image`."""
+    (root / "one.json").write_text(json.dumps({**{k: v for k, v in SCENE.items()
+                                                  if k != "cameras"}, "camera": CAMERA}))
+    view = {"scene": "one.json", "image": image, **entry}
+    (root / "dataset.json").write_text(json.dumps({"format": "diffshade-dataset",
+                                                   "version": 1, "views": [view],
+                                                   **(meta or {})}))
+    return root
+
+
+def rgb_codes():
+    rng = np.random.default_rng(1)
+    return rng.integers(20, 230, (6, 8, 3), dtype=np.uint8)
+
+
+def save(path, codes):
+    from PIL import Image
+    Image.fromarray(codes).save(path)
+
+
+@pytest.mark.parametrize("case, shown", [
+    ("black_mask", "no pixel counts: the mask 'mask.png' is black everywhere"),
+    ("alpha_zero", "no pixel counts: the target's alpha is at most 0.5 everywhere"),
+    ("saturation", "no pixel counts: every pixel reaches the saturation threshold 1e-09"),
+])
+def test_a_view_where_no_pixel_counts_says_which_filter_left_none(tmp_path, case, shown):
+    codes, meta, entry = rgb_codes(), None, {}
+    if case == "alpha_zero":
+        codes = np.concatenate([codes, np.zeros((6, 8, 1), np.uint8)], -1)
+    if case == "black_mask":
+        save(tmp_path / "mask.png", np.zeros((6, 8), np.uint8))
+        entry = {"mask": "mask.png"}
+    if case == "saturation":
+        meta = {"saturation": 1e-9}
+    save(tmp_path / "target.png", codes)
+    with pytest.raises(ValueError) as info:
+        load_dataset(one_view(tmp_path, "target.png", meta, **entry))
+    assert str(info.value).startswith(f"views[0]: {shown}"), info.value
+    assert "expected" in str(info.value)
+
+
+def test_a_cmyk_jpeg_target_is_fitted_as_its_rgb(tmp_path):
+    from PIL import Image
+    codes = np.full((6, 8, 3), (200, 100, 30), np.uint8)
+    Image.fromarray(codes).convert("CMYK").save(tmp_path / "target.jpg", quality=100)
+    dataset = load_dataset(one_view(tmp_path, "target.jpg"))
+    expected = ds.io.srgb_to_linear(np.array([200, 100, 30]) / 255.0)
+    np.testing.assert_allclose(dataset.views[0].target, np.broadcast_to(expected, (6, 8, 3)),
+                               atol=0.01)
+    assert dataset.views[0].mask is None
+
+
+def test_a_grey_target_is_repeated_into_rgb(tmp_path):
+    grey = rgb_codes()[..., 0]
+    save(tmp_path / "grey.png", grey)
+    target = load_dataset(one_view(tmp_path, "grey.png")).views[0].target
+    np.testing.assert_allclose(target, np.repeat(ds.io.srgb_to_linear(grey / 255.0)[..., None],
+                                                 3, -1), atol=1e-6)
+
+
+def test_colour_space_keys_are_read_in_any_case(tmp_path):
+    save(tmp_path / "target.png", rgb_codes())
+    dataset = load_dataset(one_view(tmp_path, "target.png", {"color_space": "Linear"},
+                                    color_space="LINEAR"))
+    np.testing.assert_allclose(dataset.views[0].target, rgb_codes() / 255.0, atol=1e-6)
+
+
+def test_a_target_of_another_size_is_refused_from_its_header(tmp_path):
+    """A 12000 x 12000 PNG for an 8 x 6 camera: its pixel data is garbage, so only a size
+    read from the header, before decoding, gives this message."""
+    import struct
+    import zlib
+
+    def chunk(kind, payload):
+        return (struct.pack(">I", len(payload)) + kind + payload
+                + struct.pack(">I", zlib.crc32(kind + payload)))
+    ihdr = struct.pack(">IIBBBBB", 12000, 12000, 8, 2, 0, 0, 0)
+    (tmp_path / "huge.png").write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr)
+                                        + chunk(b"IDAT", b"garbage") + chunk(b"IEND", b""))
+    with pytest.raises(ValueError, match=r"^views\[0\]: 'huge.png': got an image of "
+                       r"12000x12000 pixels; expected 8x6, the size of its camera$"):
+        load_dataset(one_view(tmp_path, "huge.png"))
+
+
+def test_a_mislabelled_target_says_what_it_holds(tmp_path):
+    save(tmp_path / "target.png", rgb_codes())
+    (tmp_path / "target.png").rename(tmp_path / "target.npy")
+    with pytest.raises(ValueError, match=r"target.npy' holds a PNG image; expected a NumPy "
+                       r"array \(.npy\), as its extension '.npy' says"):
+        load_dataset(one_view(tmp_path, "missing.png", target="target.npy"))

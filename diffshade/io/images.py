@@ -13,8 +13,12 @@ gAMA 1.0) and quantizes to 8 or 16 bits, round(clip(encoded, 0, 1) * (2^bits - 1
 `read_image` returns float32 linear [H, W, C]: integer-coded files (PNG 8 or 16 bit, JPEG
 and the other formats pillow reads) are scaled to [0, 1] and decoded with the transfer
 the file declares (`image_transfer`), sRGB when it declares none, or with the caller's
-`color_space`; .npy (and EXR, when an imageio plugin for it is installed) is linear and
-read as stored.
+`color_space` (any case: 'sRGB' is 'srgb'); .npy (and EXR, when an imageio plugin for it
+is installed) is linear and read as stored. The format is the one the file's first bytes
+say (a name that says another is refused), and the size its header gives is checked
+against the memory budget (diffshade.budget) before anything is decoded
+(diffshade.io.image_formats, which also says how colour modes such as CMYK and palette
+are converted).
 """
 
 import io
@@ -25,20 +29,15 @@ import uuid
 import imageio.v3 as iio
 import numpy as np
 
+from diffshade import budget
 from diffshade.io.color import COLOR_SPACES, decode, encode
-from diffshade.io.png import (
-    color_chunks,
-    decode_png16,
-    encode_png,
-    is_png,
-    png_header,
-    png_transfer,
-)
+from diffshade.io.image_formats import decode_pillow, header
+from diffshade.io.png import color_chunks, decode_png16, encode_png, png_header, png_transfer
 
-__all__ = ["image_transfer", "read_image", "write_json", "write_npy", "write_png",
-           "write_text"]
+__all__ = ["check_color_space", "check_writable", "image_transfer", "read_image",
+           "write_json", "write_npy", "write_png", "write_text"]
 
-_LINEAR_FORMATS = (".npy", ".exr")
+_LINEAR_FORMATS = ("NPY", "EXR")
 
 
 def _write_atomic(path, data: bytes) -> str:
@@ -49,7 +48,10 @@ def _write_atomic(path, data: bytes) -> str:
     tmp = os.path.join(folder, f".{os.path.basename(path)}.{uuid.uuid4().hex[:12]}.tmp")
     # os.open with mode 0o666 lets the umask decide permissions, as a plain open() would
     # (tempfile.mkstemp would leave every output readable by its owner only).
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    except OSError as err:  # the user's path, not the hidden temporary, is what failed
+        raise type(err)(err.errno, err.strerror, path) from None
     try:
         with os.fdopen(fd, "wb") as file:
             file.write(data)
@@ -62,6 +64,45 @@ def _write_atomic(path, data: bytes) -> str:
             os.remove(tmp)
         raise
     return path
+
+
+def check_writable(path, name, kind="file"):
+    """Raise an OSError naming `name` (the option or argument) and `path` unless path can
+    be written, checked before the work whose result goes there. kind: 'file' (written
+    through a temporary file beside it), 'folder' (files are written inside it: itself
+    when it exists must be writable) or 'replaced' (a folder made beside it and renamed
+    over it). The folder that must be writable is the nearest one that exists."""
+    path = os.fspath(path)
+    place = os.path.abspath(path)
+    if kind == "file" and os.path.isdir(place):
+        raise IsADirectoryError(f"{name}: {path!r} is a folder; expected a file to write")
+    if kind != "file" and os.path.exists(place) and not os.path.isdir(place):
+        raise NotADirectoryError(f"{name}: {path!r} is a file; expected a folder to write")
+    if not (kind == "folder" and os.path.isdir(place)):
+        place = os.path.dirname(place)
+    while not os.path.exists(place):
+        place = os.path.dirname(place)
+    if not os.path.isdir(place):
+        raise NotADirectoryError(f"{name}: cannot write {path!r}: {place!r} is a file; "
+                                 "expected a folder")
+    problem = _write_problem(place)
+    if problem:
+        raise PermissionError(f"{name}: cannot write {path!r}: the folder {place!r} is not "
+                              f"writable ({problem}); expected a writable place")
+    return path
+
+
+def _write_problem(folder):
+    """Why a file cannot be created in `folder` (its strerror), or None. Tried, not
+    inferred from the mode bits: root ignores those, while a read-only mount or an
+    immutable folder refuses everyone. The probe file is removed at once."""
+    probe = os.path.join(folder, f".diffshade-probe-{uuid.uuid4().hex[:12]}")
+    try:
+        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+    except OSError as err:
+        return err.strerror
+    os.remove(probe)
+    return None
 
 
 def _image_array(image, path):
@@ -79,10 +120,12 @@ def _image_array(image, path):
     return arr
 
 
-def _check_color_space(color_space, name="color_space"):
-    if color_space not in COLOR_SPACES:
-        raise ValueError(f"{name}: got {color_space!r}; expected one of {COLOR_SPACES}")
-    return color_space
+def check_color_space(color_space, name="color_space"):
+    """color_space in lower case ('sRGB' is 'srgb'), or ValueError naming `name`."""
+    if not isinstance(color_space, str) or color_space.lower() not in COLOR_SPACES:
+        raise ValueError(f"{name}: got {color_space!r}; expected one of {COLOR_SPACES} "
+                         "(in any case)")
+    return color_space.lower()
 
 
 def _colour_channels(arr, fn):
@@ -96,7 +139,7 @@ def write_png(path, image, *, color_space="srgb", bits=8) -> str:
     """Write image ([H, W, C] linear float, C in {1, 3, 4}) as a PNG of `bits` (8 or 16)
     per channel, its colour channels encoded in `color_space` ('srgb' or 'linear')."""
     path = os.fspath(path)
-    _check_color_space(color_space)
+    color_space = check_color_space(color_space)
     if bits not in (8, 16):
         raise ValueError(f"bits: got {bits!r}; expected 8 or 16")
     encoded = _colour_channels(_image_array(image, path), lambda c: encode(c, color_space))
@@ -150,37 +193,43 @@ def write_text(path, text: str) -> str:
     return _write_atomic(path, text.encode("utf-8"))
 
 
-def _is_linear_format(path):
-    return os.path.splitext(path)[1].lower() in _LINEAR_FORMATS
-
-
-def _load(path):
-    """(array as stored in the file, the transfer its colour chunks declare or None)."""
-    extension = os.path.splitext(path)[1].lower()
-    if extension == ".npy":
+def _load(path, kind):
+    """(array as stored in the file, the transfer its colour chunks declare or None), by
+    the file's format (its first bytes, image_formats.header)."""
+    if kind == "NPY":
         return np.load(path, allow_pickle=False), "linear"
-    if extension == ".exr":
+    if kind == "EXR":
         return iio.imread(path), "linear"  # whichever installed plugin reads EXR
     with open(path, "rb") as file:
         data = file.read()
-    if not is_png(data):
-        # Naming the plugin skips imageio's probing of every other format.
-        return iio.imread(data, plugin="pillow"), None
+    if kind != "PNG":
+        return decode_pillow(data), None
     _, _, depth, color, interlace = png_header(data)
     if depth == 16 and color != 0 and interlace:
         raise ValueError("an interlaced 16-bit colour PNG (pillow would read it at 8 bits); "
                          "expected a non-interlaced one")
-    pixels = decode_png16(data) if depth == 16 and not interlace else iio.imread(
-        data, plugin="pillow")
+    pixels = decode_png16(data) if depth == 16 and not interlace else decode_pillow(data)
     return pixels, png_transfer(data)
 
 
+def _check_decoded_size(path, found):
+    """The decoded image must fit the memory budget: checked on its header's size."""
+    pixels = found.width * found.height
+    budget.check("path", repr(path), budget.image_bytes(found.width, found.height,
+                                                          found.channels),
+                 f"decoding its {found.width}x{found.height} pixels of {found.channels} "
+                 "channels", pixels * found.channels, host=True)
+
+
 def _read(path):
+    """(array as stored, declared transfer or None, format) of the image file at path."""
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"image file not found: {path!r}")
+    found = header(path)
+    _check_decoded_size(path, found)
     try:
-        arr, transfer = _load(path)
+        arr, transfer = _load(path, found.kind)
     # numpy, pillow and zlib raise many exception types; all mean "cannot decode".
     except Exception as err:
         raise ValueError(f"path: cannot read image file {path!r}: {err}") from err
@@ -190,15 +239,15 @@ def _read(path):
     if arr.ndim != 3 or not is_real:
         raise ValueError(f"path: image file {path!r} holds {arr.dtype} of shape {arr.shape}; "
                          "expected real numbers of shape [H, W] or [H, W, C]")
-    return arr, transfer
+    return arr, transfer, found.kind
 
 
 def image_transfer(path):
     """How the file at `path` encodes colours: 'linear' (.npy, EXR, float pixels, a PNG
     tagged linear), 'srgb' (tagged so, or integer-coded and untagged), or a PNG gAMA
     exponent g (linear = value^(1/g))."""
-    arr, transfer = _read(path)
-    if _is_linear_format(os.fspath(path)) or not np.issubdtype(arr.dtype, np.integer):
+    arr, transfer, kind = _read(path)
+    if kind in _LINEAR_FORMATS or not np.issubdtype(arr.dtype, np.integer):
         return "linear"
     return transfer or "srgb"
 
@@ -211,12 +260,12 @@ def read_image(path, color_space=None) -> np.ndarray:
     when the file cannot be decoded or does not hold an [H, W] or [H, W, C] image.
     """
     if color_space is not None:
-        _check_color_space(color_space)
-    arr, transfer = _read(path)
+        color_space = check_color_space(color_space)
+    arr, transfer, kind = _read(path)
     if not np.issubdtype(arr.dtype, np.integer):
         return arr.astype(np.float32)
     unit = arr.astype(np.float64) / np.iinfo(arr.dtype).max
-    if _is_linear_format(os.fspath(path)):
+    if kind in _LINEAR_FORMATS:
         return unit.astype(np.float32)
     transfer = color_space or transfer or "srgb"
     return _colour_channels(unit, lambda c: decode(c, transfer)).astype(np.float32)

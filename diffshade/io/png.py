@@ -20,16 +20,12 @@ import zlib
 
 import numpy as np
 
-__all__ = ["color_chunks", "decode_png16", "encode_png", "is_png", "png_header", "png_transfer"]
+__all__ = ["color_chunks", "decode_png16", "encode_png", "png_header", "png_transfer"]
 
 SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _COLOR_TYPES = {0: 1, 2: 3, 4: 2, 6: 4}  # PNG colour type -> channels (no palette)
 _SRGB_GAMMA = 45455  # the gAMA value the PNG specification pairs with an sRGB chunk
 _CICP_TRANSFERS = {13: "srgb", 8: "linear"}
-
-
-def is_png(data: bytes) -> bool:
-    return data[:8] == SIGNATURE
 
 
 def _chunks(data):

@@ -35,6 +35,7 @@ from diffshade.composite.transparency import (
     soft_composite,
 )
 from diffshade.numerics import clamp01, safe_normalize
+from diffshade.pipeline.cost import check_render
 from diffshade.raster.fragments import Fragments, rasterize
 from diffshade.raster.projection import Projected, project
 from diffshade.scene.camera import Camera, view_dir_infinite
@@ -139,15 +140,23 @@ def _shade_active(scene, proj, frags, active, light, axis_name, host):
                      axis_name=axis_name, host=host)
 
 
-def check_arguments(scene, settings):
-    """Raise a clear TypeError unless scene is a Scene and settings a RenderSettings
-    (checked before jit, at the API boundary)."""
+def _check_types(scene, settings):
     if not isinstance(scene, Scene):
         raise TypeError(f"scene: got {type(scene).__name__}; expected Scene "
                         "(diffshade.make_scene)")
     if not isinstance(settings, RenderSettings):
         raise TypeError(f"settings: got {type(settings).__name__}; expected RenderSettings")
+
+
+def check_arguments(scene, settings, views=1, factor=1, camera=None):
+    """Raise a clear TypeError unless scene is a Scene and settings a RenderSettings, and
+    budget.SizeError when rendering it (from `views` cameras of `camera`'s size, default
+    the scene's own, at `factor` x their resolution) needs more memory than is available
+    (checked before jit, at the API boundary)."""
+    _check_types(scene, settings)
     settings.validate()
+    costed = scene if camera is None else dataclasses.replace(scene, camera=camera)
+    check_render(costed, settings, views, factor)
 
 
 def _checked(jitted):
@@ -256,8 +265,11 @@ def render_views(scene, cameras, settings=DEFAULT_SETTINGS):
     """Render one scene from N cameras as one batched call: [N, H, W, 4]. cameras: a
     sequence of Camera of one image size (or a stacked Camera, see stack_cameras); the
     scene's own camera is ignored."""
-    check_arguments(scene, settings)
-    return _render_views(scene, stack_cameras(cameras), settings)
+    _check_types(scene, settings)
+    cameras = stack_cameras(cameras)
+    views = jax.tree.leaves(cameras)[0].shape[0]
+    check_arguments(scene, settings, views, camera=jax.tree.map(lambda a: a[0], cameras))
+    return _render_views(scene, cameras, settings)
 
 
 def downsample(image, factor: int):
@@ -279,4 +291,12 @@ def _render_supersampled(scene, settings=DEFAULT_SETTINGS, factor: int = 2):
 rasterize_scene = _checked(_rasterize_scene)
 render = _checked(_render)
 render_parts = _checked(_render_parts)
-render_supersampled = _checked(_render_supersampled)
+
+
+def render_supersampled(scene, settings=DEFAULT_SETTINGS, factor: int = 2):
+    """Anti-aliased render: render at factor x the camera's resolution, then box-filter
+    down: [H, W, 4]."""
+    if isinstance(factor, bool) or not isinstance(factor, int) or factor < 1:
+        raise ValueError(f"factor: got {factor!r}; expected an integer >= 1")
+    check_arguments(scene, settings, factor=factor)
+    return _render_supersampled(scene, settings, factor)

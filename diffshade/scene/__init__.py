@@ -16,7 +16,7 @@ from diffshade.scene.calibration import (
     opencv_pose,
     with_pose,
 )
-from diffshade.scene.camera import Camera, look_at
+from diffshade.scene.camera import MAX_IMAGE_SIZE, Camera, look_at
 from diffshade.scene.lights import (
     LightGroups,
     ambient_light,
@@ -53,7 +53,7 @@ __all__ = [
     "BUILTIN_SCENES", "builtin_scene",
     "camera_from_opencv", "camera_to_opencv", "distort", "opencv_intrinsics", "opencv_pose",
     "with_pose",
-    "Camera", "look_at",
+    "MAX_IMAGE_SIZE", "Camera", "look_at",
     "LightGroups", "ambient_light", "directional_light", "group_lights", "point_light",
     "shadow_flags", "spot_light",
     "Material", "material",

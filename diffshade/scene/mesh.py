@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from diffshade import budget
 from diffshade.numerics import (
     float_dtype,
     float_dtype_of,
@@ -324,6 +325,12 @@ def _check_count(value, name, low, high):
         raise ValueError(f"{name}: {value!r}; expected an int in [{low}, {high}]")
 
 
+def _check_memory(name, value, faces, shape):
+    """A built-in shape of `faces` faces must fit the memory budget (diffshade.budget)."""
+    budget.check(name, value, budget.mesh_bytes(faces), f"{shape} of {faces} faces",
+                 faces * 3)
+
+
 _PHI = (1.0 + math.sqrt(5.0)) / 2.0
 _ICOSAHEDRON_VERTICES = np.array(
     [[-1, _PHI, 0], [1, _PHI, 0], [-1, -_PHI, 0], [1, -_PHI, 0],
@@ -362,6 +369,7 @@ def icosphere(subdivisions=3, radius=1.0):
     """
     _check_count(subdivisions, "subdivisions", 0, 8)
     _check_positive(radius, "radius")
+    _check_memory("subdivisions", subdivisions, 20 * 4**subdivisions, "an icosphere")
     verts = _ICOSAHEDRON_VERTICES / np.linalg.norm(_ICOSAHEDRON_VERTICES, axis=1)[:, None]
     tris = _ICOSAHEDRON_FACES
     for _ in range(subdivisions):
@@ -382,6 +390,8 @@ def torus(major_radius=1.0, minor_radius=0.35, major_segments=48, minor_segments
         raise ValueError(f"minor_radius: {minor_radius!r}; expected < major_radius")
     _check_count(major_segments, "major_segments", 3, 2**16)
     _check_count(minor_segments, "minor_segments", 3, 2**16)
+    _check_memory("major_segments, minor_segments", f"{major_segments} x {minor_segments}",
+                  2 * major_segments * minor_segments, "a torus")
     u = np.linspace(0.0, 2 * np.pi, major_segments, endpoint=False)[:, None]
     v = np.linspace(0.0, 2 * np.pi, minor_segments, endpoint=False)[None, :]
     cos_u, sin_u, cos_v, sin_v = np.cos(u), np.sin(u), np.cos(v), np.sin(v)

@@ -47,7 +47,8 @@ import numpy as np
 
 import diffshade as ds
 from diffshade.io import (
-    COLOR_SPACES,
+    check_color_space,
+    image_header,
     pinhole,
     read_json,
     scene_to_dict,
@@ -185,9 +186,8 @@ def _fail(where, value, expected):
 
 
 def _color_space(value, where):
-    if value is not None and value not in COLOR_SPACES:
-        _fail(where, value, f"one of {COLOR_SPACES}")
-    return value
+    """None, or the colour space's name in lower case ('sRGB' is 'srgb')."""
+    return None if value is None else check_color_space(value, where)
 
 
 def _saturation(value, where):
@@ -271,17 +271,38 @@ def _pixel_problem(target, name, index):
                       "finite colours >= 0")
 
 
-def _read_target(path, entry, index, color_space):
-    """(linear [H, W, 3] float32, alpha [H, W] or None, is_image)."""
-    npy = entry.get("target")
-    if npy and os.path.isfile(os.path.join(path, npy)):
-        name, image, is_image = npy, ds.read_image(os.path.join(path, npy)), False
-    else:
-        name, is_image = entry["image"], True
-        image = ds.read_image(os.path.join(path, name), color_space)
+def _check_size(file, label, size, what):
+    """The image file's header must give `size` (height, width): checked before decoding.
+    label: how the message names the file."""
+    found = image_header(file)
+    if found.kind != "EXR" and (found.height, found.width) != size:
+        raise ValueError(f"{label}: got an image of {found.width}x{found.height} pixels; "
+                         f"expected {size[1]}x{size[0]}, the size of its {what}")
+
+
+def _colour_image(image, name, index):
+    """[H, W, 3 or 4]: a grey image (with alpha) repeated into RGB (RGBA)."""
+    if image.ndim == 3 and image.shape[-1] in (1, 2):
+        grey = np.repeat(image[..., :1], 3, axis=-1)
+        return np.concatenate([grey, image[..., 1:]], axis=-1)
     if image.ndim != 3 or image.shape[-1] not in (3, 4):
         raise ValueError(f"views[{index}]: {name!r} has shape {image.shape}; expected an "
-                         "RGB or RGBA image [H, W, 3 or 4]")
+                         "RGB or RGBA image [H, W, 3 or 4] (or grey, with or without alpha)")
+    return image
+
+
+def _read_target(path, entry, index, color_space, size):
+    """(linear [H, W, 3] float32, alpha [H, W] or None, is_image); size: the camera's
+    (height, width), which the file's header must give before it is decoded."""
+    npy = entry.get("target")
+    if npy and os.path.isfile(os.path.join(path, npy)):
+        name, is_image, space = npy, False, None
+    else:
+        name, is_image, space = entry["image"], True, color_space
+    file = os.path.join(path, name)
+    if os.path.isfile(file):
+        _check_size(file, repr(name), size, "camera")
+    image = _colour_image(ds.read_image(file, space), name, index)
     problem = _pixel_problem(image[..., :3], name, index)
     if problem:
         raise problem
@@ -296,17 +317,37 @@ def saturation_mask(target, threshold):
     return np.all(np.asarray(target) < threshold, axis=-1)
 
 
+def _file_mask(path, name, size):
+    """[H, W] bool of the mask file: white (> 0.5 in its first channel) counts."""
+    file = os.path.join(path, name)
+    if os.path.isfile(file):
+        _check_size(file, f"mask {name!r}", size, "target")
+    file_mask = ds.read_image(file, color_space="linear")
+    return file_mask.reshape(*file_mask.shape[:2], -1)[..., 0] > 0.5
+
+
 def _view_mask(path, entry, target, alpha, threshold):
-    """The pixels that count: mask file, alpha > 0.5 and unsaturated (None: all)."""
-    mask = saturation_mask(target, threshold)
+    """The pixels that count: mask file, alpha > 0.5 and unsaturated (None: all). A view
+    where none counts is refused, naming the filter that left none."""
+    filters = [(saturation_mask(target, threshold),
+                f"every pixel reaches the saturation threshold {threshold} in some channel "
+                "(expected a threshold above the colours that are not clipped)")]
     if alpha is not None:
-        mask &= alpha > 0.5
+        filters.append((alpha > 0.5, "the target's alpha is at most 0.5 everywhere "
+                        "(expected alpha above 0.5 where the pixel counts)"))
     if entry.get("mask"):
-        file_mask = ds.read_image(os.path.join(path, entry["mask"]), color_space="linear")
-        if file_mask.shape[:2] != target.shape[:2]:
-            raise ValueError(f"mask {entry['mask']!r}: got size {file_mask.shape[:2]}; "
-                             f"expected {target.shape[:2]}, the size of its target")
-        mask &= file_mask.reshape(*file_mask.shape[:2], -1)[..., 0] > 0.5
+        filters.append((_file_mask(path, entry["mask"], target.shape[:2]),
+                        f"the mask {entry['mask']!r} is black everywhere (expected white "
+                        "where the pixel counts)"))
+    mask = np.ones(target.shape[:2], bool)
+    for kept, why in filters:
+        if not kept.any():
+            raise ValueError(f"no pixel counts: {why}")
+        mask &= kept
+    if not mask.any():
+        raise ValueError("no pixel counts: the mask file, the alpha channel and the "
+                         "saturation threshold leave none together (expected some pixel "
+                         "that all of them keep)")
     return None if mask.all() else mask
 
 
@@ -354,10 +395,11 @@ def _load_view(path, entry, index, options, cache):
         _fail(f"views[{index}].camera", camera,
               f"an index below {len(scenes)}, the cameras of {entry['scene']!r}")
     space = color_space or entry.get("color_space") or shared_space
-    target, alpha, is_image = _read_target(path, entry, index, space)
+    scene = scenes[camera]
+    size = (scene.camera.height, scene.camera.width)
+    target, alpha, is_image = _read_target(path, entry, index, space, size)
     threshold = saturation if saturation is not None else (
         IMAGE_SATURATION if is_image else None)
-    scene = scenes[camera]
     mask = _view_mask(path, entry, target, alpha, threshold)
     camera, target, mask = _pinhole_view(scene.camera, target, mask)
     return scene, settings, View(camera, scene.lights, target, mask)
