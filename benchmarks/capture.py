@@ -193,7 +193,7 @@ def mitsuba_pinhole(mi, mesh, R, t, frame, spp):
               "far_clip": 100.0, "film": film,
               "to_world": mi.ScalarTransform4f(mitsuba_to_world(R, t).tolist()),
               "sampler": {"type": "independent", "sample_count": spp}}
-    image = 0.0
+    renders = []
     for position, intensity in EMITTERS:
         light = {"type": "point", "position": list(position),
                  "intensity": {"type": "rgb", "value": list(intensity)}}
@@ -201,9 +201,9 @@ def mitsuba_pinhole(mi, mesh, R, t, frame, spp):
                               "integrator": {"type": "direct", "emitter_samples": 1,
                                              "bsdf_samples": 0},
                               "sphere": mitsuba_mesh(mi, mesh)})
-        rgba = np.asarray(mi.render(scene, spp=spp), np.float64)
-        image = image + np.concatenate([rgba[..., :3], np.zeros_like(rgba[..., 3:])], -1)
-    return image + np.concatenate([np.zeros_like(rgba[..., :3]), rgba[..., 3:]], -1)
+        renders.append(np.asarray(mi.render(scene, spp=spp), np.float64))
+    # the colours add; the coverage (alpha) is the same in every render
+    return np.concatenate([sum(r[..., :3] for r in renders), renders[0][..., 3:]], -1)
 
 
 def scene_file():
