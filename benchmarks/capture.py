@@ -352,20 +352,38 @@ def eight_bit_figures(folder, kd):
     from fitting.report.holdout import evaluate
 
     dataset = load_dataset(folder)
-    unit = ds.material(ka=0.0, kd=1.0, ks=0.0, shininess=10.0)
+    # S from a render with kd = 0.5, halved: kd = 1 would clip the brightest pixels at 1
+    half_kd = ds.material(ka=0.0, kd=0.5, ks=0.0, shininess=10.0)
     num, den = np.zeros(3), np.zeros(3)
     for i in range(len(EYES)):
         shift, variance = resampled_rounding(read_image(os.path.join(folder, f"photo_{i}.png")))
-        shading, counted, _ = evaluate(dataset, i, unit, EDGE_MARGIN)
+        shading, counted, _ = evaluate(dataset, i, half_kd, EDGE_MARGIN)
+        shading = np.asarray(shading, np.float64) / 0.5
         if i == HOLDOUT:
-            fitted = np.clip(np.asarray(shading, np.float64) * np.asarray(kd), 0.0, 1.0)
+            fitted = np.clip(shading * np.asarray(kd), 0.0, 1.0)
             slope = srgb_slope(fitted[counted])
             limits = (10 * np.log10(1 / np.mean(variance[counted])),
-                      10 * np.log10(1 / np.mean(variance[counted] * slope**2)))
+                      10 * np.log10(1 / np.mean(variance[counted] * slope**2)),
+                      dark_share(fitted, dataset.views[i].target, counted))
             continue
         num += np.sum(np.abs(shading[counted]) * shift[counted], axis=0)
-        den += np.sum(np.asarray(shading[counted], np.float64) ** 2, axis=0)
+        den += np.sum(shading[counted] ** 2, axis=0)
     return num / den, limits
+
+
+def dark_share(prediction, target, counted):
+    """Where the held-out view's sRGB error lies: {"pixels": counted pixels darker than
+    one 8-bit level (every channel of the target below 1/255: the terminator, where the
+    sRGB curve is steepest), "share": their part of the squared sRGB error, "psnr_srgb_rest":
+    the sRGB PSNR over the other counted pixels}."""
+    from diffshade.io import encode
+
+    target = np.clip(np.asarray(target, np.float64), 0.0, 1.0)
+    error2 = (encode(prediction, "srgb") - encode(target, "srgb")) ** 2
+    dark = counted & (target.max(axis=-1) < 1 / 255)
+    rest = counted & ~dark
+    return {"pixels": int(dark.sum()), "share": float(error2[dark].sum() / error2[counted].sum()),
+            "psnr_srgb_rest": float(10 * np.log10(1 / error2[rest].mean()))}
 
 
 def srgb_slope(values, eps=1e-6):
@@ -388,7 +406,7 @@ def summary(result, bounds, limits, ious):
                      "rounding_bound": float(bound),
                      "within": bool(abs(fitted - albedo) <= bound)})
     held = {**result["holdout"][0], "psnr_linear_8bit": float(limits[0]),
-            "psnr_srgb_8bit": float(limits[1])}
+            "psnr_srgb_8bit": float(limits[1]), "dark": limits[2]}
     return {"kd": rows, "holdout": held, "std_error_kind": result["std_error_kind"],
             "misfit": result["misfit"], "silhouette_iou": ious}
 
@@ -405,6 +423,10 @@ def report(figures):
     print(f"\nheld-out view {h['view']} ({h['pixels']} pixels): PSNR linear "
           f"{h['psnr_linear']:.2f} dB (8-bit allows {h['psnr_linear_8bit']:.2f} dB), sRGB "
           f"{h['psnr_srgb']:.2f} dB (8-bit allows {h['psnr_srgb_8bit']:.2f} dB)")
+    dark = h["dark"]
+    print(f"  its {dark['pixels']} pixels darker than 1/255 (the terminator) hold "
+          f"{100 * dark['share']:.0f} % of the squared sRGB error; the other pixels: PSNR "
+          f"sRGB {dark['psnr_srgb_rest']:.2f} dB")
     m = figures["misfit"]
     print(f"misfit ratio {m['ratio']:.2f} (rms {m['rms']:.2e}, floor {m['floor']:.2e}); "
           f"table shows {figures['std_error_kind']} standard errors")
