@@ -13,14 +13,14 @@ Blinn-Phong lobe, so the specular terms are not compared (ks = 0 is kept fixed).
 How the photos are made (the lens): Mitsuba (variant llvm_ad_rgb, the `direct` integrator
 with one emitter sample and no BSDF sample, which is all a convex object under point
 lights receives, one render per emitter summed so that no light is chosen at random; a
-`diffuse` BSDF of reflectance ALBEDO; box pixel filter) renders each camera's *pinhole* image with
-square pixels, `--oversample` times finer than the photo and wide enough for every
+`diffuse` BSDF of reflectance ALBEDO; box pixel filter) renders each camera's *pinhole*
+image with square pixels, `--oversample` times finer than the photo and wide enough for every
 photo pixel's undistorted position. Mitsuba's sensor has principal-point offsets but no
 fx != fy and no lens distortion, so the photo is made from that image in NumPy: each
 photo pixel is the mean of `--lens-samples`^2 sub-pixel positions, each taken through
 OpenCV's model backwards (normalized distorted coordinates undistorted by fixed-point
-iteration, `undistort_normalized`) into the pinhole image and sampled there bilinearly
-(`lens_photo`). The photo is then 8-bit sRGB, its mask the lens-resampled coverage.
+iteration, `lens.undistort_normalized`) into the pinhole image and sampled there bilinearly
+(`lens.lens_photo`). The photo is then 8-bit sRGB, its mask the lens-resampled coverage.
 
 The dataset folder (written to --data, a temporary folder by default) is what a user with
 a capture writes: scene.json with the cameras in OpenCV form (K, R, t, dist), the lights
@@ -30,7 +30,8 @@ built-in mesh; dataset.json with one view per photo and its mask. `diffshade fit
 masks on load) and scores the fifth; the margin is 2 px because the outline is resampled
 twice (by the lens here, by the undistortion on load), each bilinear step reaching one
 pixel further. Printed: kd against the albedo beside the 8-bit rounding bound (and the
-standard error), the held-out view's PSNR beside what 8-bit quantization allows, and a
+standard error), the held-out view's PSNR beside what 8-bit quantization allows (and how
+much of its sRGB error lies on the terminator's darkest pixels), and a
 camera check (silhouette IoU of the undistorted photo's coverage against diffshade's own
 render of the pinhole camera). Without Mitsuba one line says so and the script exits 0.
 
@@ -54,6 +55,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import finish_record, run_record  # noqa: E402
+from lens import bilinear, lens_photo, load_positions, pinhole_frame  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 ALBEDO = (0.62, 0.45, 0.28)
@@ -68,85 +70,6 @@ EMITTERS = [((2.5, 3.0, 3.5), (60.0, 60.0, 60.0)), ((-3.0, 1.0, 2.0), (20.0, 24.
 HOLDOUT, EDGE_MARGIN = 4, 2
 SUBDIVISIONS = 4
 VARIANT = "llvm_ad_rgb"
-
-
-def undistort_normalized(dist, xd, yd, iterations=60):
-    """OpenCV's radial-tangential model inverted by fixed-point iteration (as
-    cv::undistortPoints does): the normalized pinhole coordinates (x, y) whose distortion is
-    (xd, yd). Converges for mild distortion (the model close to the identity)."""
-    k1, k2, p1, p2, *rest = list(dist) + [0.0] * (5 - len(dist))
-    k3 = rest[0]
-    x, y = np.array(xd, np.float64), np.array(yd, np.float64)
-    for _ in range(iterations):
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-        dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-        x, y = (xd - dx) / radial, (yd - dy) / radial
-    return x, y
-
-
-def bilinear_corners(shape, u, v):
-    """The four (rows, columns, weights) that bilinear interpolation at pixel positions
-    (u, v) (the centre of pixel (0, 0) at (0, 0)) of an image of `shape` [H, W, ...] takes;
-    every position must lie inside the image's pixel centres."""
-    height, width = shape[:2]
-    if u.min() < 0 or v.min() < 0 or u.max() > width - 1 or v.max() > height - 1:
-        raise ValueError("a sample falls outside the image it is taken from")
-    u0 = np.minimum(np.floor(u).astype(int), width - 2)
-    v0 = np.minimum(np.floor(v).astype(int), height - 2)
-    fu, fv = u - u0, v - v0
-    return [(v0, u0, (1 - fu) * (1 - fv)), (v0, u0 + 1, fu * (1 - fv)),
-            (v0 + 1, u0, (1 - fu) * fv), (v0 + 1, u0 + 1, fu * fv)]
-
-
-def bilinear(image, u, v, power=1):
-    """image [H, W, C] sampled bilinearly at (u, v); power 2 sums the squared weights (the
-    variance of an interpolated value from the corners' variances)."""
-    return sum(w[..., None] ** power * image[rows, cols]
-               for rows, cols, w in bilinear_corners(image.shape, u, v))
-
-
-def sub_pixel_grid(width, height, samples):
-    """Photo positions (u, v), each [H, W, S] for S = samples^2 points spread evenly over
-    each pixel."""
-    offsets = (np.arange(samples) + 0.5) / samples - 0.5
-    du, dv = (a.ravel() for a in np.meshgrid(offsets, offsets))
-    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
-    return u[..., None] + du, v[..., None] + dv
-
-
-def pinhole_positions(K, dist, width, height, samples):
-    """Where each photo sub-pixel's ray is, in normalized pinhole coordinates (x, y), each
-    [H, W, S]: the photo position's normalized distorted coordinates, undistorted."""
-    K = np.asarray(K, np.float64)
-    u, v = sub_pixel_grid(width, height, samples)
-    return undistort_normalized(dist, (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1])
-
-
-def pinhole_frame(K, dist, width, height, samples, oversample):
-    """(focal, width, height) of a square-pixel pinhole image centred on the optical axis
-    (centre of pixel (0, 0) at (0, 0), so the axis at (W/2 - 0.5, H/2 - 0.5)) that is
-    `oversample` times finer than the photo and holds every photo sub-pixel's ray with two
-    pixels to spare."""
-    x, y = pinhole_positions(K, dist, width, height, samples)
-    focal = oversample * max(K[0][0], K[1][1])
-    half_w = math.ceil(focal * np.abs(x).max() + 2.5)
-    half_h = math.ceil(focal * np.abs(y).max() + 2.5)
-    return focal, 2 * half_w, 2 * half_h
-
-
-def lens_photo(pinhole_image, focal, K, dist, width, height, samples):
-    """The photo [H, W, C] that a camera of intrinsics K and distortion `dist` takes of the
-    scene whose square-pixel pinhole image (axis at its centre, focal length `focal` in its
-    pixels) is `pinhole_image`: each photo pixel the mean of samples^2 sub-pixel values,
-    each sampled bilinearly where its ray falls in the pinhole image."""
-    x, y = pinhole_positions(K, dist, width, height, samples)
-    big_h, big_w = pinhole_image.shape[:2]
-    u, v = focal * x + (big_w / 2 - 0.5), focal * y + (big_h / 2 - 0.5)
-    image = np.asarray(pinhole_image, np.float64)
-    return np.stack([bilinear(image, u[..., i], v[..., i]) for i in range(u.shape[-1])],
-                    0).mean(axis=0)
 
 
 def opencv_pose(eye):
@@ -296,26 +219,6 @@ def fit(folder, result_dir, steps):
         raise SystemExit(f"diffshade fit exited with status {done.returncode}")
     with open(os.path.join(result_dir, "result.json")) as f:
         return json.load(f)
-
-
-def distort_normalized(dist, x, y):
-    """OpenCV's radial-tangential model: the distorted normalized coordinates of (x, y)."""
-    k1, k2, p1, p2, k3 = list(dist) + [0.0] * (5 - len(dist))
-    r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    return (x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
-            y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y)
-
-
-def load_positions(K, dist, width, height):
-    """Photo positions (u, v), each [H, W], that undistortion on load samples for each
-    pixel centre of the pinhole image with the same K, clipped into the photo (pixels
-    whose sample leaves it do not count anyway)."""
-    K = np.asarray(K, np.float64)
-    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
-    xd, yd = distort_normalized(dist, (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1])
-    return (np.clip(K[0, 0] * xd + K[0, 2], 0, width - 1),
-            np.clip(K[1, 1] * yd + K[1, 2], 0, height - 1))
 
 
 def half_steps(photo):

@@ -1,6 +1,6 @@
-"""benchmarks/capture.py without Mitsuba: the lens (a pinhole image resampled through
-OpenCV's model) against the forward model written out here, and the one line and exit
-status 0 when Mitsuba cannot run."""
+"""benchmarks/capture.py without Mitsuba: its lens (benchmarks/lens.py, a pinhole image
+resampled through OpenCV's model) against the forward model written out here, and the one
+line and exit status 0 when Mitsuba cannot run."""
 
 import os
 import subprocess
@@ -11,7 +11,7 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 
-from capture import bilinear, lens_photo, pinhole_frame  # noqa: E402
+from lens import bilinear, lens_photo, pinhole_frame  # noqa: E402
 
 K = [[52.0, 0.0, 20.0], [0.0, 47.0, 13.0], [0.0, 0.0, 1.0]]  # fx != fy, off-centre
 
