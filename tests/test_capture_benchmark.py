@@ -1,0 +1,82 @@
+"""benchmarks/capture.py without Mitsuba: its lens (benchmarks/lens.py, a pinhole image
+resampled through OpenCV's model) against the forward model written out here, and the one
+line and exit status 0 when Mitsuba cannot run."""
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+
+from lens import bilinear, lens_photo, pinhole_frame  # noqa: E402
+
+K = [[52.0, 0.0, 20.0], [0.0, 47.0, 13.0], [0.0, 0.0, 1.0]]  # fx != fy, off-centre
+
+
+def forward(dist, x, y):
+    """OpenCV's radial-tangential distortion of normalized (x, y), written out."""
+    k1, k2, p1, p2, k3 = dist
+    r2 = x**2 + y**2
+    radial = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
+    return (x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x**2),
+            y * radial + p1 * (r2 + 2 * y**2) + 2 * p2 * x * y)
+
+
+def ramp(frame):
+    """The pinhole image whose two channels are the normalized coordinates (x, y) of each
+    pixel centre: bilinear interpolation reproduces it exactly anywhere inside."""
+    focal, width, height = frame
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    return np.stack([(u - (width / 2 - 0.5)) / focal, (v - (height / 2 - 0.5)) / focal], -1)
+
+
+def test_each_photo_pixel_sees_the_ray_the_opencv_model_sends_it():
+    dist = (-0.09, 0.02, 0.002, -0.001, 0.004)
+    width, height = 40, 28
+    frame = pinhole_frame(K, dist, width, height, 1, 2)
+    photo = lens_photo(ramp(frame), frame[0], K, dist, width, height, 1)
+    xd, yd = forward(dist, photo[..., 0], photo[..., 1])
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    np.testing.assert_allclose(xd, (u - K[0][2]) / K[0][0], atol=1e-9)
+    np.testing.assert_allclose(yd, (v - K[1][2]) / K[1][1], atol=1e-9)
+
+
+def test_without_distortion_a_photo_pixel_is_the_mean_over_its_area():
+    # the sub-pixel samples are symmetric about the centre: the mean of a ramp is its value
+    # at the pixel centre, (u - cx) / fx, (v - cy) / fy
+    width, height = 40, 28
+    frame = pinhole_frame(K, (0.0,) * 4, width, height, 3, 3)
+    photo = lens_photo(ramp(frame), frame[0], K, (0.0,) * 4, width, height, 3)
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    np.testing.assert_allclose(photo[..., 0], (u - K[0][2]) / K[0][0], atol=1e-12)
+    np.testing.assert_allclose(photo[..., 1], (v - K[1][2]) / K[1][1], atol=1e-12)
+
+
+def test_without_mitsuba_one_line_and_exit_status_0(tmp_path):
+    fake = tmp_path / "fake" / "mitsuba"
+    fake.mkdir(parents=True)
+    (fake / "__init__.py").write_text("raise ImportError('libLLVM not found (simulated)')\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path / "fake"), ROOT]))
+    out = tmp_path / "capture.json"
+    done = subprocess.run([sys.executable, os.path.join(ROOT, "benchmarks", "capture.py"),
+                           "--out", str(out)], capture_output=True, text=True, env=env,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stdout.splitlines() == [
+        "Mitsuba 3 did not run (ImportError: libLLVM not found (simulated)); "
+        "pip install '.[peers]' and see docs/performance.md"]
+    assert not out.exists()
+
+
+def test_squared_weights_give_the_variance_of_an_interpolated_value():
+    # corners with independent errors of variance 1: the interpolated value's variance is
+    # ((1 - fu)^2 + fu^2) ((1 - fv)^2 + fv^2); with power 1 the weights sum to 1
+    ones = np.ones((4, 5, 1))
+    u, v = np.array([0.0, 1.25, 3.5, 4.0]), np.array([0.0, 0.75, 2.2, 3.0])
+    fu, fv = np.array([0.0, 0.25, 0.5, 0.0]), np.array([0.0, 0.75, 0.2, 0.0])
+    expected = ((1 - fu) ** 2 + fu**2) * ((1 - fv) ** 2 + fv**2)
+    np.testing.assert_allclose(bilinear(ones, u, v, power=2)[:, 0], expected, atol=1e-12)
+    np.testing.assert_allclose(bilinear(ones, u, v)[:, 0], 1.0, atol=1e-12)
