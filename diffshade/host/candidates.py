@@ -561,8 +561,9 @@ def _insert_group(ids, keys, filled, worst_key, worst_id, fragments, depth, sign
     """Insert `count` gathered fragments (fragments[i] = face * TILE_H * TILE_W + pixel;
     _soft_keys' depth, signed d2, bound and key bracket) in order; returns how many were
     dropped. A full list whose last entry (worst_key, worst_id: copies, so one cache line
-    holds those of 8 pixels) ranks before the fragment's bound rejects it without its key;
-    the key is the bracket's where its ends agree, else libm's (_fragment_key). A list is
+    holds those of 8 pixels) ranks before a lower bound of the fragment's key (the larger of
+    its bound and its bracket's low end) rejects it without its key (nor libm); the key is
+    the bracket's where its ends agree, else libm's (_fragment_key). A list is
     appended to unsorted until full, then sorted once (_sort_full) and kept sorted by
     _insert; the others are sorted at the end of the tile."""
     k = ids.shape[1]
@@ -570,10 +571,11 @@ def _insert_group(ids, keys, filled, worst_key, worst_id, fragments, depth, sign
     depth_bits = depth.view(np.int64)
     for i in range(count):
         pixel, f = fragments[i] % (TILE_H * TILE_W), fragments[i] // (TILE_H * TILE_W)
-        if filled[pixel] == k and _ranks_after(bound[i], f, worst_key[pixel], worst_id[pixel]):
+        key = key_lo[i]
+        if filled[pixel] == k and _ranks_after(max(bound[i], key), f, worst_key[pixel],
+                                               worst_id[pixel]):
             dropped += 1
             continue
-        key = key_lo[i]
         if key != key_hi[i]:  # the bracket straddles a rounding boundary: libm
             key = _fragment_key(depth[i], signed_d2[i], bound[i], depth_bits[i], sigma)
         if filled[pixel] < k:  # appended unsorted; sorted once full
