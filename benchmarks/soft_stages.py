@@ -4,7 +4,8 @@ The judged scene (benchmarks/peers.py: 5,120-face icosphere, 256^2, one directio
 light, soft K = 8, Phong). Each stage is timed on its own, on the inputs the render gives
 it: the whole soft forward (render), the hard forward, the rasterization
 (rasterize_scene: search + fragment geometry), the search kernel alone
-(candidates.find_candidates), the geometry and interpolation kernels alone
+(candidates.find_candidates) and its per-face setup and binning into tiles (the part
+before its parallel loop over tiles), the geometry and interpolation kernels alone
 (fragment_kernels), the blend weights, the active-slot compaction (compact.active_indices)
 and what follows the rasterization (render_fragments); everything after the search (the
 fragment geometry from fixed face ids, then render_fragments), forward and forward +
@@ -101,6 +102,7 @@ def stages(size):
     from peers import SOFT_K, judged_scene, mse_grad
 
     import diffshade as ds
+    from diffshade.host import candidates
     from diffshade.host import fragment_kernels as kernels
     from diffshade.host.candidates import find_candidates
     from diffshade.raster import fragments as raster
@@ -155,7 +157,16 @@ def stages(size):
     cache = ds.cache_shading(scene, frags, soft)
     cached = jax.jit(jax.value_and_grad(lambda m, s, c: mse(
         ds.render_cached(ds.replace(s, material=m), c, soft))))
+    faces64, radii = np.asarray(faces, np.int64), np.array([radius])
+
+    def search_setup():
+        setup = candidates._soft_setup(clip[None], faces64, size, size, False, radii)
+        _, _, _, zndc, box, reach = setup
+        return setup, candidates._bin_faces(box, reach, zndc, size, size)
     floors = traffic(frags, capacity, size * size * 4 * 4)
+    # the setup reads the vertices and faces and writes its per-face and per-tile arrays
+    floors["setup"] = clip.nbytes + faces64.nbytes + sum(
+        a.nbytes for part in search_setup() for a in part)
     # the cached step reads the shading cache and writes its cotangent
     floors["render_cached"] = 2 * sum(leaf.nbytes for leaf in jax.tree.leaves(cache))
     return floors, [
@@ -166,6 +177,7 @@ def stages(size):
             clip, np.asarray(faces), float(scene.camera.near), float(scene.camera.far),
             width=size, height=size, k=SOFT_K, radius_px=radius, sigma=soft.sigma,
             gamma=soft.gamma), "search"),
+        ("    its setup and binning", search_setup, "setup"),
         ("  geometry forward kernel", lambda: kernels.geometry_forward(
             ids, corner_w, corner_z, coeffs, scr, size, size, True, 1e-30, kernels.chunks()),
          "geometry"),
