@@ -4,7 +4,8 @@ The judged scene (benchmarks/peers.py: 5,120-face icosphere, 256^2, one directio
 light, soft K = 8, Phong). Each stage is timed on its own, on the inputs the render gives
 it: the whole soft forward (render), the hard forward, the rasterization
 (rasterize_scene: search + fragment geometry), the search kernel alone
-(candidates.find_candidates), the geometry and interpolation kernels alone
+(candidates.find_candidates) and its per-face setup and binning into tiles (the part
+before its parallel loop over tiles), the geometry and interpolation kernels alone
 (fragment_kernels), the blend weights, the active-slot compaction (compact.active_indices)
 and what follows the rasterization (render_fragments); everything after the search (the
 fragment geometry from fixed face ids, then render_fragments), forward and forward +
@@ -14,9 +15,13 @@ steps (value_and_grad w.r.t. the material through render_fragments on cached fra
 and through render_cached on cache_shading).
 
 Printed per stage: the median wall time and the median and minimum CPU time (all
-threads) of --repeats calls after a warm-up call. On a machine shared with other jobs, the
-minimum CPU time is the steadiest figure; run with NUMBA_NUM_THREADS=1 to see each stage's
-work without OpenMP threads spinning at barriers (docs/performance.md).
+threads) of --repeats calls after a warm-up call, and the stage's memory-traffic floor:
+the bytes it must at least read and write (its per-fragment inputs and outputs, each once;
+`traffic` below says which) over the machine's memory bandwidth, measured first as the
+best of a few large NumPy copies (one thread; read + write). A stage far above its floor
+is bound by its arithmetic or its overheads, not by memory. On a machine shared with other
+jobs, the minimum CPU time is the steadiest figure; run with NUMBA_NUM_THREADS=1 to see
+each stage's work without OpenMP threads spinning at barriers (docs/performance.md).
 
     python benchmarks/soft_stages.py [--repeats 15]
 """
@@ -44,14 +49,60 @@ def timed(fn, repeats):
     return statistics.median(wall), statistics.median(cpu), min(cpu)
 
 
+def bandwidth(megabytes=256, repeats=5):
+    """Memory bandwidth in bytes per second: the best of `repeats` copies of a
+    `megabytes` float64 array (bytes read + bytes written over the time), one thread."""
+    import numpy as np
+
+    src = np.ones(megabytes * 2 ** 20 // 8)
+    dst = np.empty_like(src)
+    best = np.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        np.copyto(dst, src)
+        best = min(best, time.perf_counter() - t0)
+    return 2 * src.nbytes / best
+
+
+def traffic(frags, capacity, image_bytes):
+    """Bytes each stage must at least read and write, by stage kind, from the soft
+    fragments' arrays (N = H x W x K slots): the search writes the face ids (4N); the
+    geometry reads them and writes barycentrics, depth and distance (24N); the
+    interpolation reads ids and barycentrics and writes 6 floats per slot (positions and
+    normals, 40N); the blend weights read ids, depth and distance and write a weight
+    (16N); the compaction reads the mask (N) and writes `capacity` indices; shading and
+    blending read the fragments and write the image (a cached step: the shading cache,
+    stages()). A forward + backward reads and
+    writes at least as much again (each array the forward reads has a cotangent of its
+    size). Per-face inputs and the image are small next to these."""
+    nbytes = lambda name: getattr(frags, name).nbytes
+    ids, slots = nbytes("face_ids"), frags.face_ids.size
+    geometry_out = nbytes("bary") + nbytes("depth") + nbytes("dist")
+    search, geometry = ids, ids + geometry_out
+    fragments = ids + geometry_out + nbytes("front")
+    shading = fragments + image_bytes
+    forward = search + geometry + shading
+    # hard mode: one slot per pixel (ids, barycentrics, depth, side; no distance)
+    pixels = slots // frags.face_ids.shape[-1]
+    hard = pixels * (4 + (4 + 16) + (4 + 16 + 1)) + image_bytes
+    return {"forward": forward, "hard": hard,
+            "raster": search + geometry, "search": search, "geometry": geometry,
+            "shading": shading, "interpolation": ids + nbytes("bary") + 6 * 4 * slots,
+            "weights": ids + nbytes("depth") + nbytes("dist") + 4 * slots,
+            "compaction": slots + 4 * capacity, "after_search": geometry + shading,
+            "after_search_fb": 2 * (geometry + shading), "fb": 2 * forward,
+            "cached": 2 * shading}
+
+
 def stages(size):
-    """(name, zero-argument function) per stage."""
+    """(name, zero-argument function, traffic key) per stage."""
     import jax
     import jax.numpy as jnp
     import numpy as np
     from peers import SOFT_K, judged_scene, mse_grad
 
     import diffshade as ds
+    from diffshade.host import candidates
     from diffshade.host import fragment_kernels as kernels
     from diffshade.host.candidates import find_candidates
     from diffshade.raster import fragments as raster
@@ -79,7 +130,8 @@ def stages(size):
                                   axis=0))
     weights = jax.jit(lambda s, f: render_module.blend_weights(s, f, soft))
     active = (weights(scene, frags)[0] > 0.0).reshape(-1)
-    compaction = jax.jit(lambda m: active_indices(m, size * size * 4))
+    capacity = size * size * render_module.ACTIVE_SLOTS_PER_PIXEL
+    compaction = jax.jit(lambda m: active_indices(m, capacity))
     after_raster = jax.jit(lambda s, f: ds.render_fragments(s, f, soft))
     target = jnp.full((size, size, 4), 0.5, jnp.float32)
     fb_material = jax.jit(mse_grad(scene, soft, target)[0])
@@ -105,27 +157,45 @@ def stages(size):
     cache = ds.cache_shading(scene, frags, soft)
     cached = jax.jit(jax.value_and_grad(lambda m, s, c: mse(
         ds.render_cached(ds.replace(s, material=m), c, soft))))
-    return [
-        ("soft forward (render)", lambda: ds.render(scene, soft)),
-        ("hard forward (render)", lambda: ds.render(scene, hard)),
-        ("rasterize_scene, soft", lambda: ds.rasterize_scene(scene, soft)),
+    faces64, radii = np.asarray(faces, np.int64), np.array([radius])
+
+    def search_setup():
+        setup = candidates._soft_setup(clip[None], faces64, size, size, False, radii)
+        _, _, _, zndc, box, reach = setup
+        return setup, candidates._bin_faces(box, reach, zndc, size, size)
+    floors = traffic(frags, capacity, size * size * 4 * 4)
+    # the setup reads the vertices and faces and writes its per-face and per-tile arrays
+    floors["setup"] = clip.nbytes + faces64.nbytes + sum(
+        a.nbytes for part in search_setup() for a in part)
+    # the cached step reads the shading cache and writes its cotangent
+    floors["render_cached"] = 2 * sum(leaf.nbytes for leaf in jax.tree.leaves(cache))
+    return floors, [
+        ("soft forward (render)", lambda: ds.render(scene, soft), "forward"),
+        ("hard forward (render)", lambda: ds.render(scene, hard), "hard"),
+        ("rasterize_scene, soft", lambda: ds.rasterize_scene(scene, soft), "raster"),
         ("  search kernel", lambda: find_candidates(
             clip, np.asarray(faces), float(scene.camera.near), float(scene.camera.far),
             width=size, height=size, k=SOFT_K, radius_px=radius, sigma=soft.sigma,
-            gamma=soft.gamma)),
+            gamma=soft.gamma), "search"),
+        ("    its setup and binning", search_setup, "setup"),
         ("  geometry forward kernel", lambda: kernels.geometry_forward(
-            ids, corner_w, corner_z, coeffs, scr, size, size, True, 1e-30, kernels.chunks())),
-        ("render_fragments", lambda: after_raster(scene, frags)),
+            ids, corner_w, corner_z, coeffs, scr, size, size, True, 1e-30, kernels.chunks()),
+         "geometry"),
+        ("render_fragments", lambda: after_raster(scene, frags), "shading"),
         ("  interpolation kernel, all slots", lambda: kernels.interpolate_forward(
-            ids, bary, corners, kernels.chunks())),
-        ("  blend weights", lambda: weights(scene, frags)),
-        ("  active slots (compaction)", lambda: compaction(active)),
-        ("after the search, forward", lambda: after_search_fwd(*material_vertices)),
-        ("after the search, f+b mat. + vert.", lambda: after_search_fb(*material_vertices)),
-        ("soft f+b, material", lambda: fb_material(scene.material)),
-        ("soft f+b, material + vertices", lambda: fb_vertices(*vertex_args)),
-        ("cached step, render_fragments", lambda: cached_frags(scene.material, scene, frags)),
-        ("cached step, render_cached", lambda: cached(scene.material, scene, cache)),
+            ids, bary, corners, kernels.chunks()), "interpolation"),
+        ("  blend weights", lambda: weights(scene, frags), "weights"),
+        ("  active slots (compaction)", lambda: compaction(active), "compaction"),
+        ("after the search, forward", lambda: after_search_fwd(*material_vertices),
+         "after_search"),
+        ("after the search, f+b mat. + vert.", lambda: after_search_fb(*material_vertices),
+         "after_search_fb"),
+        ("soft f+b, material", lambda: fb_material(scene.material), "fb"),
+        ("soft f+b, material + vertices", lambda: fb_vertices(*vertex_args), "fb"),
+        ("cached step, render_fragments", lambda: cached_frags(scene.material, scene, frags),
+         "cached"),
+        ("cached step, render_cached", lambda: cached(scene.material, scene, cache),
+         "render_cached"),
     ]
 
 
@@ -136,10 +206,16 @@ def main():
     args = parser.parse_args()
     print(f"judged scene at {args.size}^2; loadavg {os.getloadavg()[0]:.1f}; "
           f"NUMBA_NUM_THREADS={os.environ.get('NUMBA_NUM_THREADS', 'default')}")
-    print(f"{'stage':36s} {'wall ms':>9s} {'CPU ms':>9s} {'min CPU ms':>11s}")
-    for name, fn in stages(args.size):
+    rate = bandwidth()
+    print(f"memory bandwidth {rate / 1e9:.1f} GB/s (best NumPy copy, read + write)")
+    floors, timed_stages = stages(args.size)
+    print(f"{'stage':36s} {'wall ms':>9s} {'CPU ms':>9s} {'min CPU ms':>11s} "
+          f"{'floor ms':>9s} {'MB':>6s} {'x floor':>8s}")
+    for name, fn, kind in timed_stages:
         wall, cpu, cpu_min = timed(fn, args.repeats)
-        print(f"{name:36s} {wall * 1e3:9.1f} {cpu * 1e3:9.1f} {cpu_min * 1e3:11.1f}", flush=True)
+        floor = floors[kind] / rate
+        print(f"{name:36s} {wall * 1e3:9.1f} {cpu * 1e3:9.1f} {cpu_min * 1e3:11.1f} "
+              f"{floor * 1e3:9.2f} {floors[kind] / 1e6:6.1f} {wall / floor:8.1f}", flush=True)
 
 
 if __name__ == "__main__":

@@ -415,3 +415,27 @@ def test_host_strip_rows_hold_every_pixel_in_reach():
                     assert first <= row <= last, (tri, radius, c0, c1, row, col, first, last)
                     checked += 1
     assert checked > 1000
+
+
+def test_host_depth_order_is_front_to_back_up_to_one_class():
+    """The host soft search visits faces roughly front to back (candidates._depth_order,
+    a counting sort): a permutation of the faces whose first entries are the faces in
+    reach with a finite depth, each no farther than the next by more than one class
+    width (against NumPy's sums and a plain loop), then every other face (out of reach,
+    or a depth that is infinite or NaN)."""
+    from diffshade.host.candidates import DEPTH_BUCKETS, _depth_order
+
+    rng = np.random.default_rng(3)
+    zndc = rng.uniform(-1.0, 1.0, (3000, 3))
+    zndc[rng.choice(3000, 20, replace=False), 1] = np.nan
+    zndc[rng.choice(3000, 20, replace=False), 2] = np.inf
+    reach = rng.random(3000) < 0.8
+    order = _depth_order(zndc, reach)
+    assert sorted(order.tolist()) == list(range(3000))
+    depth = zndc.sum(1)
+    ranked = reach & np.isfinite(depth)
+    first = order[:ranked.sum()]
+    assert ranked[first].all() and not ranked[order[ranked.sum():]].any()
+    width = (depth[ranked].max() - depth[ranked].min()) / (DEPTH_BUCKETS - 1)
+    for near, far in zip(first[:-1], first[1:], strict=True):
+        assert depth[near] <= depth[far] + width * (1 + 1e-9)

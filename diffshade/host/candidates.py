@@ -412,19 +412,55 @@ def _face_tiles(box, height):
     return r0 // TILE_H, r1 // TILE_H, int(box[2]) // TILE_W, int(box[3]) // TILE_W
 
 
+#: depth classes of _depth_order (faces of one class keep their index order)
+DEPTH_BUCKETS = 4096
+
+
+@numba.njit(cache=True, nogil=True)
+def _depth_order(zndc, reach):
+    """The faces roughly front to back: by a counting sort of the sum of their vertices'
+    NDC depths (zndc [F, 3]) into DEPTH_BUCKETS equal classes between the nearest and the
+    farthest face in reach, index order within a class; then the faces out of reach (and
+    any of a depth that is not finite). O(F) where an argsort is O(F log F), and it runs
+    before the parallel loops: the order only decides how soon the lists fill with their
+    best fragments, never what they hold (_search_soft_into)."""
+    count = zndc.shape[0]
+    depth = np.empty(count)
+    lo, hi = np.inf, -np.inf
+    for f in range(count):
+        depth[f] = zndc[f, 0] + zndc[f, 1] + zndc[f, 2]
+        if reach[f] and np.isfinite(depth[f]):
+            lo, hi = min(lo, depth[f]), max(hi, depth[f])
+    scale = (DEPTH_BUCKETS - 1) / (hi - lo) if hi > lo else 0.0
+    bucket = np.empty(count, np.int64)
+    start = np.zeros(DEPTH_BUCKETS + 2, np.int64)
+    for f in range(count):
+        x = (depth[f] - lo) * scale
+        # class DEPTH_BUCKETS: out of reach, or a depth (or scaled depth) not finite
+        bucket[f] = int(x) if reach[f] and 0.0 <= x < DEPTH_BUCKETS else DEPTH_BUCKETS
+        start[bucket[f] + 1] += 1
+    for b in range(DEPTH_BUCKETS + 1):
+        start[b + 1] += start[b]
+    order = np.empty(count, np.int64)
+    for f in range(count):
+        order[start[bucket[f]]] = f
+        start[bucket[f]] += 1
+    return order
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _bin_faces(box, reach, zndc, width, height):
-    """Per view, the faces whose box touches each tile, front to back (by the sum of their
-    vertices' NDC depths): (start [B, T + 1], binned [B, N]) with tile t's faces
+    """Per view, the faces whose box touches each tile, roughly front to back
+    (_depth_order): (start [B, T + 1], binned [B, N]) with tile t's faces
     binned[v, start[v, t]:start[v, t + 1]]. The views are binned in parallel; their depth
-    sorts run one after another (inside the parallel loop, numba compiles this function
-    much more slowly the first time)."""
+    orders are made one after another (inside the parallel loop, numba compiles this
+    function much more slowly the first time)."""
     views, count = reach.shape
     tiles_x, tiles_y = (width + TILE_W - 1) // TILE_W, (height + TILE_H - 1) // TILE_H
     start = np.zeros((views, tiles_x * tiles_y + 1), np.int64)
     order = np.empty((views, count), np.int64)
     for view in range(views):
-        order[view] = np.argsort(zndc[view].sum(1))
+        order[view] = _depth_order(zndc[view], reach[view])
     for view in prange(views):
         for f in order[view]:
             if reach[view, f]:
@@ -561,8 +597,9 @@ def _insert_group(ids, keys, filled, worst_key, worst_id, fragments, depth, sign
     """Insert `count` gathered fragments (fragments[i] = face * TILE_H * TILE_W + pixel;
     _soft_keys' depth, signed d2, bound and key bracket) in order; returns how many were
     dropped. A full list whose last entry (worst_key, worst_id: copies, so one cache line
-    holds those of 8 pixels) ranks before the fragment's bound rejects it without its key;
-    the key is the bracket's where its ends agree, else libm's (_fragment_key). A list is
+    holds those of 8 pixels) ranks before a lower bound of the fragment's key (the larger of
+    its bound and its bracket's low end) rejects it without its key (nor libm); the key is
+    the bracket's where its ends agree, else libm's (_fragment_key). A list is
     appended to unsorted until full, then sorted once (_sort_full) and kept sorted by
     _insert; the others are sorted at the end of the tile."""
     k = ids.shape[1]
@@ -570,10 +607,11 @@ def _insert_group(ids, keys, filled, worst_key, worst_id, fragments, depth, sign
     depth_bits = depth.view(np.int64)
     for i in range(count):
         pixel, f = fragments[i] % (TILE_H * TILE_W), fragments[i] // (TILE_H * TILE_W)
-        if filled[pixel] == k and _ranks_after(bound[i], f, worst_key[pixel], worst_id[pixel]):
+        key = key_lo[i]
+        if filled[pixel] == k and _ranks_after(max(bound[i], key), f, worst_key[pixel],
+                                               worst_id[pixel]):
             dropped += 1
             continue
-        key = key_lo[i]
         if key != key_hi[i]:  # the bracket straddles a rounding boundary: libm
             key = _fragment_key(depth[i], signed_d2[i], bound[i], depth_bits[i], sigma)
         if filled[pixel] < k:  # appended unsorted; sorted once full
