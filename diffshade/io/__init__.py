@@ -17,6 +17,7 @@ from diffshade.io.scenefile import (
     scene_to_dict,
     scenes_from_dict,
 )
+from diffshade.io.textures import obj_textures, texture
 
 __all__ = [
     "COLOR_SPACES", "decode", "encode", "linear_to_srgb", "srgb_to_linear",
@@ -24,4 +25,5 @@ __all__ = [
     "read_image", "write_json", "write_npy", "write_png", "write_text",
     "SceneFileError", "load_scene", "load_scenes", "read_json", "save_scene", "scene_from_dict",
     "scene_to_dict", "scenes_from_dict",
+    "obj_textures", "texture",
 ]
