@@ -202,7 +202,7 @@ _GENERATORS = {
     "icosphere": (icosphere, {"subdivisions": _INTEGER, "radius": _NUMBER, "uv": _BOOL}),
     "torus": (torus, {"major_radius": _NUMBER, "minor_radius": _NUMBER,
                       "major_segments": _INTEGER, "minor_segments": _INTEGER, "uv": _BOOL}),
-    "box": (box, {"size": _VEC3}),
+    "box": (box, {"size": _VEC3, "uv": _BOOL}),
 }
 
 

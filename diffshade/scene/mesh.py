@@ -286,8 +286,9 @@ def _welded_normals(checked, weighting):
     welded[ids] = checked.vertices
     normals = vertex_normals(jnp.asarray(welded, checked.dtype),
                              jnp.asarray(ids[checked.faces], jnp.int32), weighting)
-    verts, tris, _, uv = _jax_arrays(*checked)
-    return Mesh(verts, tris, jnp.take(normals, jnp.asarray(ids), axis=0), uv)
+    return Mesh(jnp.asarray(checked.vertices, checked.dtype), jnp.asarray(checked.faces),
+                jnp.take(normals, jnp.asarray(ids), axis=0),
+                jnp.asarray(checked.uv, checked.dtype))
 
 
 def _mesh_with_normals(checked, crease_angle):
@@ -489,12 +490,14 @@ def _three_numbers(value):
     return arr if arr.shape == (3,) and np.all(representable(arr)) else None
 
 
-def box(size=(1.0, 1.0, 1.0)):
+def box(size=(1.0, 1.0, 1.0), uv=False):
     """Axis-aligned box Mesh centred at the origin with side lengths size: 3 floats > 0.
 
     24 vertices (4 per side, so each side has its own flat normal), 12 faces CCW outward.
-    UVs: each side shows the whole texture (its corners at (0, 0), (1, 0), (1, 1), (0, 1)).
+    uv: give it UVs: each side shows the whole texture, unmirrored seen from outside (its
+    corners at (0, 0), (1, 0), (1, 1), (0, 1)); V stays 24.
     """
+    _check_flag(uv, "uv")
     sides = _three_numbers(size)
     if sides is None or not np.all(sides > 0):
         raise ValueError(f"size: {size!r}; expected 3 finite numbers > 0")
@@ -509,9 +512,9 @@ def box(size=(1.0, 1.0, 1.0)):
         corners.append(side)
         normals.append(np.broadcast_to(np.eye(3)[axis] * sign, (4, 3)))
     tris = (np.arange(6)[:, None, None] * 4 + np.array([[0, 1, 2], [0, 2, 3]])).reshape(-1, 3)
-    uv = np.tile((square + 1.0) / 2.0, (6, 1))
+    coords = np.tile((square + 1.0) / 2.0, (6, 1)) if uv else None
     return Mesh(*_jax_arrays(np.concatenate(corners) * half, tris, np.concatenate(normals),
-                             float_dtype(), uv))
+                             float_dtype(), coords))
 
 
 def mesh_from_trimesh(tm, *, weighting="angle", crease_angle=None):

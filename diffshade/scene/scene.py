@@ -147,7 +147,7 @@ def _check_textures(mesh, materials, where):
         if mesh.uv is None:
             raise ValueError(f"{field}: a texture on a mesh without UVs; expected a mesh "
                              "with texture coordinates (mesh_from_arrays(..., uv=...), an "
-                             "OBJ with vt, icosphere(uv=True), box())")
+                             "OBJ with vt, icosphere/torus/box(uv=True))")
 
 
 def _geometry(mesh, material, back_material, objects, model):

@@ -42,11 +42,20 @@ def is_texture(value) -> bool:
     return isinstance(value, Texture)
 
 
+def _check_size(shape, name):
+    """ValueError for more than MAX_TEXELS texels, checked before any copy is made."""
+    if len(shape) in (2, 3) and shape[0] * shape[1] > MAX_TEXELS:
+        raise ValueError(f"{name}: {shape[0]} x {shape[1]} texels; expected at most "
+                         f"{MAX_TEXELS} (8192 x 8192)")
+
+
 def _texel_array(texels, name):
     """texels as a float64 [H, W, C] numpy array, or ValueError naming `name`."""
     if isinstance(texels, (str, bytes)):
         raise ValueError(f"{name}: got {texels!r}; expected an array of texels "
                          "(diffshade.texture reads image files)")
+    if hasattr(texels, "shape"):
+        _check_size(tuple(texels.shape), name)
     try:
         arr = np.asarray(texels, np.float64)
     except (TypeError, ValueError):
@@ -60,9 +69,7 @@ def _texel_array(texels, name):
 
 
 def _check_values(arr, name):
-    if arr.shape[0] * arr.shape[1] > MAX_TEXELS:
-        raise ValueError(f"{name}: {arr.shape[0]} x {arr.shape[1]} texels; expected at most "
-                         f"{MAX_TEXELS} (8192 x 8192)")
+    _check_size(arr.shape, name)
     bad = np.argwhere(~np.isfinite(arr) | (arr < 0))
     if bad.size:
         row, col, channel = bad[0]

@@ -37,7 +37,9 @@ def split_by_corner_uv(faces, corner_uv):
 def _unwrap(corner_uv, reference):
     """corner_uv [F, 3, 2] moved by whole periods to within half a period of
     reference [F, 1, 2] (so a face across a seam does not span the whole map)."""
-    return reference + (corner_uv - reference + 0.5) % 1.0 - 0.5
+    # a whole number added: the UVs of faces that do not cross a seam stay bit-exact,
+    # so the copies of a vertex that differ only by rounding are not split
+    return corner_uv + np.round(reference - corner_uv)
 
 
 def _longitude(points):

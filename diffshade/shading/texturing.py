@@ -33,10 +33,12 @@ def _axis(coord, size, wrap):
     [...] (texel centres at integers) along an axis of `size` texels."""
     if wrap == "repeat":
         coord = jnp.mod(coord, size)
+        # mod of a tiny negative number rounds to size itself: that is texel 0
+        coord = jnp.where(coord >= size, coord - size, coord)
         low = jnp.floor(coord)
         frac = coord - low
-        low = jnp.minimum(low.astype(jnp.int32), size - 1)  # coord == size by rounding
-        return low, jnp.where(low + 1 == size, 0, low + 1), frac
+        low = low.astype(jnp.int32)
+        return low, jnp.where(low + 1 >= size, 0, low + 1), frac
     coord = jnp.clip(coord, 0.0, size - 1.0)
     low = jnp.floor(coord)
     frac = coord - low
