@@ -313,6 +313,7 @@ def central_difference(fn, x, direction, eps=1e-6):
     return (fn(x + eps * direction) - fn(x - eps * direction)) / (2 * eps)
 
 
+@pytest.mark.cost(8)
 def test_gradients_reach_every_texel_and_the_uvs_and_match_central_differences(x64):
     scene = tiny_scene()
     texels, uv = scene.material.kd.texels, scene.mesh.uv
@@ -333,6 +334,7 @@ def test_gradients_reach_every_texel_and_the_uvs_and_match_central_differences(x
         np.testing.assert_allclose(jvp, np.sum(g_tex * d_tex) + np.sum(g_uv * d_uv), rtol=1e-9)
 
 
+@pytest.mark.cost(6)
 def test_jacfwd_and_vmap_over_textures(x64):
     scene = tiny_scene()
     texels, uv = scene.material.kd.texels, scene.mesh.uv
