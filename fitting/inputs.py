@@ -14,7 +14,7 @@ import os
 import numpy as np
 
 from diffshade.io import read_json
-from diffshade.scene import material
+from diffshade.scene import Texture, material
 from fitting.data.folder import fingerprint, load_dataset, material_from_dict
 from fitting.spec.params import FIT_NAMES, MODED, FitSpec
 
@@ -123,7 +123,18 @@ def load_checked_dataset(path, color_space=None):
         raise FileNotFoundError(f"DATASET: folder not found: {path!r}")
     if not os.path.isdir(path):
         raise ValueError(f"DATASET: {path!r} is a file; expected a dataset folder")
-    return load_dataset(path, color_space)
+    dataset = load_dataset(path, color_space)
+    _check_uniform_truth(dataset.truth, path)
+    return dataset
+
+
+def _check_uniform_truth(truth, path):
+    """ValueError for a textured truth: the fit recovers uniform materials only."""
+    textured = [name for name in ("kd", "ks", "shininess")
+                if truth is not None and isinstance(getattr(truth, name), Texture)]
+    if textured:
+        raise ValueError(f"DATASET: {path!r} truth.json: {textured[0]} is a texture; expected "
+                         "uniform materials (fitting a texture map is not available yet)")
 
 
 def dataset_fingerprint(dataset) -> str:

@@ -13,6 +13,7 @@ from diffshade.io.scenefile import (
     load_scenes,
     read_json,
     save_scene,
+    save_textures,
     scene_from_dict,
     scene_to_dict,
     scenes_from_dict,
@@ -23,7 +24,7 @@ __all__ = [
     "COLOR_SPACES", "decode", "encode", "linear_to_srgb", "srgb_to_linear",
     "FAST_COMPILE", "LIGHT_COMPILE", "stored_jit",
     "read_image", "write_json", "write_npy", "write_png", "write_text",
-    "SceneFileError", "load_scene", "load_scenes", "read_json", "save_scene", "scene_from_dict",
-    "scene_to_dict", "scenes_from_dict",
+    "SceneFileError", "load_scene", "load_scenes", "read_json", "save_scene", "save_textures",
+    "scene_from_dict", "scene_to_dict", "scenes_from_dict",
     "obj_textures", "texture",
 ]

@@ -69,7 +69,8 @@ from diffshade.scene.textures import WRAPS, is_texture
 from diffshade.settings import DATA_FIELDS, RenderSettings
 
 __all__ = ["FORMAT_VERSION", "SceneFileError", "load_scene", "load_scenes", "read_json",
-           "save_scene", "scene_from_dict", "scene_to_dict", "scenes_from_dict"]
+           "save_scene", "save_textures", "scene_from_dict", "scene_to_dict",
+           "scenes_from_dict"]
 
 FORMAT_VERSION = 1
 
