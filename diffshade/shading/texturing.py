@@ -54,12 +54,12 @@ def sample_texture(texture: Texture, uv):
     x0, x1, fx = _axis(x, width, texture.wrap)
     y0, y1, fy = _axis(y, height, texture.wrap)
     flat = texture.texels.reshape(-1, channels)
-
-    def texel(row, col):
-        return jnp.take(flat, row * width + col, axis=0, mode="clip")
+    # the four texels in one gather (and so one scatter-add in the backward pass)
+    index = jnp.stack([y0 * width + x0, y0 * width + x1, y1 * width + x0, y1 * width + x1], -1)
+    texels = jnp.take(flat, index, axis=0, mode="clip")
     fx, fy = fx[..., None].astype(flat.dtype), fy[..., None].astype(flat.dtype)
-    top = texel(y0, x0) * (1.0 - fx) + texel(y0, x1) * fx
-    bottom = texel(y1, x0) * (1.0 - fx) + texel(y1, x1) * fx
+    top = texels[..., 0, :] * (1.0 - fx) + texels[..., 1, :] * fx
+    bottom = texels[..., 2, :] * (1.0 - fx) + texels[..., 3, :] * fx
     return top * (1.0 - fy) + bottom * fy
 
 
