@@ -469,3 +469,74 @@ def test_a_synthetic_dataset_with_a_procedural_texture_round_trips(tmp_path):
                                loaded.views[0].target, atol=1e-6)
     with pytest.raises(ValueError, match="truth.json: kd is a texture; expected uniform"):
         load_checked_dataset(str(tmp_path / "set"))
+
+
+# ------------------------------------------------------- recovering a kd texture
+
+
+def texture_views(truth, azimuths, size=20):
+    """Views of a textured sphere (one directional light from each camera), their
+    unclamped renders as targets, covered pixels as masks."""
+    mesh = ds.icosphere(2, uv=True)
+    scenes, targets, masks = [], [], []
+    for azimuth in np.radians(azimuths):
+        eye = (3 * np.sin(azimuth), 0.8, 3 * np.cos(azimuth))
+        cam = ds.look_at(eye, (0, 0, 0), width=size, height=size)
+        scene = ds.make_scene(mesh, cam, [ds.directional_light(-np.asarray(eye), 0.8)],
+                              ds.material(kd=truth, ks=0.2, shininess=10.0))
+        image = ds.render(scene, ds.RenderSettings(clamp=False))
+        scenes.append(scene)
+        targets.append(image[..., :3])
+        masks.append(image[..., 3] > 0.5)
+    return scenes, targets, masks
+
+
+def grid_laplacian(res):
+    """The graph Laplacian [R*R, R*R] of a res x res grid, neighbours wrapped."""
+    lap = np.zeros((res * res, res * res))
+    for r in range(res):
+        for c in range(res):
+            for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+                lap[r * res + c, r * res + c] += 1
+                lap[r * res + c, ((r + dr) % res) * res + (c + dc) % res] -= 1
+    return lap
+
+
+@pytest.mark.cost(12)
+def test_the_kd_texture_solve_matches_dense_least_squares_and_reports_unseen_texels(x64):
+    from fitting.solve import solve_kd_texture
+
+    res = 4
+    truth = ds.texture(np.random.default_rng(10).uniform(0.2, 0.7, (res, res, 3)))
+    scenes, targets, masks = texture_views(truth, [0.0, 120.0, 240.0])
+    exact = solve_kd_texture(scenes, targets, masks, res, smoothness=0.0, tol=1e-13)
+    np.testing.assert_allclose(exact.texels, truth.texels, atol=1e-7)  # noiseless: the truth
+    # a strong prior: the same as solving the normal equations with dense matrices
+    noisy = [t + 0.01 * np.random.default_rng(i).normal(size=t.shape)
+             for i, t in enumerate(targets)]
+    solved = solve_kd_texture(scenes, noisy, masks, res, smoothness=0.5, tol=1e-13)
+    normal, rhs = np.zeros((res * res * 3,) * 2), np.zeros(res * res * 3)
+    for scene, target, mask in zip(scenes, noisy, masks, strict=True):
+        view = lambda t, s=scene: ds.render(ds.replace(s, material=ds.replace(  # noqa: E731
+            s.material, kd=ds.replace(s.material.kd, texels=t))),
+            ds.RenderSettings(clamp=False))[..., :3]
+        zero = jnp.zeros((res, res, 3))
+        a = np.asarray(jax.jacfwd(view)(zero)).reshape(-1, res * res * 3)
+        keep = np.repeat(np.asarray(mask).reshape(-1), 3)
+        a, residual = a[keep], (np.asarray(target) - np.asarray(view(zero))).reshape(-1)[keep]
+        normal += a.T @ a
+        rhs += a.T @ residual
+    weights = normal.sum(1)
+    lam = 0.5 * weights.mean()  # every texel is seen: the mean data weight of a seen texel
+    # the Laplacian acts per channel: texel (r, c) channel k is row (r * res + c) * 3 + k
+    lap = np.kron(grid_laplacian(res), np.eye(3))
+    want = np.linalg.solve(normal + lam * lap, rhs).reshape(res, res, 3)
+    np.testing.assert_allclose(solved.lam, lam, rtol=1e-9)
+    np.testing.assert_allclose(solved.texels, want, atol=1e-8)
+    assert np.all(np.asarray(solved.coverage) >= 1)
+    # one view sees only the front: the back's texels are unseen, reported as NaN
+    one = solve_kd_texture(scenes[:1], targets[:1], masks[:1], 8, smoothness=1e-3)
+    unseen = np.asarray(one.coverage) == 0
+    assert unseen.any() and (~unseen).any()
+    assert np.all(np.isnan(np.asarray(one.texels)[unseen]))
+    assert not np.any(np.isnan(np.asarray(one.texels)[~unseen]))
