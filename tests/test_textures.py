@@ -540,3 +540,28 @@ def test_the_kd_texture_solve_matches_dense_least_squares_and_reports_unseen_tex
     assert unseen.any() and (~unseen).any()
     assert np.all(np.isnan(np.asarray(one.texels)[unseen]))
     assert not np.any(np.isnan(np.asarray(one.texels)[~unseen]))
+
+
+@pytest.mark.cost(10)
+def test_fit_texture_recovers_a_synthetic_kd_map_and_writes_its_files(tmp_path):
+    from data_synth import make_dataset
+    from fitting.texture_fit import fit_texture, write_texture
+
+    data = make_dataset("icosphere", n_views=3, n_lights=1, size=24, texture=6, seed=1)
+    solution = fit_texture(data, 6)
+    coverage = np.asarray(solution.coverage)
+    seen_twice = coverage >= 2
+    assert seen_twice.sum() >= 12
+    error = np.abs(np.asarray(solution.texels) - np.asarray(data.truth.kd.texels))
+    assert np.median(error[seen_twice]) < 0.01  # 8-bit-free targets: only clipped highlights
+    summary = write_texture(tmp_path, solution, data.truth)
+    kd = np.load(tmp_path / "kd.npy")
+    np.testing.assert_array_equal(np.isnan(kd).any(-1), coverage == 0)
+    np.testing.assert_array_equal(np.load(tmp_path / "kd_coverage.npy"), coverage)
+    assert ds.read_image(tmp_path / "kd.png").shape == (6, 6, 3)
+    assert "map_Kd kd.png" in (tmp_path / "material.mtl").read_text().splitlines()
+    saved = json.loads((tmp_path / "texture.json").read_text())
+    assert saved == json.loads(json.dumps(summary))
+    assert saved["textures"]["kd"]["unseen_texels"] == int(np.sum(coverage == 0))
+    with pytest.raises(ValueError, match="res: got 0"):
+        fit_texture(data, 0)
