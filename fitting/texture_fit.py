@@ -10,7 +10,8 @@ out: the model is linear only below the clip).
 `write_texture(out_dir, solution, material)` writes what docs/textures.md lists:
 kd.npy (linear float [R, R, 3], row 0 = v = 1, NaN where no view sees the texel),
 kd.png (sRGB, unseen texels black), kd_coverage.npy and kd_coverage.png (how many views
-see each texel; the PNG scaled so the most is white), material.mtl (the material with
+see each texel; the PNG scaled so the most is white), kd_std_error.npy (per texel,
+NaN where unseen), material.mtl (the material with
 `map_Kd kd.png`) and texture.json ({"textures": {"kd": {"png", "npy", "coverage"}}, the
 solver's figures), every file atomically.
 """
@@ -75,10 +76,13 @@ def write_texture(out_dir, solution: TextureSolution, material) -> dict:
     write_npy(os.path.join(out_dir, "kd.npy"), texels)
     write_png(os.path.join(out_dir, "kd.png"), np.nan_to_num(texels, nan=0.0))
     write_npy(os.path.join(out_dir, "kd_coverage.npy"), coverage)
+    write_npy(os.path.join(out_dir, "kd_std_error.npy"), np.asarray(solution.std_error,
+                                                                    np.float32))
     write_png(os.path.join(out_dir, "kd_coverage.png"),
               coverage[..., None] / max(int(coverage.max()), 1), color_space="linear")
     write_text(os.path.join(out_dir, "material.mtl"), _mtl(material))
     entry = {"png": "kd.png", "npy": "kd.npy", "coverage": "kd_coverage.npy",
+             "std_error": "kd_std_error.npy",
              "unseen_texels": int(np.sum(coverage == 0)), "iterations": solution.iterations,
              "smoothness": solution.smoothness, "prior_weight": solution.lam,
              "relative_residual": solution.residual}

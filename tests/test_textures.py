@@ -533,6 +533,18 @@ def test_the_kd_texture_solve_matches_dense_least_squares_and_reports_unseen_tex
     want = np.linalg.solve(normal + lam * lap, rhs).reshape(res, res, 3)
     np.testing.assert_allclose(solved.lam, lam, rtol=1e-9)
     np.testing.assert_allclose(solved.texels, want, atol=1e-8)
+    # standard errors: sigma from the residuals, over the diagonal of A'MA
+    residuals = np.concatenate([
+        (np.asarray(view_image) - np.asarray(target)).reshape(-1)[np.repeat(
+            np.asarray(mask).reshape(-1), 3)]
+        for view_image, target, mask in zip(
+            [ds.render(ds.replace(s, material=ds.replace(s.material, kd=ds.replace(
+                s.material.kd, texels=jnp.asarray(want)))), ds.RenderSettings(clamp=False))[
+                ..., :3] for s in scenes], noisy, masks, strict=True)])
+    sigma = np.sqrt(np.sum(residuals ** 2) / (residuals.size - want.size))
+    np.testing.assert_allclose(solved.std_error,
+                               (sigma / np.sqrt(np.diag(normal))).reshape(res, res, 3),
+                               rtol=1e-7)
     assert np.all(np.asarray(solved.coverage) >= 1)
     # one view sees only the front: the back's texels are unseen, reported as NaN
     one = solve_kd_texture(scenes[:1], targets[:1], masks[:1], 8, smoothness=1e-3)
@@ -565,3 +577,23 @@ def test_fit_texture_recovers_a_synthetic_kd_map_and_writes_its_files(tmp_path):
     assert saved["textures"]["kd"]["unseen_texels"] == int(np.sum(coverage == 0))
     with pytest.raises(ValueError, match="res: got 0"):
         fit_texture(data, 0)
+
+
+@pytest.mark.parametrize("res", [9])
+def test_probed_diagonal_is_exact_for_couplings_shorter_than_the_stride(res, x64):
+    from fitting.solve.texture import _diagonal
+
+    # a symmetric operator coupling texels up to 3 apart (wrapped), with a known diagonal
+    rng = np.random.default_rng(res)
+    centre = rng.uniform(1, 2, (res, res, 3))
+    taps = {(dr, dc): rng.uniform(0, 0.1) for dr in range(-3, 4) for dc in range(-3, 4)
+            if (dr, dc) != (0, 0) and dr >= 0}
+
+    def data(t):
+        out = centre * t
+        for (dr, dc), w in taps.items():
+            out = out + w * (jnp.roll(t, (dr, dc), (0, 1)) + jnp.roll(t, (-dr, -dc), (0, 1)))
+        return out
+    np.testing.assert_allclose(_diagonal(data, res, jnp.float64), centre
+                               + (2 * sum(w for (dr, dc), w in taps.items()
+                                          if dr % res == 0 and dc % res == 0)), rtol=1e-12)

@@ -20,6 +20,13 @@ on any scene, resolution or exposure. A texel is *seen* when its data weight is 
 1e-9 of the mean's (some view's lit pixel reads it); its coverage is the number of views
 that do. The texels no view sees are reported as unseen (NaN), never invented: the prior
 fills them only inside the solve, so that the system is well posed.
+
+The standard error of a seen texel is sigma / sqrt((A'MA)_ii), sigma^2 the residual
+variance (residual sum of squares over the counted values less the seen unknowns): the
+texel's error were its neighbours known, a lower bound of its marginal error. The
+diagonal (A'MA)_ii comes from PROBE_STRIDE^2 probes (and a few more when RES is not a
+multiple of it): each probe holds texels PROBE_STRIDE apart, so it is exact wherever no
+pixel reads two texels that far apart (a texel not much smaller than a pixel).
 """
 
 from typing import NamedTuple
@@ -32,13 +39,15 @@ from diffshade import RenderSettings, render, replace
 __all__ = ["DEFAULT_SMOOTHNESS", "TextureSolution", "solve_kd_texture"]
 
 DEFAULT_SMOOTHNESS = 1e-3
+PROBE_STRIDE = 4
 
 
 class TextureSolution(NamedTuple):
     """texels: [R, R, 3] linear kd, NaN where unseen (row 0 = v = 1); coverage: [R, R]
     int, the views that see each texel; iterations: CG iterations run; smoothness and
     lam: the prior's unitless setting and its weight; residual: the relative residual
-    of the normal equations at the end."""
+    of the normal equations at the end; std_error: [R, R, 3] per texel (NaN where
+    unseen; module docstring)."""
 
     texels: jax.Array
     coverage: jax.Array
@@ -46,6 +55,7 @@ class TextureSolution(NamedTuple):
     smoothness: float
     lam: float
     residual: float
+    std_error: jax.Array
 
 
 def _view_map(scene, settings):
@@ -94,6 +104,40 @@ def _linear_parts(scenes, settings, masks, res, dtype):
     return parts
 
 
+def _probe_colours(res, stride):
+    """[res] int: texel index -> probe colour along an axis: i mod stride, except the
+    last res mod stride texels, which get colours of their own, so that texels of one
+    colour are at least `stride` apart, across the wrap too."""
+    full = res - res % stride
+    index = jnp.arange(res)
+    return jnp.where(index < full, index % stride, stride + index - full)
+
+
+def _diagonal(data, res, dtype, stride=PROBE_STRIDE):
+    """The diagonal [R, R, 3] of the data operator by probes (module docstring)."""
+    stride = min(stride, res)
+    colours = _probe_colours(res, stride)
+    count = int(colours.max()) + 1
+    diagonal = jnp.zeros((res, res, 3), dtype)
+    for row in range(count):
+        for col in range(count):
+            probe = ((colours[:, None] == row) & (colours[None, :] == col)).astype(dtype)
+            probe = jnp.broadcast_to(probe[..., None], (res, res, 3))
+            diagonal = diagonal + probe * data(probe)
+    return diagonal
+
+
+def _std_error(parts, targets, masks, texels, seen, data, res):
+    """sigma / sqrt(diag(A'MA)) per texel, NaN where unseen (module docstring)."""
+    rss = sum(jnp.sum(jnp.where(mask[..., None], forward(texels) + b - y, 0.0) ** 2)
+              for (b, forward, _), y, mask in zip(parts, targets, masks, strict=True))
+    values = 3 * sum(jnp.sum(mask) for mask in masks)
+    sigma = jnp.sqrt(rss / jnp.maximum(values - 3 * jnp.sum(seen), 1))
+    diagonal = _diagonal(data, res, texels.dtype)
+    safe = jnp.where(seen[..., None], diagonal, 1.0)
+    return jnp.where(seen[..., None] & (diagonal > 0), sigma / jnp.sqrt(safe), jnp.nan)
+
+
 def solve_kd_texture(scenes, targets, masks, res, settings=None, *,
                      smoothness=DEFAULT_SMOOTHNESS, tol=1e-8, maxiter=1000) -> TextureSolution:
     """The kd texture (RES x RES) that explains `targets` (module docstring).
@@ -112,9 +156,9 @@ def solve_kd_texture(scenes, targets, masks, res, settings=None, *,
 
     def data(t):
         return sum(transpose(forward(t))[0] for _, forward, transpose in parts)
-    weights = data(jnp.ones((res, res, 3), dtype))
     per_view = [transpose(forward(jnp.ones((res, res, 3), dtype)))[0]
                 for _, forward, transpose in parts]
+    weights = sum(per_view)
     mean_weight = jnp.mean(weights)
     seen = weights.max(-1) > 1e-9 * mean_weight
     lam = smoothness * jnp.sum(jnp.where(seen[..., None], weights, 0.0)) / jnp.maximum(
@@ -126,5 +170,7 @@ def solve_kd_texture(scenes, targets, masks, res, settings=None, *,
     texels, iterations, residual = _cg(lambda t: data(t) + lam * _laplacian(t) + ridge * t,
                                        rhs, tol, maxiter)
     coverage = sum((w.max(-1) > 1e-9 * mean_weight).astype(jnp.int32) for w in per_view)
+    std_error = _std_error(parts, targets, masks, texels, seen, data, res)
     return TextureSolution(jnp.where(seen[..., None], texels, jnp.nan), coverage,
-                           int(iterations), float(smoothness), float(lam), float(residual))
+                           int(iterations), float(smoothness), float(lam), float(residual),
+                           std_error)
