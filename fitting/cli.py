@@ -56,6 +56,7 @@ from fitting.run import advance, finish, start_run
 from fitting.solve.distribute import fit_data, for_options
 from fitting.solve.options import FIT_METHODS, OPTIONS, FitOptions
 from fitting.spec.params import to_values
+from fitting.texture_fit import add_texture_options, run_texture
 
 RESULT_FORMAT = "diffshade-fit-result"
 EXIT_NON_FINITE = 3
@@ -143,6 +144,7 @@ def register(subparsers):
     parser.add_argument("--resume", action="store_true",
                         help="continue from RESULT/checkpoint.json")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_texture_options(parser)
     parser.set_defaults(run=run_fit)
 
 
@@ -249,6 +251,8 @@ def _report(args, dataset, views, state, status, message, signum):
 
 def run_fit(args) -> int:
     """The `fit` command (module docstring)."""
+    if args.texture is not None or args.smoothness is not None:
+        return run_texture(args)  # a kd map in closed form (fitting.texture_fit)
     with _Signals() as signals:
         dataset, plan = prepare(args)
         start = time.perf_counter()

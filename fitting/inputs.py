@@ -116,15 +116,17 @@ def check_output(path):
                          "writable folder)")
 
 
-def load_checked_dataset(path, color_space=None):
+def load_checked_dataset(path, color_space=None, uniform_truth=True):
     """fitting.data.folder.load_dataset, after checking that DATASET is a folder.
-    color_space: 'srgb' or 'linear' decodes every image target so (--color-space)."""
+    color_space: 'srgb' or 'linear' decodes every image target so (--color-space).
+    uniform_truth: refuse a textured truth (what the material fit cannot compare)."""
     if not os.path.exists(path):
         raise FileNotFoundError(f"DATASET: folder not found: {path!r}")
     if not os.path.isdir(path):
         raise ValueError(f"DATASET: {path!r} is a file; expected a dataset folder")
     dataset = load_dataset(path, color_space)
-    _check_uniform_truth(dataset.truth, path)
+    if uniform_truth:
+        _check_uniform_truth(dataset.truth, path)
     return dataset
 
 
@@ -134,7 +136,7 @@ def _check_uniform_truth(truth, path):
                 if truth is not None and isinstance(getattr(truth, name), Texture)]
     if textured:
         raise ValueError(f"DATASET: {path!r} truth.json: {textured[0]} is a texture; expected "
-                         "uniform materials (fitting a texture map is not available yet)")
+                         "uniform materials (recover a texture with --texture kd=RES)")
 
 
 def dataset_fingerprint(dataset) -> str:

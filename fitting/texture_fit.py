@@ -12,10 +12,16 @@ kd.npy (linear float [R, R, 3], row 0 = v = 1, NaN where no view sees the texel)
 kd.png (sRGB, unseen texels black), kd_coverage.npy and kd_coverage.png (how many views
 see each texel; the PNG scaled so the most is white), kd_std_error.npy (per texel,
 NaN where unseen), material.mtl (the material with
-`map_Kd kd.png`) and texture.json ({"textures": {"kd": {"png", "npy", "coverage"}}, the
-solver's figures), every file atomically.
+`map_Kd kd.png`) and result.json ({"format": "diffshade-texture-result", "textures":
+{"kd": {"png", "npy", "coverage", "std_error", ...}}, the solver's figures, and the
+material of the other parameters), every file atomically.
+
+`diffshade fit DATASET -o OUT --texture kd=RES [--init ...] [--smoothness X]` runs this
+(`run_texture`): the other parameters come from --init, else the dataset's truth, else
+the fit's default start; every input is checked before anything is written.
 """
 
+import argparse
 import os
 
 import jax.numpy as jnp
@@ -23,11 +29,15 @@ import numpy as np
 
 from diffshade import Mesh, replace, texture, write_npy, write_png
 from diffshade.io import write_json, write_text
+from fitting.data.folder import material_dict
 from fitting.data.views import view_scene
+from fitting.inputs import check_output, load_checked_dataset, parse_material
 from fitting.report import mtl_text
 from fitting.solve.texture import DEFAULT_SMOOTHNESS, TextureSolution, solve_kd_texture
+from fitting.spec.params import DEFAULT_INIT
 
-__all__ = ["fit_texture", "write_texture"]
+__all__ = ["add_texture_options", "fit_texture", "run_texture", "write_texture"]
+RESULT_FORMAT = "diffshade-texture-result"
 
 
 def _check(dataset, res, material):
@@ -68,7 +78,7 @@ def _mtl(material):
 
 
 def write_texture(out_dir, solution: TextureSolution, material) -> dict:
-    """Write the files of the module docstring into out_dir; returns texture.json's
+    """Write the files of the module docstring into out_dir; returns result.json's
     content."""
     out_dir = os.fspath(out_dir)
     texels = np.asarray(solution.texels, np.float32)
@@ -86,6 +96,58 @@ def write_texture(out_dir, solution: TextureSolution, material) -> dict:
              "unseen_texels": int(np.sum(coverage == 0)), "iterations": solution.iterations,
              "smoothness": solution.smoothness, "prior_weight": solution.lam,
              "relative_residual": solution.residual}
-    summary = {"textures": {"kd": entry}}
-    write_json(os.path.join(out_dir, "texture.json"), summary)
+    summary = {"format": RESULT_FORMAT, "version": 1, "textures": {"kd": entry},
+               "material": material_dict(replace(material, kd=jnp.ones(3)))}
+    write_json(os.path.join(out_dir, "result.json"), summary)
     return summary
+
+
+def texture_spec(text):
+    """argparse type of --texture: 'kd=RES' -> ('kd', RES)."""
+    field, _, res = text.partition("=")
+    if field != "kd" or not res.isdigit() or not 1 <= int(res) <= 8192:
+        raise argparse.ArgumentTypeError(f"got {text!r}; expected kd=RES with RES in "
+                                         "[1, 8192] (a kd map; ks maps are not available)")
+    return field, int(res)
+
+
+def add_texture_options(parser):
+    """--texture and --smoothness on the fit command's parser."""
+    parser.add_argument("--texture", type=texture_spec, metavar="kd=RES",
+                        help="recover a RES x RES kd texture over the mesh's UVs in closed "
+                             "form, the other parameters held at --init (default: the "
+                             "dataset's truth, else the default start); docs/textures.md")
+    parser.add_argument("--smoothness", type=float, metavar="X",
+                        help=f"with --texture: the prior's unitless weight, >= 0 (default "
+                             f"{DEFAULT_SMOOTHNESS:g})")
+
+
+def _check_args(args):
+    if args.smoothness is not None and not args.smoothness >= 0:
+        raise ValueError(f"--smoothness: got {args.smoothness!r}; expected a number >= 0")
+    if args.texture is None and args.smoothness is not None:
+        raise ValueError("--smoothness: given without --texture; expected it with --texture")
+    if args.texture is not None and (args.resume or args.fit):
+        which = "--resume" if args.resume else "--fit"
+        raise ValueError(f"{which}: given with --texture; expected --texture alone (the "
+                         "other parameters are held at --init)")
+
+
+def run_texture(args) -> int:
+    """`diffshade fit ... --texture kd=RES` (module docstring): prints the files."""
+    _check_args(args)
+    check_output(args.output)
+    dataset = load_checked_dataset(args.dataset, args.color_space, uniform_truth=False)
+    material = (parse_material(args.init, "--init") if args.init is not None
+                else dataset.truth or DEFAULT_INIT)
+    _, res = args.texture
+    smoothness = DEFAULT_SMOOTHNESS if args.smoothness is None else args.smoothness
+    solution = fit_texture(dataset, res, material, smoothness=smoothness)
+    summary = write_texture(args.output, solution, material)
+    entry = summary["textures"]["kd"]
+    print(f"kd texture {res}x{res}: {res * res - entry['unseen_texels']} texels seen, "
+          f"{entry['unseen_texels']} unseen; {entry['iterations']} CG iterations")
+    for name in ("result.json", "kd.png", "kd.npy", "kd_coverage.npy", "kd_std_error.npy",
+                 "material.mtl"):
+        print(os.path.join(args.output, name))
+    return 0

@@ -597,3 +597,31 @@ def test_probed_diagonal_is_exact_for_couplings_shorter_than_the_stride(res, x64
     np.testing.assert_allclose(_diagonal(data, res, jnp.float64), centre
                                + (2 * sum(w for (dr, dc), w in taps.items()
                                           if dr % res == 0 and dc % res == 0)), rtol=1e-12)
+
+
+@pytest.mark.cost(10)
+def test_fit_texture_command_writes_the_map_and_refuses_bad_input(tmp_path, capsys):
+    from data_synth import make_dataset
+    from diffshade.cli import main
+    from fitting.data.folder import save_dataset
+
+    save_dataset(make_dataset("icosphere", n_views=2, n_lights=1, size=20, texture=4),
+                 tmp_path / "set")
+    assert main(["fit", str(tmp_path / "set"), "-o", str(tmp_path / "out"),
+                 "--texture", "kd=4", "--smoothness", "0.01"]) == 0
+    result = json.loads((tmp_path / "out" / "result.json").read_text())
+    entry = result["textures"]["kd"]
+    assert {entry[k] for k in ("png", "npy", "coverage", "std_error")} == {
+        "kd.png", "kd.npy", "kd_coverage.npy", "kd_std_error.npy"}
+    assert np.load(tmp_path / "out" / "kd.npy").shape == (4, 4, 3)
+    assert result["textures"]["kd"]["smoothness"] == 0.01
+    capsys.readouterr()
+    for bad in (["--texture", "kd=8", "--smoothness", "-1"], ["--texture", "kd=4", "--resume"],
+                ["--texture", "ks=4"]):
+        assert main(["fit", str(tmp_path / "set"), "-o", str(tmp_path / "bad"), *bad]) == 2
+        assert len(capsys.readouterr().err.strip().splitlines()) == 1
+        assert not (tmp_path / "bad").exists()
+    # the material fit refuses the textured truth, pointing at --texture
+    assert main(["fit", str(tmp_path / "set"), "-o", str(tmp_path / "bad")]) == 2
+    assert "--texture kd=RES" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
