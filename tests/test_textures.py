@@ -572,7 +572,7 @@ def test_fit_texture_recovers_a_synthetic_kd_map_and_writes_its_files(tmp_path):
     np.testing.assert_array_equal(np.load(tmp_path / "kd_coverage.npy"), coverage)
     assert ds.read_image(tmp_path / "kd.png").shape == (6, 6, 3)
     assert "map_Kd kd.png" in (tmp_path / "material.mtl").read_text().splitlines()
-    saved = json.loads((tmp_path / "texture.json").read_text())
+    saved = json.loads((tmp_path / "result.json").read_text())
     assert saved == json.loads(json.dumps(summary))
     assert saved["textures"]["kd"]["unseen_texels"] == int(np.sum(coverage == 0))
     with pytest.raises(ValueError, match="res: got 0"):

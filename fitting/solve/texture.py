@@ -29,10 +29,12 @@ multiple of it): each probe holds texels PROBE_STRIDE apart, so it is exact wher
 pixel reads two texels that far apart (a texel not much smaller than a pixel).
 """
 
+from functools import partial
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from diffshade import RenderSettings, render, replace
 
@@ -109,8 +111,8 @@ def _probe_colours(res, stride):
     last res mod stride texels, which get colours of their own, so that texels of one
     colour are at least `stride` apart, across the wrap too."""
     full = res - res % stride
-    index = jnp.arange(res)
-    return jnp.where(index < full, index % stride, stride + index - full)
+    index = np.arange(res)
+    return np.where(index < full, index % stride, stride + index - full)
 
 
 def _diagonal(data, res, dtype, stride=PROBE_STRIDE):
@@ -121,8 +123,8 @@ def _diagonal(data, res, dtype, stride=PROBE_STRIDE):
     diagonal = jnp.zeros((res, res, 3), dtype)
     for row in range(count):
         for col in range(count):
-            probe = ((colours[:, None] == row) & (colours[None, :] == col)).astype(dtype)
-            probe = jnp.broadcast_to(probe[..., None], (res, res, 3))
+            probe = ((colours[:, None] == row) & (colours[None, :] == col))
+            probe = jnp.broadcast_to(jnp.asarray(probe, dtype)[..., None], (res, res, 3))
             diagonal = diagonal + probe * data(probe)
     return diagonal
 
@@ -151,7 +153,18 @@ def solve_kd_texture(scenes, targets, masks, res, settings=None, *,
     settings = replace(settings, clamp=False)
     if not (isinstance(smoothness, (int, float)) and smoothness >= 0):
         raise ValueError(f"smoothness: got {smoothness!r}; expected a number >= 0")
-    dtype = jnp.asarray(targets[0]).dtype
+    targets = [jnp.asarray(y) for y in targets]
+    masks = [jnp.asarray(m, bool) for m in masks]
+    texels, coverage, iterations, lam, residual, std_error = _solve(
+        list(scenes), targets, masks, smoothness, tol, maxiter, res=res, settings=settings)
+    return TextureSolution(texels, coverage, int(iterations), float(smoothness), float(lam),
+                           float(residual), std_error)
+
+
+@partial(jax.jit, static_argnames=("res", "settings"))
+def _solve(scenes, targets, masks, smoothness, tol, maxiter, *, res, settings):
+    """solve_kd_texture's arrays, as one compiled program (the views unrolled)."""
+    dtype = targets[0].dtype
     parts = _linear_parts(scenes, settings, masks, res, dtype)
 
     def data(t):
@@ -171,6 +184,5 @@ def solve_kd_texture(scenes, targets, masks, res, settings=None, *,
                                        rhs, tol, maxiter)
     coverage = sum((w.max(-1) > 1e-9 * mean_weight).astype(jnp.int32) for w in per_view)
     std_error = _std_error(parts, targets, masks, texels, seen, data, res)
-    return TextureSolution(jnp.where(seen[..., None], texels, jnp.nan), coverage,
-                           int(iterations), float(smoothness), float(lam), float(residual),
-                           std_error)
+    return (jnp.where(seen[..., None], texels, jnp.nan), coverage, iterations, lam, residual,
+            std_error)
