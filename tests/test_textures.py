@@ -625,3 +625,16 @@ def test_fit_texture_command_writes_the_map_and_refuses_bad_input(tmp_path, caps
     assert main(["fit", str(tmp_path / "set"), "-o", str(tmp_path / "bad")]) == 2
     assert "--texture kd=RES" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()
+
+
+def test_a_batch_of_textured_views_renders_as_its_single_views():
+    tex = ds.texture(np.random.default_rng(11).random((8, 16, 3)).astype(np.float32))
+    cams = [ds.look_at((3 * np.sin(a), 0.5, 3 * np.cos(a)), (0, 0, 0), width=16, height=16)
+            for a in (0.0, 2.0)]
+    scene = ds.make_scene(ds.icosphere(1, uv=True), cams[0], [ds.directional_light((0, 0, -1))],
+                          ds.material(kd=tex))
+    settings = ds.RenderSettings(raster="soft")
+    batch = ds.render_views(scene, cams, settings)
+    for i, cam in enumerate(cams):
+        np.testing.assert_allclose(batch[i], ds.render(ds.replace(scene, camera=cam), settings),
+                                   atol=1e-6)
