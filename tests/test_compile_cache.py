@@ -4,10 +4,18 @@ JAX decides once per process whether it uses a cache, at the first compilation, 
 behaviour is checked in a fresh interpreter: the files that appear in the cache folder,
 and JAX's own log of a cache hit in a second process. (The test session itself runs with
 DIFFSHADE_COMPILE_CACHE=0, set in conftest.py, so in-process CLI tests write nothing
-into the user's cache.)"""
+into the user's cache.)
+
+The store's trust rules are checked against what an attacker or an accident leaves in
+the folder: crafted entries whose checksums are right (a pickle that would make a folder
+if it were loaded), entries swapped or grown to 8 GB, folders and entries that group or
+another user can write; the reference is the program's value computed with numpy, and
+whether the payload's folder exists afterwards."""
 
 import hashlib
+import json
 import os
+import pickle
 import subprocess
 import sys
 from pathlib import Path
@@ -18,7 +26,7 @@ import numpy as np
 import pytest
 
 from diffshade import cli
-from diffshade.io import compile_cache
+from diffshade.io import compile_cache, private_files, program_entries, xla_cache
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -75,6 +83,11 @@ def test_a_second_process_loads_what_the_first_compiled(tmp_path):
     written = files(cache)
     assert written, "nothing was written to the cache"
     assert files(cache / compile_cache.STORE_FOLDER), "nothing was written to the store"
+    for path in written:  # private: JAX's entries (diffshade.io.xla_cache) and the store's
+        assert path.stat().st_mode & 0o777 == 0o600, path
+        assert path.suffix in (".bin", xla_cache.SUFFIX), path
+    for folder in {path.parent for path in written}:
+        assert folder.stat().st_mode & 0o777 == 0o700, folder
     _, log, traced = run(tmp_path, DIFFSHADE_COMPILE_CACHE_DIR=str(cache),
                          JAX_LOG_COMPILES="1")
     assert "Persistent compilation cache hit" in log
@@ -123,9 +136,12 @@ def _reference(x, table, scale=2.0, power=1):
 
 @pytest.fixture
 def store(tmp_path, monkeypatch):
-    """The program store switched on in a temporary folder (as enable() does)."""
+    """The program store switched on in a temporary folder (as enable() does), with its
+    checks of folders and its warnings fresh."""
     folder = tmp_path / "programs"
     monkeypatch.setattr(compile_cache, "_store", str(folder))
+    monkeypatch.setattr(program_entries, "_folders", {})
+    monkeypatch.setattr(private_files, "_warned", set())
     return folder
 
 
@@ -187,7 +203,7 @@ def test_other_shapes_dtypes_and_static_arguments_get_their_own_program(store, m
     assert len(entries(store)) == len(calls) + 1
 
 
-@pytest.mark.parametrize("damage", ["flipped byte", "truncated", "valid hash, bad pickle"])
+@pytest.mark.parametrize("damage", ["flipped byte", "truncated", "not an entry"])
 def test_a_damaged_entry_is_compiled_afresh_and_replaced(store, monkeypatch, damage):
     program = compile_cache.StoredProgram(_affine, ("power",))
     program(X, TABLE, power=2)
@@ -198,9 +214,7 @@ def test_a_damaged_entry_is_compiled_afresh_and_replaced(store, monkeypatch, dam
     elif damage == "truncated":
         blob = blob[:len(blob) // 2]
     else:
-        payload = b"not a pickle"
-        blob = (compile_cache._MAGIC + hashlib.sha256(payload).hexdigest().encode() + b"\n"
-                + payload)
+        blob = b"not an entry"
     path.write_bytes(blob)
     program.loaded.clear()
     check(program(X, TABLE, power=2), X, TABLE, power=2)
@@ -208,6 +222,172 @@ def test_a_damaged_entry_is_compiled_afresh_and_replaced(store, monkeypatch, dam
     program.loaded.clear()
     no_compiling(monkeypatch)
     check(program(X, TABLE, power=2), X, TABLE, power=2)
+
+
+class _MakeFolder:
+    """A pickle of this makes the folder `path` when it is loaded."""
+
+    def __init__(self, path):
+        self.path = path
+
+    def __reduce__(self):
+        return os.mkdir, (self.path,)
+
+
+def _head_and_code(path):
+    """(JSON head, executable bytes) of a version 2 entry, parsed here independently."""
+    blob = path.read_bytes()
+    magic, line, code = blob.split(b"\n", 2)
+    assert magic + b"\n" == program_entries.MAGIC
+    return json.loads(line), code
+
+
+def _entry(head, code):
+    head = dict(head, code_bytes=len(code), code_sha256=hashlib.sha256(code).hexdigest())
+    return program_entries.MAGIC + json.dumps(head).encode() + b"\n" + code
+
+
+@pytest.mark.parametrize("craft", ["version 1 entry", "pickle as executable",
+                                   "node type outside the project"])
+def test_a_crafted_entry_with_valid_checksums_runs_no_code(store, tmp_path, craft):
+    """An entry whose checksums are right but whose content would run code if it were
+    unpickled, or names a callable as a result's node type: refused, removed, compiled
+    afresh; the code never ran."""
+    program = compile_cache.StoredProgram(_affine, ("power",))
+    program(X, TABLE, power=2)
+    (path,) = entries(store)
+    head, code = _head_and_code(path)
+    made = tmp_path / "made-by-the-payload"
+    payload = pickle.dumps((code, _MakeFolder(str(made))))
+    if craft == "version 1 entry":  # the store's old format: the payload was unpickled
+        blob = (b"diffshade-program 1\n" + hashlib.sha256(payload).hexdigest().encode()
+                + b"\n" + payload)
+    elif craft == "pickle as executable":
+        blob = _entry(head, payload)
+    else:
+        program_head = dict(head["program"], out_tree=["os:system", "touch " + str(made), []])
+        blob = _entry(dict(head, program=program_head), code)
+    path.write_bytes(blob)
+    program.loaded.clear()
+    check(program(X, TABLE, power=2), X, TABLE, power=2)
+    assert not made.exists()
+    assert entries(store) == [path] and _head_and_code(path) == (head, code)  # anew
+
+
+def test_entries_swapped_with_one_another_are_compiled_afresh(store, monkeypatch):
+    """Each entry carries its full key: an entry moved onto another program's name is
+    not loaded (the program compiles and its own entry replaces it)."""
+    program = compile_cache.StoredProgram(_affine, ("power",))
+    program(X, TABLE, power=2)
+    program(X[:3], TABLE, power=3)
+    first, second = entries(store)
+    a, b = first.read_bytes(), second.read_bytes()
+    first.write_bytes(b)
+    second.write_bytes(a)
+    program.loaded.clear()
+    check(program(X, TABLE, power=2), X, TABLE, power=2)
+    check(program(X[:3], TABLE, power=3), X[:3], TABLE, power=3)
+    assert {first.read_bytes(), second.read_bytes()} == {a, b}
+    assert _head_and_code(first)[0]["key"] != _head_and_code(second)[0]["key"]
+    program.loaded.clear()
+    no_compiling(monkeypatch)
+    check(program(X, TABLE, power=2), X, TABLE, power=2)
+    check(program(X[:3], TABLE, power=3), X[:3], TABLE, power=3)
+
+
+def test_a_loaded_program_that_fails_is_removed(store, monkeypatch):
+    """An entry under the right key that holds another call's program (here: other
+    shapes) fails on its first call: the call goes to jit and the entry is removed."""
+    program = compile_cache.StoredProgram(_affine, ("power",))
+    program(X, TABLE, power=2)
+    program(X[:3], TABLE, power=2)
+    first, second = entries(store)
+    (head, _), (other, code) = _head_and_code(first), _head_and_code(second)
+    first.write_bytes(_entry(dict(other, key=head["key"]), code))
+    program.loaded.clear()
+    removed = []
+    monkeypatch.setattr(compile_cache, "remove", removed.append)  # after the first call
+    for x in (X, X[:3]):
+        check(program(x, TABLE, power=2), x, TABLE, power=2)
+    assert removed == [str(first)]
+
+
+def test_an_entry_grown_huge_is_not_read(store, monkeypatch):
+    """An entry over MAX_ENTRY_BYTES (here 8 GB, sparse) is removed before it is read."""
+    program = compile_cache.StoredProgram(_affine, ("power",))
+    program(X, TABLE, power=2)
+    (path,) = entries(store)
+    blob = path.read_bytes()
+    os.truncate(path, 8 * 2**30)
+    program.loaded.clear()
+    check(program(X, TABLE, power=2), X, TABLE, power=2)
+    assert path.stat().st_size == len(blob)  # written anew
+
+
+def _other_users(path, monkeypatch):
+    """Make `path` another user's: chown it as root; as another user, which cannot,
+    the check of ownership sees it as another's."""
+    if os.geteuid() == 0:
+        os.chown(path, 65534, -1)
+        return
+    inode, owned = path.stat().st_ino, private_files._owned
+    monkeypatch.setattr(private_files, "_owned",
+                        lambda info: info.st_ino != inode and owned(info))
+
+
+@pytest.mark.parametrize("where", ["entry group-writable", "entry another user's",
+                                   "folder group-writable", "folder another user's"])
+def test_an_entry_or_folder_others_can_write_is_refused(store, monkeypatch, capsys, where):
+    """As ssh does: not loaded, one warning naming it, the program compiled."""
+    program = compile_cache.StoredProgram(_affine, ("power",))
+    program(X, TABLE, power=2)
+    (path,) = entries(store)
+    blob = path.read_bytes()
+    target = path if where.startswith("entry") else path.parent
+    if where.endswith("group-writable"):
+        target.chmod(0o664 if target == path else 0o775)
+    else:
+        _other_users(target, monkeypatch)
+    compiled = []
+    monkeypatch.setattr(compile_cache, "_fresh_compile",
+                        lambda lowered: compiled.append(1) or FRESH_COMPILE(lowered))
+    program.loaded.clear()
+    program_entries._folders.clear()  # as a new process: the folders are checked again
+    check(program(X, TABLE, power=2), X, TABLE, power=2)
+    program.loaded.clear()
+    check(program(X, TABLE, power=2), X, TABLE, power=2)
+    err = capsys.readouterr().err
+    assert err.count("diffshade: warning:") == 1 and str(target) in err, err
+    if target == path:  # the store's own entry replaced it, private again, and is loaded
+        assert "not loaded, the program is compiled" in err
+        assert compiled == [1] and path.stat().st_mode & 0o777 == 0o600
+    else:  # the folder is not used at all
+        assert "the program store is not used, programs compile normally" in err
+        assert compiled == [1, 1] and path.read_bytes() == blob
+
+
+def test_the_store_creates_its_folders_private(store, monkeypatch):
+    old = os.umask(0o002)
+    try:
+        program = compile_cache.StoredProgram(_affine, ("power",))
+        program(X, TABLE, power=2)
+    finally:
+        os.umask(old)
+    (path,) = entries(store)
+    assert path.stat().st_mode & 0o777 == 0o600
+    for folder in (store, path.parent):
+        assert folder.stat().st_mode & 0o777 == 0o700
+
+
+def test_the_command_line_refuses_a_cache_folder_others_can_write(tmp_path):
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    cache.chmod(0o777)
+    shown, log, traced = run(tmp_path, DIFFSHADE_COMPILE_CACHE_DIR=str(cache))
+    assert shown == "None" and traced == 1 and files(cache) == []
+    (line,) = [x for x in log.splitlines() if "warning" in x]
+    assert line.startswith("diffshade: warning: cache folder") and str(cache) in line
+    assert "writable by group or others (mode 0777" in line
 
 
 @pytest.mark.parametrize("on", [False, True])
@@ -320,7 +500,8 @@ def test_a_program_with_a_host_callback_is_not_stored(store):
 def assert_plain(store):
     """The store holds one entry, which says: call jit (no executable)."""
     (path,) = entries(store)
-    assert path.read_bytes().endswith(compile_cache._PLAIN)
+    head, code = _head_and_code(path)
+    assert head["program"] is None and code == b""
 
 
 def test_a_program_with_custom_calls_is_not_stored(store, monkeypatch):
@@ -333,3 +514,36 @@ def test_a_program_with_custom_calls_is_not_stored(store, monkeypatch):
     program.loaded.clear()
     no_compiling(monkeypatch)  # the entry sends it to jit, which compiles on its own
     np.testing.assert_allclose(program(matrix), np.eye(2), atol=1e-6)
+
+
+# ---- JAX's own cache, where diffshade configures it (diffshade.io.xla_cache) ----
+
+
+@pytest.fixture
+def jax_cache(tmp_path, monkeypatch):
+    monkeypatch.setattr(private_files, "_warned", set())
+    return xla_cache.PrivateCache(tmp_path)
+
+
+def test_jax_entries_are_private_and_carry_their_key(jax_cache, tmp_path):
+    key, other = "jit_f-" + "a" * 64, "jit_g-" + "b" * 64
+    jax_cache.put(key, b"executable bytes")
+    assert jax_cache.get(key) == b"executable bytes" and jax_cache.get(other) is None
+    (path,) = files(tmp_path)
+    assert path.stat().st_mode & 0o777 == 0o600
+    path.rename(tmp_path / f"{other}{xla_cache.SUFFIX}")  # swapped onto another key
+    assert jax_cache.get(other) is None and files(tmp_path) == []
+
+
+def test_jax_entries_others_can_write_or_too_big_are_refused(jax_cache, tmp_path,
+                                                            monkeypatch, capsys):
+    key = "jit_f-" + "a" * 64
+    jax_cache.put(key, b"executable bytes")
+    (path,) = files(tmp_path)
+    path.chmod(0o666)
+    assert jax_cache.get(key) is None and files(tmp_path) == [path]
+    line = capsys.readouterr().err.strip()
+    assert line.startswith("diffshade: warning: cache entry") and str(path) in line
+    path.chmod(0o600)
+    monkeypatch.setattr(xla_cache, "MAX_ENTRY_BYTES", 20)
+    assert jax_cache.get(key) is None and files(tmp_path) == []  # removed unread

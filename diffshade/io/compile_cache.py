@@ -25,23 +25,33 @@ on, their compiled executables are also kept whole in the folder `programs` of t
 cache directory, keyed by a hash of the package's source, JAX, the backend, the CPU and
 the arguments' shapes (StoredProgram), and a later process loads them without tracing.
 The store keeps the programs of the current source only (an edit of diffshade or
-fitting starts it afresh; the other folders are removed). Like JAX's cache, an entry is
-an executable loaded by pickle: keep the cache directory private to its user.
+fitting starts it afresh; the other folders are removed).
+
+What is read from the cache is run, so it is held to the rules ssh holds ~/.ssh to
+(diffshade.io.private_files; docs/cli.md, "Time to first result", Trust):
+- the folders are created with mode 0700; the cache directory, `programs` and its folder
+  of this environment's programs, and every entry, must be this user's and not writable
+  by group or others, else they are refused with a warning and the programs compile
+  normally (for JAX's cache where diffshade configures it: diffshade.io.xla_cache);
+- an entry is JSON and XLA's executable, never pickle (diffshade.io.program_entries): its
+  full key is compared with the key of the call; an entry over its size limit is refused
+  before it is read; one of another key (renamed or copied), or damaged, or whose program
+  fails on its first call, is removed and the program compiled again.
 """
 
-import contextlib
 import functools
 import hashlib
 import inspect
 import os
-import pickle
 import platform
-import shutil
 import sys
-import tempfile
 
 import jax
 import numpy as np
+
+from diffshade.io import xla_cache
+from diffshade.io.private_files import Untrusted, private_folder, warn_once
+from diffshade.io.program_entries import PLAIN, read_entry, remove, write_entry
 
 __all__ = ["FAST_COMPILE", "LIGHT_COMPILE", "StoredProgram", "cache_dir", "enable",
            "environment_key", "store_dir", "stored_jit"]
@@ -58,16 +68,34 @@ def cache_dir() -> str:
     return os.path.join(base, "diffshade", "jax")
 
 
+def _private(path) -> bool:
+    """Whether `path` is a private folder (created so when missing); warns if not."""
+    try:
+        private_folder(path)
+        return True
+    except Untrusted as err:
+        warn_once(f"{err}; the compilation cache there is not used, programs compile "
+                  "normally")
+    except OSError as err:
+        warn_once(f"cache folder {path!r}: {err.strerror}; the compilation cache is not "
+                  "used, programs compile normally")
+    return False
+
+
 def enable() -> str | None:
     """Turn the persistent compilation cache on (before the first compilation); returns its
-    directory, or None when DIFFSHADE_COMPILE_CACHE=0 switched it off."""
+    directory, or None when DIFFSHADE_COMPILE_CACHE=0 switched it off or the folder is
+    not private (a warning says why)."""
     global _store
     if os.environ.get(ENV_SWITCH, "1").strip().lower() in ("0", "false", "no", "off"):
         return None
-    if jax.config.jax_compilation_cache_dir:
-        path = jax.config.jax_compilation_cache_dir
-    else:
-        path = cache_dir()
+    user_set = jax.config.jax_compilation_cache_dir
+    path = user_set or cache_dir()
+    if not _private(path):
+        _store = None  # a folder set for JAX stays JAX's: its cache is as the user set it
+        return user_set or None
+    if not user_set:
+        xla_cache.guard(path)
         jax.config.update("jax_compilation_cache_dir", path)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
@@ -90,8 +118,6 @@ FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive
 LIGHT_COMPILE = {"xla_backend_optimization_level": 1}
 
 STORE_FOLDER = "programs"
-_MAGIC = b"diffshade-program 1\n"
-_PLAIN = b"plain jit"  # an entry's content for a program that is not stored: call jit
 _store = None  # the store's folder while enable() has it on; None: every call goes to jit
 _environment = None  # (hash of what every stored program depends on, its folder name)
 
@@ -208,32 +234,6 @@ def _fresh_compile(lowered):
         compilation_cache.reset_cache()
 
 
-def _read_entry(path, in_tree, device):
-    """The Compiled program stored at path, or None when there is none or it cannot be
-    used (a damaged file is removed, to be written anew)."""
-    from jax.experimental import serialize_executable
-
-    try:
-        with open(path, "rb") as f:
-            blob = f.read()
-    except OSError:
-        return None
-    try:
-        head, digest, payload = blob[:len(_MAGIC)], blob[len(_MAGIC):len(_MAGIC) + 64], \
-            blob[len(_MAGIC) + 65:]
-        if head != _MAGIC or hashlib.sha256(payload).hexdigest().encode() != digest:
-            raise ValueError("damaged entry")
-        if payload == _PLAIN:
-            return _PLAIN
-        executable, out_tree = pickle.loads(payload)
-        return serialize_executable.deserialize_and_load(
-            executable, in_tree, out_tree, execution_devices=[device])
-    except Exception:  # any damage: compile afresh and write the entry again
-        with contextlib.suppress(OSError):
-            os.remove(path)
-        return None
-
-
 def _storable(compiled) -> bool:
     """Whether an executable can be loaded in another process: not when XLA's program
     has custom calls (LAPACK's, for a matrix inverse, and the like): on CPU the
@@ -243,39 +243,6 @@ def _storable(compiled) -> bool:
         return "custom-call" not in compiled.as_text()
     except Exception:
         return False
-
-
-def _write_entry(path, compiled):
-    """Serialize `compiled` (None: write the _PLAIN marker) to path atomically (a
-    temporary file, then os.replace); programs that cannot be serialized, and a full or
-    read-only disk, are skipped."""
-    from jax.experimental import serialize_executable
-
-    try:
-        if compiled is None:
-            payload = _PLAIN
-        else:
-            executable, _, out_tree = serialize_executable.serialize(compiled)
-            payload = pickle.dumps((executable, out_tree), protocol=pickle.HIGHEST_PROTOCOL)
-    except Exception:
-        return
-    folder = os.path.dirname(path)
-    try:
-        fresh = not os.path.isdir(folder)
-        os.makedirs(folder, exist_ok=True)
-        if fresh:  # programs of other sources or versions are never read again
-            store = os.path.dirname(folder)
-            for name in os.listdir(store):
-                other = os.path.join(store, name)
-                if other != folder and len(name) == 64 and os.path.isdir(other):
-                    shutil.rmtree(other, ignore_errors=True)
-        handle, temporary = tempfile.mkstemp(dir=folder, suffix=".tmp")
-        with os.fdopen(handle, "wb") as f:
-            f.write(_MAGIC + hashlib.sha256(payload).hexdigest().encode() + b"\n" + payload)
-        os.replace(temporary, path)
-    except OSError:
-        with contextlib.suppress(OSError, UnboundLocalError):
-            os.remove(temporary)
 
 
 class StoredProgram:
@@ -304,6 +271,7 @@ class StoredProgram:
             raise TypeError(f"{fun.__qualname__}: *args and **kwargs cannot be stored")
         self.name = f"{fun.__module__}.{fun.__qualname__}"
         self.loaded = {}  # (tree, signatures, static, settings) -> Compiled, this process
+        self.unproven = {}  # memo -> its entry's path, for a loaded program not yet run
         functools.update_wrapper(self, fun)
 
     def lower(self, *args, **kwargs):
@@ -311,18 +279,30 @@ class StoredProgram:
 
     def clear_cache(self):
         self.loaded.clear()
+        self.unproven.clear()
         self.jitted.clear_cache()
 
     def __call__(self, *args, **kwargs):
         if _store is None:
             return self.jitted(*args, **kwargs)
-        compiled, dynamic = self._program(args, kwargs)
+        memo, dynamic = self._program(args, kwargs)
+        compiled = None if memo is None else self.loaded[memo]
         if compiled is None:
             return self.jitted(*args, **kwargs)
-        return compiled(**dynamic)
+        if memo not in self.unproven:
+            return compiled(**dynamic)
+        try:  # a program loaded from the store, on its first call
+            out = compiled(**dynamic)
+        except Exception:  # whatever the entry holds, it is not this call's program
+            remove(self.unproven.pop(memo))
+            self.loaded[memo] = None
+            return self.jitted(*args, **kwargs)
+        self.unproven.pop(memo)
+        return out
 
     def _program(self, args, kwargs):
-        """(Compiled, dynamic keyword arguments), or (None, None) when not kept."""
+        """(memo, dynamic keyword arguments): self.loaded[memo] is the call's Compiled
+        program, or None for jit's; (None, None) when the store does not keep the call."""
         try:
             bound = self.signature.bind(*args, **kwargs)
         except TypeError:
@@ -342,28 +322,34 @@ class StoredProgram:
             return None, None
         if not known:  # None: not kept (jit's own program)
             self.loaded[memo] = self._load_or_compile(memo, bound.arguments, device)
-        compiled = self.loaded[memo]
-        return (None, None) if compiled is None else (compiled, dynamic)
+        return memo, dynamic
 
-    def _load_or_compile(self, memo, arguments, device):
+    def key(self, memo):
+        """The full key of a call's program (JSON-ready): environment_key() and the
+        description of the call (class docstring); None for one that cannot be keyed."""
         tree, signatures, static, settings = memo
         described = repr((self.name, str(tree), signatures, static, settings,
                           self.compiler_options))
-        if _has_address(described):
+        return None if _has_address(described) else [environment_key(), described]
+
+    def _load_or_compile(self, memo, arguments, device):
+        key = self.key(memo)
+        if key is None:
             return None
-        key = hashlib.sha256(described.encode()).hexdigest()
-        path = os.path.join(_store, environment_key(), f"{key}.bin")
-        entry = _read_entry(path, tree, device)
-        if entry is _PLAIN:
+        name = hashlib.sha256(key[1].encode()).hexdigest()
+        path = os.path.join(_store, key[0], f"{name}.bin")
+        entry = read_entry(path, key, memo[0], device)
+        if entry is PLAIN:
             return None
         if entry is not None:
+            self.unproven[memo] = path
             return entry
         lowered = self.jitted.lower(**arguments)
         if _has_host_callbacks(lowered) or "custom_call" in lowered.as_text():
-            _write_entry(path, None)  # this and later processes go straight to jit
+            write_entry(path, key, None, device)  # this and later processes go to jit
             return None
         compiled = _fresh_compile(lowered)
-        _write_entry(path, compiled if _storable(compiled) else None)
+        write_entry(path, key, compiled if _storable(compiled) else None, device)
         return compiled
 
 

@@ -38,6 +38,7 @@ import numpy as np
 from diffshade.io.images import write_json, write_npy
 from diffshade.io.textures import obj_textures, texture
 from diffshade.scene.area_lights import area_light, sphere_light
+from diffshade.scene.calibration import camera_from_opencv, camera_to_opencv
 from diffshade.scene.camera import PROJECTIONS, look_at
 from diffshade.scene.lights import (
     AmbientLight,
@@ -63,13 +64,13 @@ from diffshade.scene.mesh import (
     model_matrix,
     torus,
 )
-from diffshade.scene.objects import object_names, split_mesh, unstack_material
+from diffshade.scene.objects import object_names, split_mesh, stack_materials, unstack_material
 from diffshade.scene.scene import Scene, make_scene, object_count, scene_object
 from diffshade.scene.textures import WRAPS, is_texture
 from diffshade.settings import DATA_FIELDS, RenderSettings
 
-__all__ = ["FORMAT_VERSION", "SceneFileError", "load_scene", "load_scenes", "read_json",
-           "save_scene", "save_textures", "scene_from_dict", "scene_to_dict",
+__all__ = ["FORMAT_VERSION", "SceneFileError", "camera_to_dict", "load_scene", "load_scenes",
+           "read_json", "save_scene", "save_textures", "scene_from_dict", "scene_to_dict",
            "scenes_from_dict"]
 
 FORMAT_VERSION = 1
@@ -316,10 +317,24 @@ _CAMERA = {
 }
 
 
+_MATRIX3 = _Kind("a 3x3 matrix (3 rows of 3 numbers)",
+                 lambda v: _is_row(v, 3, lambda row: _is_row(row, 3)))
+_DIST = _Kind("[k1, k2, p1, p2] or [k1, k2, p1, p2, k3]",
+              lambda v: _is_row(v, 4) or _is_row(v, 5))
+# OpenCV's calibration (docs/calibrated-cameras.md); a camera with "K" is of this form
+_OPENCV_CAMERA = {
+    "K": _Required(_MATRIX3), "R": _Required(_MATRIX3), "t": _Required(_VEC3),
+    "width": _Required(_PIXELS), "height": _Required(_PIXELS), "dist": _DIST,
+    "near": _NUMBER, "far": _NUMBER,
+}
+
+
 def _camera(value, path):
-    kwargs = _read_object(value, path, _CAMERA)
+    """A look-at camera, or an OpenCV one (docs/scene-format.md, "camera")."""
+    opencv = isinstance(value, dict) and any(key in value for key in ("K", "R", "t", "dist"))
+    kwargs = _read_object(value, path, _OPENCV_CAMERA if opencv else _CAMERA)
     with _at(path):
-        return look_at(**kwargs)
+        return camera_from_opencv(**kwargs) if opencv else look_at(**kwargs)
 
 
 _COLOURS = {"color": _RGB, "ambient": _RGB, "diffuse": _RGB, "specular": _RGB}
@@ -582,6 +597,52 @@ def load_scene(path) -> tuple[Scene, RenderSettings]:
         raise SceneFileError(f"{os.fspath(path)}: {err}") from err
 
 
+def _materials_of_objects(entries, names, count, path):
+    """The entries of {"objects": [...]} or {"objects": {name: ...}} at key path `path`
+    -> one Material stacked in object order, for a scene of `count` objects named
+    `names` (None: unnamed, so a list only)."""
+    where = _join(path, "objects")
+    if isinstance(entries, dict):
+        if names is None or set(entries) != set(names):
+            raise SceneFileError(f"{where}: got the names {sorted(entries)}; expected one "
+                                 "material for each object of the scene, "
+                                 f"{list(names) if names else 'unnamed (give a list)'}")
+        entries = [entries[n] for n in names]
+    if not isinstance(entries, list) or len(entries) != count:
+        raise SceneFileError(f"{where}: got {_show(entries)}; expected a list of {count} "
+                             "materials (one per object) or an object {name: material}")
+    return stack_materials([_material(e, f"{where}[{i}]") for i, e in enumerate(entries)])
+
+
+def _material_for(data, scene, base_dir="."):
+    """A parsed material file (load_material) -> the Material for scene (its textures
+    relative to base_dir)."""
+    path = "material" if isinstance(data, dict) and "material" in data else ""
+    data = data["material"] if path else data
+    several = scene.objects is not None
+    if isinstance(data, dict) and "objects" in data:
+        if not several:
+            raise SceneFileError(f"{_join(path, 'objects')}: got materials for several "
+                                 "objects; expected one material, as the scene has one object")
+        return _materials_of_objects(data["objects"], scene.objects.names,
+                                     object_count(scene), path)
+    found = _material(data, path, base_dir)
+    return stack_materials([found] * object_count(scene)) if several else found
+
+
+def load_material(path, scene: Scene):
+    """The Material in the JSON file at path, shaped for `scene`: a material object
+    (keys ka, kd, ks, shininess, emission, kt, as a scene file's "material"), or any object
+    holding one under "material" (a `diffshade fit` result.json); for a scene of several
+    objects, {"objects": [one per object]} or {"objects": {name: one}} (a single material
+    is given to every object). SceneFileError "<path>: <key path>: ..." for anything else."""
+    data = read_json(path, "material file")
+    try:
+        return _material_for(data, scene, os.path.dirname(os.fspath(path)))
+    except SceneFileError as err:
+        raise SceneFileError(f"{os.fspath(path)}: {err}") from err
+
+
 # ---- writing ----
 
 
@@ -667,7 +728,20 @@ def _material_to_dict(mat, texture_refs=None):
                 {} if mat.kt is None else {"kt": _rgb(mat.kt)})
 
 
-def _camera_to_dict(camera):
+def _is_pinhole_look_at(camera):
+    """Whether the look-at keys describe camera (centred, fx = fy, no distortion)."""
+    return (not np.any(np.asarray(camera.shift)) and float(camera.focal_ratio) == 1.0
+            and not np.any(np.asarray(camera.dist)))
+
+
+def camera_to_dict(camera) -> dict:
+    """A scene file's camera object: the look-at keys, or the OpenCV ones for a camera
+    with an off-centre principal point, fx != fy or distortion."""
+    if not _is_pinhole_look_at(camera):
+        opencv = camera_to_opencv(camera)
+        return {**{k: _plain(opencv[k]) for k in ("K", "R", "t", "dist")},
+                "width": camera.width, "height": camera.height,
+                "near": _plain(camera.near), "far": _plain(camera.far)}
     arrays = {k: _plain(getattr(camera, k)) for k in ("eye", "target", "up", "fov_y", "near",
                                                       "far", "ortho_height")}
     return {**arrays, "width": camera.width, "height": camera.height,
@@ -720,7 +794,7 @@ def scene_to_dict(scene: Scene, settings: RenderSettings, mesh_ref=None,
     hold them.
     """
     return {"version": FORMAT_VERSION, **_geometry_to_dict(scene, mesh_ref, texture_refs),
-            "camera": _camera_to_dict(scene.camera), "lights": _lights_to_list(scene.lights),
+            "camera": camera_to_dict(scene.camera), "lights": _lights_to_list(scene.lights),
             "global_ambient": _rgb(scene.global_ambient), "background": _rgb(scene.background),
             "local_viewer": scene.local_viewer, "two_sided": scene.two_sided,
             "settings": _settings_to_dict(settings)}
@@ -746,8 +820,13 @@ def save_textures(path, material, stem) -> dict:
 
 
 def save_scene(path, scene: Scene, settings: RenderSettings, mesh_ref=None) -> str:
-    """Write scene_to_dict(scene, settings, mesh_ref) to path as JSON, atomically; the
-    material's textures are written beside it first (NAME.kd.npy ... for NAME.json)."""
+    """Write scene_to_dict(scene, settings, mesh_ref) to path as JSON, atomically. An
+    absolute mesh_ref path is written relative to the scene file's folder, as every mesh
+    path is read, so that the folder keeps working when it is copied or moved with its
+    mesh. The material's textures are written beside it first (NAME.kd.npy ... for
+    NAME.json)."""
+    if isinstance(mesh_ref, (str, os.PathLike)) and os.path.isabs(mesh_ref):
+        mesh_ref = os.path.relpath(mesh_ref, os.path.dirname(os.path.abspath(path)))
     refs = {}
     if scene.objects is None:
         stem = os.path.splitext(os.path.basename(os.fspath(path)))[0]
