@@ -127,8 +127,10 @@ def _check_args(args):
         raise ValueError(f"--smoothness: got {args.smoothness!r}; expected a number >= 0")
     if args.texture is None and args.smoothness is not None:
         raise ValueError("--smoothness: given without --texture; expected it with --texture")
-    if args.texture is not None and (args.resume or args.fit):
-        which = "--resume" if args.resume else "--fit"
+    given = [name for name, value in (("--resume", args.resume), ("--fit", args.fit),
+                                      ("--holdout", args.holdout)) if value]
+    if args.texture is not None and given:
+        which = given[0]
         raise ValueError(f"{which}: given with --texture; expected --texture alone (the "
                          "other parameters are held at --init)")
 
