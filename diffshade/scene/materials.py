@@ -90,7 +90,9 @@ def _transparency(value):
 def material(ka=0.2, kd=0.8, ks=None, shininess=0.0, emission=None, kt=None) -> Material:
     """Build a validated Material. shininess must be finite and >= 0 (OpenGL caps it at 128;
     diffshade does not, so that sharp highlights can be fitted). kt: transparency in [0, 1]
-    (None: opaque, and no compositing is compiled; 0 composites layers that are opaque)."""
+    (None: opaque, and no compositing is compiled; 0 composites layers that are opaque).
+    kd, ks and shininess may be a Texture (diffshade.texture): 1 or 3 channels for kd and
+    ks (grey repeated to RGB), 1 for shininess; the scene's mesh then needs UVs."""
     if is_texture(shininess):
         return _material(ka, kd, ks, _texture("shininess", shininess, 1), emission, kt)
     exponent = _floats(shininess)
