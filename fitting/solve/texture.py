@@ -24,7 +24,8 @@ fills them only inside the solve, so that the system is well posed.
 
 The standard error of a seen texel is sigma / sqrt((A'MA)_ii), sigma^2 the residual
 variance (residual sum of squares over the counted values less the seen unknowns): the
-texel's error were its neighbours known, a lower bound of its marginal error. The
+texel's error were its neighbours known, without the prior (the unregularized solve's
+marginal error is at least this; the prior lowers it). The
 diagonal (A'MA)_ii comes from PROBE_STRIDE^2 probes (and a few more when RES is not a
 multiple of it): each probe holds texels PROBE_STRIDE apart, so it is exact wherever no
 pixel reads two texels that far apart (a texel not much smaller than a pixel).
