@@ -19,7 +19,8 @@ Markers, counted over the render's jaxpr and all its sub-jaxprs, in hard and sof
   camera's, shadow-map lookups, loops over light samples, depth sorts, hard raster's
   layers): it has those of a scene without lights. Each effect added to it (a spot
   light, shadows of a directional or a point light, a disk or sphere light, kt, a kd
-  texture on a mesh with UVs: texel reads, gathers from its 5 x 7 texels) raises
+  texture on a mesh with UVs: texel reads, operations on a table of its 5 x 7 texel
+  cells) raises
   its own markers and no other, and adds operations without removing any of the plain
   program's (but soft kt, which composites the layers in place of the soft blend);
 - values never change the program (a term of zero strength is compiled all the same),
@@ -251,13 +252,29 @@ def markers(scene, settings):
     a sphere light's samples), sin (a sphere light's samples), rasterizations (the
     camera's, plus one per shadowed light), shadow-map lookups (the argmax that picks a
     map), loops over a light's samples (scan), depth sorts, the fragment layers, and
-    texel reads (gathers from a table of the effect's TEXELS, flattened)."""
+    texel reads (operations whose first table operand has a row per texel of the
+    effect's TEXELS: the lookup of its cells' corners)."""
     ops = primitive_counts(scene, settings)
     return {"cos": ops["cos"], "sin": ops["sin"],
             "rasterizations": ops["fragment_geometry_op"], "map lookups": ops["argmax"],
             "sample loops": ops["scan"], "depth sorts": ops["sort"],
             "layers": layers(scene, settings),
-            "texel reads": gather_tables(scene, settings)[(TEXELS[0] * TEXELS[1], 3)]}
+            "texel reads": texel_reads(scene, settings)}
+
+
+def texel_reads(scene, settings):
+    """Equations of render(scene) reading a table of TEXELS[0] * TEXELS[1] rows: a texture
+    lookup's cell corners (the interpolation op's corners, its last operand, or a gather's
+    table off the CPU backend); the plain program has no table of that many rows."""
+    rows = TEXELS[0] * TEXELS[1]
+
+    def reads(eqn):
+        if eqn.primitive.name == "gather":
+            return eqn.invars[0].aval.shape[:1] == (rows,)
+        if eqn.primitive.name == "interpolate_corners_op":
+            return eqn.invars[-1].aval.shape[:1] == (rows,)
+        return False
+    return sum(map(reads, equations(scene, settings)))
 
 
 @RASTERS

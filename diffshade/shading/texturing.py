@@ -20,8 +20,10 @@ returned as it is: no texture code is traced.
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 
+from diffshade.raster.interpolation import interpolate_corners
 from diffshade.scene.materials import TEXTURED_FIELDS, has_textures
 from diffshade.scene.textures import Texture, is_texture
 
@@ -29,38 +31,60 @@ __all__ = ["sample_texture", "textured_material"]
 
 
 def _axis(coord, size, wrap):
-    """(index0, index1 [...] int32, weight of index1 [...]) of texel coordinate coord
-    [...] (texel centres at integers) along an axis of `size` texels."""
+    """(index [...] int32 of the texel at or before coord, weight of the next one [...])
+    for texel coordinate coord [...] (texel centres at integers) along an axis of `size`
+    texels; which texel is next (wrapped or the edge) is _next's."""
     if wrap == "repeat":
         coord = jnp.mod(coord, size)
         # mod of a tiny negative number rounds to size itself: that is texel 0
         coord = jnp.where(coord >= size, coord - size, coord)
-        low = jnp.floor(coord)
-        frac = coord - low
-        low = low.astype(jnp.int32)
-        return low, jnp.where(low + 1 >= size, 0, low + 1), frac
-    coord = jnp.clip(coord, 0.0, size - 1.0)
+    else:
+        coord = jnp.clip(coord, 0.0, size - 1.0)
     low = jnp.floor(coord)
-    frac = coord - low
-    low = low.astype(jnp.int32)
-    return low, jnp.minimum(low + 1, size - 1), frac
+    return low.astype(jnp.int32), coord - low
 
 
-def sample_texture(texture: Texture, uv):
-    """Bilinear value [..., C] of texture at uv [..., 2] (module docstring)."""
-    height, width, channels = texture.texels.shape
-    x = uv[..., 0] * width - 0.5
-    y = (1.0 - uv[..., 1]) * height - 0.5
-    x0, x1, fx = _axis(x, width, texture.wrap)
-    y0, y1, fy = _axis(y, height, texture.wrap)
-    flat = texture.texels.reshape(-1, channels)
-    # the four texels in one gather (and so one scatter-add in the backward pass)
-    index = jnp.stack([y0 * width + x0, y0 * width + x1, y1 * width + x0, y1 * width + x1], -1)
-    texels = jnp.take(flat, index, axis=0, mode="clip")
-    fx, fy = fx[..., None].astype(flat.dtype), fy[..., None].astype(flat.dtype)
-    top = texels[..., 0, :] * (1.0 - fx) + texels[..., 1, :] * fx
-    bottom = texels[..., 2, :] * (1.0 - fx) + texels[..., 3, :] * fx
-    return top * (1.0 - fy) + bottom * fy
+def _next(texels, axis, wrap):
+    """Each texel's neighbour one step along axis (+1): wrapped ('repeat') or the edge
+    texel itself ('clamp'). Shifts, not gathers: their transposes are shifts too."""
+    if wrap == "repeat":
+        return jnp.roll(texels, -1, axis)
+    last = jax.lax.slice_in_dim(texels, texels.shape[axis] - 1, None, axis=axis)
+    rest = jax.lax.slice_in_dim(texels, 1, None, axis=axis)
+    return jnp.concatenate([rest, last], axis)
+
+
+def _cell_corners(texture):
+    """The four texels of the cell whose top-left texel is (row, col), [H * W, 4, C]:
+    (row, col), (row, col + 1), (row + 1, col), (row + 1, col + 1), neighbours by wrap."""
+    texels, wrap = texture.texels, texture.wrap
+    right = _next(texels, 1, wrap)
+    below, below_right = _next(texels, 0, wrap), _next(right, 0, wrap)
+    corners = jnp.stack([texels, right, below, below_right], 2)
+    return corners.reshape((-1, 4) + texels.shape[2:])
+
+
+def sample_texture(texture: Texture, uv, host=None):
+    """Bilinear value [..., C] of texture at uv [..., 2] (module docstring).
+
+    The cells' corner texels are arranged once (shifts of the texture), and each sample
+    reads its cell's four with the fragment interpolation op (diffshade.raster.interpolation;
+    host: its compiled kernels, default on the CPU backend): the texels' gradient is that
+    op's compiled scatter-add plus shifts, not an XLA scatter over the samples."""
+    host = jax.default_backend() == "cpu" if host is None else host
+    height, width, _ = texture.texels.shape
+    x0, fx = _axis(uv[..., 0] * width - 0.5, width, texture.wrap)
+    y0, fy = _axis((1.0 - uv[..., 1]) * height - 0.5, height, texture.wrap)
+    corners = _cell_corners(texture)
+    fx, fy = fx.astype(corners.dtype), fy.astype(corners.dtype)
+    weights = jnp.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], -1)
+    # as the op's [1, M, 1] fragments, three corners and then the fourth
+    cells = (y0 * width + x0).reshape(1, -1, 1)
+    weights = weights.reshape(1, -1, 1, 4)
+    fourth = jnp.concatenate([weights[..., 3:], jnp.zeros_like(weights[..., :2])], -1)
+    near = interpolate_corners(cells, weights[..., :3], corners[:, :3], host=host)[0]
+    far = interpolate_corners(cells, fourth, jnp.repeat(corners[:, 3:], 3, 1), host=host)[0]
+    return (near + far).reshape(uv.shape[:-1] + corners.shape[-1:])
 
 
 def textured_material(material, uv):
