@@ -2,7 +2,7 @@
 
     diffshade synth [--shape icosphere|torus|box|MESH_FILE] [--material random|KA,KD,KS,N|
         FILE.json] [--views 3] [--lights 2] [--size 128] [--seed 0] [--quantize-8bit]
-        [--noise STD] [--shading phong] -o DATASET
+        [--noise STD] [--shading phong] [--texture RES] -o DATASET
     diffshade synth --scene SCENE.json [--views ...] -o DATASET
 
 --scene takes the objects (or the mesh), their materials (the truth), the model
@@ -58,6 +58,10 @@ def register(subparsers):
     parser.add_argument("--shading", choices=SHADING_MODES,
                         help="shading mode of the targets (default phong; with --scene, the "
                              "file's settings.shading)")
+    parser.add_argument("--texture", type=positive_int, metavar="RES",
+                        help="the true kd is a known procedural texture of RES x RES "
+                             "texels over the shape's UVs (docs/textures.md); written as "
+                             "truth.kd.npy and truth.kd.png")
     parser.add_argument("-o", "--output", required=True, metavar="DATASET",
                         help="dataset folder to write")
     parser.set_defaults(run=run_synth)
@@ -139,7 +143,7 @@ def run_synth(args) -> int:
     dataset = make_dataset(shape, material, n_views=args.views, n_lights=args.lights,
                            size=args.size, seed=args.seed, quantize_8bit=args.quantize_8bit,
                            noise_std=args.noise, shading=args.shading or "phong",
-                           settings=settings)
+                           settings=settings, texture=args.texture)
     save_dataset_atomically(dataset, args.output)
     print(args.output)
     return 0

@@ -25,7 +25,7 @@ import os
 import numpy as np
 
 import diffshade as ds
-from data_synth.materials import random_material
+from data_synth.materials import procedural_kd, random_material
 from diffshade.budget import check, image_bytes
 from diffshade.numerics import float_dtype
 from diffshade.scene import MAX_IMAGE_SIZE, transform_points
@@ -60,13 +60,15 @@ BUILTIN_MESHES = {
 _BUILDERS = {"icosphere": ds.icosphere, "torus": ds.torus, "box": ds.box}
 
 
-def shape_mesh(shape):
+def shape_mesh(shape, uv=False):
     """(Mesh, model [4, 4], info dict) for a built-in shape name, a mesh file path or a
-    Mesh. info['mesh_ref'] is the scene-file mesh object of a built-in shape, else None."""
+    Mesh. info['mesh_ref'] is the scene-file mesh object of a built-in shape, else None.
+    uv: a built-in shape with its UVs (a file or Mesh brings its own)."""
     if isinstance(shape, ds.Mesh):
         return shape, _normalizing_model(shape.vertices), {"shape": "mesh", "mesh_ref": None}
     if isinstance(shape, str) and shape in BUILTIN_MESHES:
         ref, rotate = BUILTIN_MESHES[shape]
+        ref = {shape: {**ref[shape], "uv": True}} if uv else ref
         mesh = _BUILDERS[shape](**ref[shape])
     elif isinstance(shape, (str, os.PathLike)) and os.path.splitext(os.fspath(shape))[1]:
         ref, rotate = None, (0.0, 0.0, 0.0)
@@ -178,22 +180,39 @@ def _scene_geometry(scene, material):
             "truth": scene.material}, {"shape": "scene", "mesh_ref": None}
 
 
-def _geometry(shape, material, rng):
+def _geometry(shape, material, rng, texture=None):
     """(Dataset keywords, info) of a shape (see make_dataset)."""
     if isinstance(shape, ds.Scene):
+        if texture is not None:
+            raise ValueError(f"texture: got {texture!r} with a scene; expected the scene "
+                             "file's own textures (or a shape)")
         return _scene_geometry(shape, material)
     if material is not None and (not isinstance(material, ds.Material)
                                  or np.ndim(material.kd) > 1):
         raise ValueError("material: got materials for several objects; expected one Material "
                          "for a shape (a Scene holds several objects)")
-    mesh, model, info = shape_mesh(shape)
+    mesh, model, info = shape_mesh(shape, uv=texture is not None)
+    truth = random_material(rng) if material is None else material
+    if texture is not None:
+        truth = _with_texture(truth, texture, mesh, shape)
+        info["texture"] = {"kd": texture}
     return {"mesh": mesh, "model": model, "global_ambient": GLOBAL_AMBIENT,
-            "truth": random_material(rng) if material is None else material}, info
+            "truth": truth}, info
+
+
+def _with_texture(truth, texture, mesh, shape):
+    """truth with kd the procedural texture of texture x texture texels."""
+    if not isinstance(texture, int) or isinstance(texture, bool) or not 1 <= texture <= 8192:
+        raise ValueError(f"texture: got {texture!r}; expected a resolution in [1, 8192]")
+    if mesh.uv is None:
+        raise ValueError(f"texture: the mesh of {shape!r} has no UVs; expected a built-in "
+                         "shape or a mesh file with texture coordinates")
+    return ds.replace(truth, kd=ds.texture(procedural_kd(texture)))
 
 
 def make_dataset(shape="icosphere", material=None, *, n_views=3, n_lights=2, size=128,
                  seed=0, quantize_8bit=False, noise_std=0.0, shading="phong",
-                 settings=None, gains=None) -> Dataset:
+                 settings=None, gains=None, texture=None) -> Dataset:
     """A Dataset of n_views * n_lights images (size x size) of `shape` ('icosphere',
     'torus', 'box', a mesh file path or a Mesh) with `material` (random from `seed` when None),
     laid out as in the module docstring. settings: RenderSettings (default: `shading`
@@ -203,12 +222,15 @@ def make_dataset(shape="icosphere", material=None, *, n_views=3, n_lights=2, siz
     `shape` may also be a Scene (a scene file's, of one object or several): its mesh or
     objects, model (then normalized), materials (the truth; `material` must be None),
     global ambient and lighting switches are kept; its camera and lights are replaced by
-    the layout's."""
+    the layout's.
+
+    texture: a resolution RES: the truth's kd is then data_synth.materials.procedural_kd
+    (RES x RES texels) over the shape's UVs (a built-in shape gets its UVs)."""
     _check_counts(n_views, n_lights, size, noise_std)
     gains = _check_gains(gains, n_views * n_lights)
     rng = np.random.default_rng(seed)
     settings = ds.RenderSettings(shading=shading) if settings is None else settings
-    geometry, info = _geometry(shape, material, rng)
+    geometry, info = _geometry(shape, material, rng, texture)
     blank = np.zeros((size, size, 3), np.float32)
     views = []
     for eye in camera_eyes(n_views):

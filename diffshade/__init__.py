@@ -19,6 +19,7 @@ from diffshade.io.scenefile import (
     scene_from_dict,
     scenes_from_dict,
 )
+from diffshade.io.textures import texture
 from diffshade.pipeline.rendering import (
     blend,
     rasterize_scene,
@@ -62,7 +63,7 @@ __all__ = [
     "ambient_light", "area_light", "box", "directional_light", "icosphere", "load_mesh",
     "look_at", "camera_from_opencv", "camera_to_opencv",
     "make_scene", "material", "mesh_from_arrays", "mesh_from_trimesh", "model_matrix",
-    "point_light", "replace", "scene_object", "sphere_light", "spot_light", "torus",
+    "point_light", "replace", "scene_object", "sphere_light", "spot_light", "texture", "torus",
     "BUILTIN_SCENES", "builtin_scene", "load_scene", "load_scenes", "save_scene",
     "scene_from_dict", "scenes_from_dict",
     # rendering

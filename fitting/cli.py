@@ -60,6 +60,7 @@ from fitting.run import advance, finish, start_run
 from fitting.solve.distribute import fit_data, for_options
 from fitting.solve.options import FIT_METHODS, OPTIONS, FitOptions
 from fitting.spec.params import to_values
+from fitting.texture_fit import add_texture_options, run_texture
 
 RESULT_FORMAT = "diffshade-fit-result"
 EXIT_NON_FINITE = 3
@@ -164,6 +165,7 @@ def register(subparsers):
                              "the fit; render them with the fitted material and report "
                              "their PSNR (holdout_NNN.png, result.json 'holdout')")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_texture_options(parser)
     parser.set_defaults(run=run_fit)
 
 
@@ -283,6 +285,8 @@ def _report(args, dataset, views, state, status, message, signum, plan):
 
 def run_fit(args) -> int:
     """The `fit` command (module docstring)."""
+    if args.texture is not None or args.smoothness is not None:
+        return run_texture(args)  # a kd map in closed form (fitting.texture_fit)
     with _Signals() as signals:
         dataset, plan = prepare(args)
         start = time.perf_counter()

@@ -15,7 +15,7 @@ import numpy as np
 
 from diffshade.io import check_writable, read_json
 from diffshade.pipeline import check_render
-from diffshade.scene import material
+from diffshade.scene import Texture, material
 from fitting.data.folder import fingerprint, load_dataset, material_from_dict
 from fitting.data.views import material_for, view_scene
 from fitting.spec.params import DEFAULT_INIT, FIT_NAMES, MODED, FitSpec
@@ -114,17 +114,29 @@ def check_output(path):
     check_writable(path, "--output", "folder")
 
 
-def load_checked_dataset(path, color_space=None):
+def load_checked_dataset(path, color_space=None, uniform_truth=True):
     """fitting.data.folder.load_dataset, after checking that DATASET is a folder, and
     each view checked against the memory budget. color_space: 'srgb' or 'linear' decodes
-    every image target so (--color-space)."""
+    every image target so (--color-space). uniform_truth: refuse a textured truth (what
+    the material fit cannot compare)."""
     if not os.path.exists(path):
         raise FileNotFoundError(f"DATASET: folder not found: {path!r}")
     if not os.path.isdir(path):
         raise ValueError(f"DATASET: {path!r} is a file; expected a dataset folder")
     dataset = load_dataset(path, color_space)
+    if uniform_truth:
+        _check_uniform_truth(dataset.truth, path)
     _check_memory(dataset)
     return dataset
+
+
+def _check_uniform_truth(truth, path):
+    """ValueError for a textured truth: the fit recovers uniform materials only."""
+    textured = [name for name in ("kd", "ks", "shininess")
+                if truth is not None and isinstance(getattr(truth, name), Texture)]
+    if textured:
+        raise ValueError(f"DATASET: {path!r} truth.json: {textured[0]} is a texture; expected "
+                         "uniform materials (recover a texture with --texture kd=RES)")
 
 
 def _check_memory(dataset):

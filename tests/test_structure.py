@@ -18,7 +18,9 @@ Markers, counted over the render's jaxpr and all its sub-jaxprs, in hard and sof
   shadows) compiles none of the effects' markers (cos and sin, rasterizations beyond the
   camera's, shadow-map lookups, loops over light samples, depth sorts, hard raster's
   layers): it has those of a scene without lights. Each effect added to it (a spot
-  light, shadows of a directional or a point light, a disk or sphere light, kt) raises
+  light, shadows of a directional or a point light, a disk or sphere light, kt, a kd
+  texture on a mesh with UVs: texel reads, operations on a table of its 5 x 7 texel
+  cells) raises
   its own markers and no other, and adds operations without removing any of the plain
   program's (but soft kt, which composites the layers in place of the soft blend);
 - values never change the program (a term of zero strength is compiled all the same),
@@ -52,6 +54,7 @@ from diffshade import (
     scene_object,
     sphere_light,
     spot_light,
+    texture,
 )
 
 SETTINGS = RenderSettings()
@@ -214,6 +217,8 @@ def plain_scene(lights=PLAIN_LIGHTS, mat=PLAIN_MATERIAL):
 
 
 SHADOWS = {"rasterizations", "map lookups"}
+#: the texture effect's size: 35 texels, no other table of the program has 35 rows
+TEXELS = (5, 7)
 SAMPLED = {"sample loops"}
 #: each effect added to the plain scene (a builder), and the markers it raises in hard and
 #: in soft raster
@@ -230,6 +235,10 @@ EFFECTS = {
     # and sorts them by depth to composite them
     "transparency": (lambda: plain_scene(mat=material(ks=0.3, shininess=5.0, kt=0.4)),
                      {"layers"}, {"depth sorts"}),
+    "kd texture": (lambda: make_scene(icosphere(0, uv=True), plain_scene().camera, PLAIN_LIGHTS,
+                                      material(kd=texture(np.ones(TEXELS + (3,))), ks=0.3,
+                                               shininess=5.0)),
+                   {"texel reads"}, {"texel reads"}),
 }
 
 
@@ -242,12 +251,30 @@ def markers(scene, settings):
     """Code that only the effects compile, in render(scene)'s program: cos (a spot's cone,
     a sphere light's samples), sin (a sphere light's samples), rasterizations (the
     camera's, plus one per shadowed light), shadow-map lookups (the argmax that picks a
-    map), loops over a light's samples (scan), depth sorts, and the fragment layers."""
+    map), loops over a light's samples (scan), depth sorts, the fragment layers, and
+    texel reads (operations whose first table operand has a row per texel of the
+    effect's TEXELS: the lookup of its cells' corners)."""
     ops = primitive_counts(scene, settings)
     return {"cos": ops["cos"], "sin": ops["sin"],
             "rasterizations": ops["fragment_geometry_op"], "map lookups": ops["argmax"],
             "sample loops": ops["scan"], "depth sorts": ops["sort"],
-            "layers": layers(scene, settings)}
+            "layers": layers(scene, settings),
+            "texel reads": texel_reads(scene, settings)}
+
+
+def texel_reads(scene, settings):
+    """Equations of render(scene) reading a table of TEXELS[0] * TEXELS[1] rows: a texture
+    lookup's cell corners (the interpolation op's corners, its last operand, or a gather's
+    table off the CPU backend); the plain program has no table of that many rows."""
+    rows = TEXELS[0] * TEXELS[1]
+
+    def reads(eqn):
+        if eqn.primitive.name == "gather":
+            return eqn.invars[0].aval.shape[:1] == (rows,)
+        if eqn.primitive.name == "interpolate_corners_op":
+            return eqn.invars[-1].aval.shape[:1] == (rows,)
+        return False
+    return sum(map(reads, equations(scene, settings)))
 
 
 @RASTERS
@@ -383,3 +410,10 @@ def test_several_objects_gather_each_material_field_per_sample():
             got = collections.Counter({t: n for t, n in tables.items() if t[:1] == (2,)})
             assert got == collections.Counter({t: traced * n for t, n in want.items()}), (
                 two_sided, settings.raster, got, want)
+
+
+@RASTERS
+def test_uvs_without_a_texture_compile_the_program_of_a_mesh_without_them(settings):
+    with_uv = make_scene(icosphere(0, uv=True), plain_scene().camera, PLAIN_LIGHTS,
+                         PLAIN_MATERIAL)
+    assert primitive_counts(with_uv, settings) == primitive_counts(plain_scene(), settings)

@@ -26,10 +26,12 @@ from diffshade.io.scenefile import (
     load_scenes,
     read_json,
     save_scene,
+    save_textures,
     scene_from_dict,
     scene_to_dict,
     scenes_from_dict,
 )
+from diffshade.io.textures import obj_textures, texture
 from diffshade.io.undistort import (
     distort_image,
     pinhole,
@@ -45,6 +47,8 @@ __all__ = [
     "check_color_space", "check_writable", "image_header", "read_image", "write_json",
     "write_npy", "write_png", "write_text",
     "SceneFileError", "camera_to_dict", "load_material", "load_scene", "load_scenes",
-    "read_json", "save_scene", "scene_from_dict", "scene_to_dict", "scenes_from_dict",
+    "read_json", "save_scene", "save_textures", "scene_from_dict", "scene_to_dict",
+    "scenes_from_dict",
     "distort_image", "pinhole", "undistort_image", "undistort_mask", "undistort_points",
+    "obj_textures", "texture",
 ]

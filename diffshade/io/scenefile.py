@@ -14,6 +14,11 @@ A file may give several cameras (`"cameras": [...]` instead of `"camera"`): one 
 camera, sharing everything else; `scenes_from_dict` and `load_scenes` return them all,
 while `scene_from_dict` and `load_scene` want exactly one.
 
+A material's kd, ks and shininess may be textures, `{"texture": "kd.png", "wrap":
+"repeat"}` (a file relative to the scene file's folder, read by diffshade.io.textures);
+a mesh file that is an OBJ with an MTL naming `map_Kd` / `map_Ks` gives the material
+those textures wherever the scene file's material sets no kd / ks (docs/textures.md).
+
 `scene_to_dict` is the inverse: scene_from_dict(scene_to_dict(scene, settings)) renders
 as (scene, settings) do. Key names are the builders' keyword arguments throughout.
 """
@@ -30,7 +35,8 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from diffshade.io.images import write_json
+from diffshade.io.images import write_json, write_npy
+from diffshade.io.textures import obj_textures, texture
 from diffshade.scene.area_lights import area_light, sphere_light
 from diffshade.scene.calibration import camera_from_opencv, camera_to_opencv
 from diffshade.scene.camera import PROJECTIONS, look_at
@@ -60,11 +66,12 @@ from diffshade.scene.mesh import (
 )
 from diffshade.scene.objects import object_names, split_mesh, stack_materials, unstack_material
 from diffshade.scene.scene import Scene, make_scene, object_count, scene_object
+from diffshade.scene.textures import WRAPS, is_texture
 from diffshade.settings import DATA_FIELDS, RenderSettings
 
 __all__ = ["FORMAT_VERSION", "SceneFileError", "camera_to_dict", "load_scene", "load_scenes",
-           "read_json",
-           "save_scene", "scene_from_dict", "scene_to_dict", "scenes_from_dict"]
+           "read_json", "save_scene", "save_textures", "scene_from_dict", "scene_to_dict",
+           "scenes_from_dict"]
 
 FORMAT_VERSION = 1
 
@@ -188,16 +195,16 @@ def _at(path, rename=None):
 
 _NORMALS = {"weighting": _choice(WEIGHTINGS), "crease_angle": _nullable(_NUMBER)}
 _MESH = {
-    "path": _STRING, "builtin": _OBJECT, "vertices": _ARRAY, "faces": _ARRAY,
+    "path": _STRING, "builtin": _OBJECT, "vertices": _ARRAY, "faces": _ARRAY, "uv": _ARRAY,
     "normals": _Kind("an object {weighting, crease_angle} or, with vertices, [V, 3] normals",
                      lambda v: isinstance(v, (dict, list, tuple))),
 }
 _MESH_SOURCES = ("path", "builtin", "vertices")
 _GENERATORS = {
-    "icosphere": (icosphere, {"subdivisions": _INTEGER, "radius": _NUMBER}),
+    "icosphere": (icosphere, {"subdivisions": _INTEGER, "radius": _NUMBER, "uv": _BOOL}),
     "torus": (torus, {"major_radius": _NUMBER, "minor_radius": _NUMBER,
-                      "major_segments": _INTEGER, "minor_segments": _INTEGER}),
-    "box": (box, {"size": _VEC3}),
+                      "major_segments": _INTEGER, "minor_segments": _INTEGER, "uv": _BOOL}),
+    "box": (box, {"size": _VEC3, "uv": _BOOL}),
 }
 
 
@@ -240,11 +247,20 @@ def _inline_mesh(fields, path, normals, options):
     faces = _rows(fields["faces"], _join(path, "faces"), _is_int, "integers")
     if normals is not None:
         normals = _rows(normals, _join(path, "normals"), _is_number, "numbers")
-    return mesh_from_arrays(vertices, faces, normals, **options)
+    uv = fields.get("uv")
+    if uv is not None:
+        for i, row in enumerate(uv):
+            if not _is_row(row, 2):
+                raise SceneFileError(f"{path}.uv[{i}]: got {_show(row)}; expected 2 numbers")
+    return mesh_from_arrays(vertices, faces, normals, uv=uv, **options)
 
 
 def _check_mesh_keys(fields, path, source):
     """faces only with (and required by) vertices; [V, 3] normals only with vertices."""
+    if "uv" in fields and source != "vertices":
+        raise SceneFileError(f"{_join(path, 'uv')}: only allowed with {_join(path, 'vertices')} "
+                             "(a mesh file brings its own UVs, a built-in shape takes "
+                             "\"uv\": true)")
     if (source == "vertices") != ("faces" in fields):
         wanted = "missing; expected" if source == "vertices" else "only allowed with"
         raise SceneFileError(f"{_join(path, 'faces')}: {wanted} {_join(path, 'vertices')}")
@@ -352,12 +368,36 @@ def _light(value, path):
         return factory(**kwargs)
 
 
-_MATERIAL = {"ka": _RGB, "kd": _RGB, "ks": _nullable(_RGB), "shininess": _NUMBER,
-             "emission": _nullable(_RGB), "kt": _nullable(_RGB)}
+_TEXTURE_REF = {"texture": _Required(_STRING), "wrap": _choice(WRAPS)}
+_TEXTURE_EXPECTED = 'or {"texture": FILE, "wrap": "repeat"|"clamp"}'
+_RGB_OR_TEXTURE = _Kind(f"{_RGB.expected}, {_TEXTURE_EXPECTED}",
+                        lambda v: _RGB.accepts(v) or isinstance(v, dict))
+_NUMBER_OR_TEXTURE = _Kind(f"a number, {_TEXTURE_EXPECTED}",
+                           lambda v: _is_number(v) or isinstance(v, dict))
+_MATERIAL = {"ka": _RGB, "kd": _RGB_OR_TEXTURE, "ks": _nullable(_RGB_OR_TEXTURE),
+             "shininess": _NUMBER_OR_TEXTURE, "emission": _nullable(_RGB), "kt": _nullable(_RGB)}
 
 
-def _material(value, path):
-    kwargs = _read_object(value, path, _MATERIAL)
+def _texture(value, path, base_dir):
+    """The Texture of {"texture": FILE, "wrap": ...} at key path `path`."""
+    fields = _read_object(value, path, _TEXTURE_REF)
+    file_path = _join(path, "texture")
+    full = os.path.join(base_dir, fields["texture"])
+    if not os.path.isfile(full):
+        raise SceneFileError(f"{file_path}: texture file {fields['texture']!r} not found "
+                             f"(looked for {full!r}); expected an image file relative to the "
+                             "scene file's folder")
+    with _at(path, {"path": file_path, "wrap": _join(path, "wrap")}):
+        return texture(full, fields.get("wrap", "repeat"))
+
+
+def _material(value, path, base_dir=".", defaults=None):
+    """Material of a material object; textures relative to base_dir; defaults: {field:
+    Texture} for the fields the object does not set (an OBJ's MTL maps)."""
+    kwargs = {**(defaults or {}), **_read_object(value, path, _MATERIAL)}
+    for key, entry in kwargs.items():
+        if isinstance(entry, dict):
+            kwargs[key] = _texture(entry, _join(path, key), base_dir)
     with _at(path):
         return material(**kwargs)
 
@@ -408,10 +448,20 @@ def _object(value, path, base_dir, table=_OBJECT_KEYS):
     mesh = _mesh(fields["mesh"], _join(path, "mesh"), base_dir)
     model = (_model(fields["transform"], _join(path, "transform")) if "transform" in fields
              else None)
-    front = _material(fields.get("material", {}), _join(path, "material"))
+    maps = _mesh_file_textures(fields["mesh"], _join(path, "mesh"), base_dir)
+    front = _material(fields.get("material", {}), _join(path, "material"), base_dir, maps)
     back = fields.get("back_material")
-    back = None if back is None else _material(back, _join(path, "back_material"))
+    back = None if back is None else _material(back, _join(path, "back_material"), base_dir)
     return mesh, front, back, model
+
+
+def _mesh_file_textures(mesh_value, path, base_dir):
+    """{field: Texture} of the MTL maps of an OBJ mesh file (read after the mesh: checked)."""
+    relative = mesh_value.get("path")
+    if not isinstance(relative, str) or not relative.lower().endswith(".obj"):
+        return {}
+    with _at(path):
+        return obj_textures(os.path.join(base_dir, relative))
 
 
 def _objects(value, base_dir):
@@ -564,8 +614,9 @@ def _materials_of_objects(entries, names, count, path):
     return stack_materials([_material(e, f"{where}[{i}]") for i, e in enumerate(entries)])
 
 
-def _material_for(data, scene):
-    """A parsed material file (load_material) -> the Material for scene."""
+def _material_for(data, scene, base_dir="."):
+    """A parsed material file (load_material) -> the Material for scene (its textures
+    relative to base_dir)."""
     path = "material" if isinstance(data, dict) and "material" in data else ""
     data = data["material"] if path else data
     several = scene.objects is not None
@@ -575,7 +626,7 @@ def _material_for(data, scene):
                                  "objects; expected one material, as the scene has one object")
         return _materials_of_objects(data["objects"], scene.objects.names,
                                      object_count(scene), path)
-    found = _material(data, path)
+    found = _material(data, path, base_dir)
     return stack_materials([found] * object_count(scene)) if several else found
 
 
@@ -587,7 +638,7 @@ def load_material(path, scene: Scene):
     is given to every object). SceneFileError "<path>: <key path>: ..." for anything else."""
     data = read_json(path, "material file")
     try:
-        return _material_for(data, scene)
+        return _material_for(data, scene, os.path.dirname(os.fspath(path)))
     except SceneFileError as err:
         raise SceneFileError(f"{os.fspath(path)}: {err}") from err
 
@@ -612,8 +663,9 @@ def _rgb(value):
 
 def _mesh_to_dict(mesh, mesh_ref):
     if mesh_ref is None:
+        uv = {} if mesh.uv is None else {"uv": _plain(mesh.uv)}
         return {"vertices": _plain(mesh.vertices), "faces": _plain(mesh.faces),
-                "normals": _plain(mesh.normals)}
+                "normals": _plain(mesh.normals), **uv}
     if isinstance(mesh_ref, dict):
         return dict(mesh_ref)
     return {"path": os.fspath(mesh_ref)}
@@ -655,9 +707,23 @@ def _optional_rgb(value):
     return None if value is None else _rgb(value)
 
 
-def _material_to_dict(mat):
-    return {"ka": _rgb(mat.ka), "kd": _rgb(mat.kd), "ks": _optional_rgb(mat.ks),
-            "shininess": 0.0 if mat.shininess is None else _plain(mat.shininess),
+def _texture_ref(value, key, texture_refs):
+    """{"texture": FILE, "wrap": ...} of a texture field, FILE from texture_refs[key]."""
+    if key not in texture_refs:
+        raise ValueError(f"texture_refs: no file for the {key} texture; expected "
+                         f"{{{key!r}: FILE}} naming the file it is saved in (save_scene "
+                         "writes it)")
+    return {"texture": os.fspath(texture_refs[key]), "wrap": value.wrap}
+
+
+def _material_to_dict(mat, texture_refs=None):
+    def colour(value, key, write=_rgb):
+        if is_texture(value):
+            return _texture_ref(value, key, texture_refs or {})
+        return None if value is None else write(value)
+    return {"ka": _rgb(mat.ka), "kd": colour(mat.kd, "kd"), "ks": colour(mat.ks, "ks"),
+            "shininess": 0.0 if mat.shininess is None else colour(mat.shininess, "shininess",
+                                                                   _plain),
             "emission": _optional_rgb(mat.emission)} | (
                 {} if mat.kt is None else {"kt": _rgb(mat.kt)})
 
@@ -697,7 +763,7 @@ def _objects_to_list(scene):
     return objects
 
 
-def _geometry_to_dict(scene, mesh_ref):
+def _geometry_to_dict(scene, mesh_ref, texture_refs=None):
     """The keys of the scene's mesh(es), transform and materials."""
     if scene.objects is not None:
         if mesh_ref is not None:
@@ -706,7 +772,7 @@ def _geometry_to_dict(scene, mesh_ref):
         out = {"objects": _objects_to_list(scene)}
     else:
         out = {"mesh": _mesh_to_dict(scene.mesh, mesh_ref),
-               "material": _material_to_dict(scene.material)}
+               "material": _material_to_dict(scene.material, texture_refs)}
         if scene.back_material is not None:
             out["back_material"] = _material_to_dict(scene.back_material)
     if not np.array_equal(np.asarray(scene.model), np.eye(4)):
@@ -714,7 +780,8 @@ def _geometry_to_dict(scene, mesh_ref):
     return out
 
 
-def scene_to_dict(scene: Scene, settings: RenderSettings, mesh_ref=None) -> dict:
+def scene_to_dict(scene: Scene, settings: RenderSettings, mesh_ref=None,
+                  texture_refs=None) -> dict:
     """The scene file (a JSON-ready dict) describing scene and settings.
 
     mesh_ref: None writes the mesh inline (vertices, faces and its normals); a path
@@ -722,9 +789,11 @@ def scene_to_dict(scene: Scene, settings: RenderSettings, mesh_ref=None) -> dict
     {"builtin": {"icosphere": {"subdivisions": 3}}} is written as given instead. A scene
     of several objects is written as "objects" with inline meshes (mesh_ref None).
     Lights are written grouped by type (ambient, directional, point, spot, area
-    rectangles, area disks, sphere).
+    rectangles, area disks, sphere). texture_refs: {field: file} for each texture of the
+    material (kd, ks, shininess), the files (relative to the scene file's folder) that
+    hold them.
     """
-    return {"version": FORMAT_VERSION, **_geometry_to_dict(scene, mesh_ref),
+    return {"version": FORMAT_VERSION, **_geometry_to_dict(scene, mesh_ref, texture_refs),
             "camera": camera_to_dict(scene.camera), "lights": _lights_to_list(scene.lights),
             "global_ambient": _rgb(scene.global_ambient), "background": _rgb(scene.background),
             "local_viewer": scene.local_viewer, "two_sided": scene.two_sided,
@@ -737,11 +806,29 @@ def _settings_to_dict(settings):
             for k, v in dataclasses.asdict(settings).items()}
 
 
+def save_textures(path, material, stem) -> dict:
+    """Write each texture of `material` beside `path`'s folder as STEM.FIELD.npy (linear,
+    exact); returns {field: file name} (texture_refs)."""
+    refs = {}
+    for key in ("kd", "ks", "shininess"):
+        value = getattr(material, key)
+        if is_texture(value):
+            refs[key] = f"{stem}.{key}.npy"
+            write_npy(os.path.join(os.path.dirname(os.path.abspath(path)), refs[key]),
+                      np.asarray(value.texels))
+    return refs
+
+
 def save_scene(path, scene: Scene, settings: RenderSettings, mesh_ref=None) -> str:
     """Write scene_to_dict(scene, settings, mesh_ref) to path as JSON, atomically. An
     absolute mesh_ref path is written relative to the scene file's folder, as every mesh
     path is read, so that the folder keeps working when it is copied or moved with its
-    mesh."""
+    mesh. The material's textures are written beside it first (NAME.kd.npy ... for
+    NAME.json)."""
     if isinstance(mesh_ref, (str, os.PathLike)) and os.path.isabs(mesh_ref):
         mesh_ref = os.path.relpath(mesh_ref, os.path.dirname(os.path.abspath(path)))
-    return write_json(path, scene_to_dict(scene, settings, mesh_ref))
+    refs = {}
+    if scene.objects is None:
+        stem = os.path.splitext(os.path.basename(os.fspath(path)))[0]
+        refs = save_textures(path, scene.material, stem)
+    return write_json(path, scene_to_dict(scene, settings, mesh_ref, refs))

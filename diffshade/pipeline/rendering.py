@@ -39,6 +39,7 @@ from diffshade.pipeline.cost import check_render
 from diffshade.raster.fragments import Fragments, rasterize
 from diffshade.raster.projection import Projected, project
 from diffshade.scene.camera import Camera, view_dir_infinite
+from diffshade.scene.materials import Material, has_textures
 from diffshade.scene.objects import take_material
 from diffshade.scene.scene import Scene
 from diffshade.settings import RenderSettings
@@ -46,6 +47,7 @@ from diffshade.shading.compact import on_active
 from diffshade.shading.lighting import ShadingParts, shade
 from diffshade.shading.samples import Samples, phong_samples, read, shading_samples
 from diffshade.shading.shadows import shadow_maps
+from diffshade.shading.texturing import textured_material
 
 DEFAULT_SETTINGS = RenderSettings()
 
@@ -71,11 +73,13 @@ def _fill_absent(material, other):
     return dataclasses.replace(material, shininess=shininess, **changes)
 
 
-def _material_at(scene, front, objects=None):
+def _material_at(scene, front, objects=None, uv=None):
     """The material of each sample: the front one, or the back material where `front` is
     False when the scene has one; front: [...] bool; objects: [...] int32 object ids in a
-    scene of several objects (its materials are stacked), else None."""
-    material, back_material = scene.material, scene.back_material
+    scene of several objects (its materials are stacked), else None; uv: [..., 2] where
+    the scene has textures (read here: diffshade.shading.texturing), else None."""
+    material = textured_material(scene.material, uv)
+    back_material = textured_material(scene.back_material, uv)
     if objects is not None:
         material = take_material(material, objects)
     if not scene.two_sided or back_material is None:
@@ -85,18 +89,21 @@ def _material_at(scene, front, objects=None):
     front_mat = _fill_absent(material, back_material)
     back = _fill_absent(back_material, material)
 
-    # a leaf's own axes ([3], or none for shininess) follow the samples' axes
-    per_sample = 0 if objects is None else front.ndim
-
-    def pick(f, b):
-        return jnp.where(front.reshape(front.shape + (1,) * (jnp.ndim(f) - per_sample)), f, b)
-    return jax.tree.map(pick, front_mat, back)
+    # a field's own axes ([3], or none for shininess) follow the samples' axes, whether it
+    # is one value, stacked per object and taken per sample, or read from a texture
+    def pick(name):
+        f, b = getattr(front_mat, name), getattr(back, name)
+        if f is None:
+            return None
+        own = 0 if name == "shininess" else 1
+        return jnp.where(front.reshape(front.shape + (1,) * own), f, b)
+    return Material(**{f.name: pick(f.name) for f in dataclasses.fields(Material)})
 
 
 def shade_samples(scene, samples: Samples, settings, maps=None):
     """(ShadingParts, colour) of each sample, [..., 3] each; colour clamped as OpenGL
     clamps (per sample) when settings.clamp. maps: the scene's shadow_maps (None: none)."""
-    material = _material_at(scene, samples.front, samples.objects)
+    material = _material_at(scene, samples.front, samples.objects, samples.uv)
     parts = shade(material, scene.lights, scene.global_ambient,
                   samples.points, samples.normals, view_dirs(scene, samples.points), settings,
                   maps)
@@ -155,6 +162,10 @@ def check_arguments(scene, settings, views=1, factor=1, camera=None):
     (checked before jit, at the API boundary)."""
     _check_types(scene, settings)
     settings.validate()
+    textured = has_textures(scene.material) or has_textures(scene.back_material)
+    if textured and (scene.mesh.uv is None or scene.objects is not None):
+        raise ValueError("scene.material: has a texture; expected a scene of one object whose "
+                         "mesh has UVs (mesh.uv)")
     costed = scene if camera is None else dataclasses.replace(scene, camera=camera)
     check_render(costed, settings, views, factor)
 

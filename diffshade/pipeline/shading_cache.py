@@ -114,7 +114,8 @@ def cache_shading(scene, frags: Fragments, settings) -> ShadingCache:
     index = np.flatnonzero(np.asarray(active)).astype(np.int32)
     kept, reader = slot_samples([np.asarray(a) for a in samples.leaves()], reader, index,
                                 (index.size, 1, 1))
-    return ShadingCache(Samples(*map(jnp.asarray, kept)), jax.tree.map(jnp.asarray, reader),
+    return ShadingCache(samples.with_leaves(list(map(jnp.asarray, kept))),
+                        jax.tree.map(jnp.asarray, reader),
                         jnp.asarray(index // k), jnp.take(slot.reshape(-1), index),
                         background, alpha)
 

@@ -46,6 +46,7 @@ from diffshade.scene.objects import (
     unstack_material,
 )
 from diffshade.scene.scene import Scene, make_scene, replace, scene_object
+from diffshade.scene.textures import MAX_TEXELS, WRAPS, Texture, make_texture
 from diffshade.scene.transform import transform_normals, transform_points
 
 __all__ = [
@@ -61,5 +62,6 @@ __all__ = [
     "mesh_from_trimesh", "model_matrix", "torus",
     "ObjectIds", "SceneObject", "stack_materials", "take_material", "unstack_material",
     "Scene", "make_scene", "replace", "scene_object",
+    "MAX_TEXELS", "WRAPS", "Texture", "make_texture",
     "transform_normals", "transform_points",
 ]

@@ -1,7 +1,11 @@
 """Triangle meshes: the `Mesh` pytree, its builders, and differentiable normals.
 
 `Mesh` holds vertices [V, 3] float, faces [F, 3] int32 (counter-clockwise = front) and
-unit vertex normals [V, 3] float. Its constructor is cheap and unchecked, because JAX
+unit vertex normals [V, 3] float, and optionally texture coordinates uv [V, 2] float
+(OBJ / OpenGL convention: v = 0 at the bottom row of the image; diffshade.scene.uv). Where
+a UV map is cut (a seam) the vertices are split, one copy per UV, and normals are
+computed over the positions welded back together, so that a seam never shows in the
+shading. Its constructor is cheap and unchecked, because JAX
 transforms rebuild it from tracers; the public builders, and `check_mesh` for a Mesh
 built otherwise, validate their input with one function (`_check_arrays`) and raise
 ValueError naming the argument, the value and what was expected. Builders keep float32
@@ -33,6 +37,7 @@ from diffshade.numerics import (
     safe_normalize,
     tiny,
 )
+from diffshade.scene.uv import sphere_corner_uv, split_by_corner_uv, torus_corner_uv, weld
 
 __all__ = [
     "Mesh", "box", "check_mesh", "face_areas", "face_normals", "icosphere", "load_mesh",
@@ -51,11 +56,14 @@ class Mesh:
     vertices: [V, 3] float (float32, or float64 under x64) model-space positions.
     faces: [F, 3] int32 vertex indices, counter-clockwise = front.
     normals: [V, 3] float, vertices' dtype, unit vertex normals (zero where undefined).
+    uv: [V, 2] float, vertices' dtype, texture coordinates (v = 0 at the image's bottom),
+    or None (a mesh without UVs, which no texture can be mapped onto).
     """
 
     vertices: jax.Array
     faces: jax.Array
     normals: jax.Array
+    uv: jax.Array | None = None
 
 
 def face_normals(vertices, faces):
@@ -174,15 +182,31 @@ def _check_faces(faces, num_vertices, name):
 
 class _Checked(NamedTuple):
     """Validated mesh data: vertices [V, 3] float64, faces [F, 3] int32, normals [V, 3]
-    float64 or None (numpy), and dtype, the float dtype the Mesh stores them in."""
+    float64 or None (numpy), dtype, the float dtype the Mesh stores them in, and uv
+    [V, 2] float64 or None."""
 
     vertices: np.ndarray
     faces: np.ndarray
     normals: np.ndarray | None
     dtype: np.dtype
+    uv: np.ndarray | None = None
 
 
-def _check_arrays(vertices, faces, normals=None, name=str):
+def _check_uv(uv, count, name, dtype):
+    """uv as a [count, 2] float64 numpy array of finite numbers, or ValueError."""
+    arr = _as_array(uv, name, "[V, 2] real numbers")
+    real = np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
+    if arr.shape != (count, 2) or not real:
+        raise ValueError(f"{name}: shape {arr.shape} of {arr.dtype}; expected [{count}, 2] "
+                         "real numbers, one (u, v) per vertex")
+    bad = np.flatnonzero(~representable(arr, dtype).all(axis=1))
+    if bad.size:
+        raise ValueError(f"{name}: row {bad[0]} is {arr[bad[0]].tolist()}; expected finite "
+                         "numbers")
+    return arr.astype(np.float64)
+
+
+def _check_arrays(vertices, faces, normals=None, name=str, uv=None):
     """The one validation of mesh data, shared by every path that builds a Mesh (arrays,
     mesh files, scene files, datasets): finite vertices (and normals) [V, 3], faces [F, 3]
     of exact integers in [0, V), F >= 1. name(field) is what errors call "vertices",
@@ -196,7 +220,9 @@ def _check_arrays(vertices, faces, normals=None, name=str):
         if normals.shape != verts.shape:
             raise ValueError(f"{name('normals')}: shape {normals.shape}; expected "
                              f"{verts.shape} like {name('vertices')}")
-    return _Checked(verts, tris, normals, dtype)
+    if uv is not None:
+        uv = _check_uv(uv, len(verts), name("uv"), dtype)
+    return _Checked(verts, tris, normals, dtype, uv)
 
 
 def check_mesh(mesh, name=lambda field: f"mesh.{field}"):
@@ -210,13 +236,15 @@ def check_mesh(mesh, name=lambda field: f"mesh.{field}"):
     """
     if not isinstance(mesh, Mesh):
         raise TypeError(f"mesh: got {type(mesh).__name__}; expected Mesh")
-    checked = _check_arrays(mesh.vertices, mesh.faces, mesh.normals, name)
-    return Mesh(*_jax_arrays(checked.vertices, checked.faces, checked.normals, checked.dtype))
+    checked = _check_arrays(mesh.vertices, mesh.faces, mesh.normals, name, mesh.uv)
+    return Mesh(*_jax_arrays(*checked))
 
 
-def _jax_arrays(verts, tris, normals, dtype):
-    """(vertices [V, 3] dtype, faces [F, 3] int32, normals [V, 3] dtype) as jax arrays."""
-    return jnp.asarray(verts, dtype), jnp.asarray(tris, jnp.int32), jnp.asarray(normals, dtype)
+def _jax_arrays(verts, tris, normals, dtype, uv=None):
+    """(vertices [V, 3] dtype, faces [F, 3] int32, normals [V, 3] dtype, uv [V, 2] dtype
+    or None) as jax arrays."""
+    return (jnp.asarray(verts, dtype), jnp.asarray(tris, jnp.int32), jnp.asarray(normals, dtype),
+            None if uv is None else jnp.asarray(uv, dtype))
 
 
 def _check_crease(crease_angle):
@@ -224,8 +252,13 @@ def _check_crease(crease_angle):
         raise ValueError(f"crease_angle: {crease_angle!r}; expected None or degrees in [0, 180]")
 
 
-def mesh_from_arrays(vertices, faces, normals=None, *, weighting="angle", crease_angle=None):
+def mesh_from_arrays(vertices, faces, normals=None, *, uv=None, weighting="angle",
+                     crease_angle=None):
     """Validated Mesh from vertices [V, 3] real, faces [F, 3] integer (CCW = front).
+
+    uv: optional [V, 2] real texture coordinates (v = 0 at the image's bottom; any
+    finite value: the texture's wrap mode says what outside [0, 1] reads). Vertices
+    split at a UV seam (same position, other UV) get the normals of the welded surface.
 
     normals: optional [V, 3] real, normalized here. Without them they are computed by
     `vertex_normals(weighting)`; with crease_angle (degrees) the vertices are first split
@@ -236,21 +269,35 @@ def mesh_from_arrays(vertices, faces, normals=None, *, weighting="angle", crease
     """
     _check_weighting(weighting)
     _check_crease(crease_angle)
-    checked = _check_arrays(vertices, faces, normals)
+    checked = _check_arrays(vertices, faces, normals, uv=uv)
     if normals is not None:
         return _mesh_with_normals(checked, crease_angle)
     if crease_angle is not None:
         return _split_creases(checked, weighting, crease_angle)
+    if checked.uv is not None:
+        return _welded_normals(checked, weighting)
     vs, fs = jnp.asarray(checked.vertices, checked.dtype), jnp.asarray(checked.faces)
     return Mesh(vs, fs, vertex_normals(vs, fs, weighting))
+
+
+def _welded_normals(checked, weighting):
+    """Mesh with UVs whose normals are those of its positions welded (seams closed)."""
+    ids, count = weld(checked.vertices)
+    welded = np.zeros((count, 3))
+    welded[ids] = checked.vertices
+    normals = vertex_normals(jnp.asarray(welded, checked.dtype),
+                             jnp.asarray(ids[checked.faces], jnp.int32), weighting)
+    return Mesh(jnp.asarray(checked.vertices, checked.dtype), jnp.asarray(checked.faces),
+                jnp.take(normals, jnp.asarray(ids), axis=0),
+                jnp.asarray(checked.uv, checked.dtype))
 
 
 def _mesh_with_normals(checked, crease_angle):
     """Mesh from `_check_arrays` output with user normals, normalized here."""
     if crease_angle is not None:
         raise ValueError(f"crease_angle: {crease_angle!r}; expected None when normals are given")
-    verts, tris, normals = _jax_arrays(*checked)
-    return Mesh(verts, tris, safe_normalize(normals))
+    verts, tris, normals, uv = _jax_arrays(*checked)
+    return Mesh(verts, tris, safe_normalize(normals), uv)
 
 
 def _smooth_corner_links(faces, face_n, cos_limit):
@@ -292,7 +339,9 @@ def _split_creases(checked, weighting, crease_angle):
     share one output vertex, whose normal is the weighted normal of the group's faces;
     every other group gets a copy of the vertex. Splitting at edges, not by comparing
     every face pair around a vertex, keeps a smooth fan whole even when its far sides
-    differ by more than crease_angle. Vertices used by no face are dropped.
+    differ by more than crease_angle. Vertices used by no face are dropped. With UVs,
+    edges and normals are those of the welded positions (a UV seam is no crease), and a
+    vertex keeps one copy per (UV, smoothing group).
     """
     verts, tris, dtype = checked.vertices, checked.faces, checked.dtype
     vs, fs = jnp.asarray(verts, dtype), jnp.asarray(tris)
@@ -300,17 +349,22 @@ def _split_creases(checked, weighting, crease_angle):
     weights = np.asarray(_corner_weights(vs, fs, weighting), np.float64).ravel()
     # float32 normals of coplanar faces differ by ~1e-7: flat regions must stay whole at 0.
     cos_limit = math.cos(math.radians(crease_angle)) - 1e-6
-    group = _components(tris.size, *_smooth_corner_links(tris, face_n, cos_limit))
+    welded = tris if checked.uv is None else weld(verts)[0][tris]
+    group = _components(tris.size, *_smooth_corner_links(welded, face_n, cos_limit))
+    _, normal_of = np.unique(welded.ravel().astype(np.int64) * tris.size + group,
+                             return_inverse=True)
+    summed = np.zeros((normal_of.max() + 1, 3))
+    np.add.at(summed, normal_of.ravel(), weights[:, None] * np.repeat(face_n, 3, axis=0))
     corner_vertex = tris.ravel().astype(np.int64)
     _, first, inverse = np.unique(
         corner_vertex * tris.size + group, return_index=True, return_inverse=True
     )
-    summed = np.zeros((first.size, 3))
-    np.add.at(summed, inverse.ravel(), weights[:, None] * np.repeat(face_n, 3, axis=0))
+    uv = None if checked.uv is None else jnp.asarray(checked.uv[corner_vertex[first]], dtype)
     return Mesh(
         jnp.asarray(verts[corner_vertex[first]], dtype),
         jnp.asarray(inverse.reshape(-1, 3), jnp.int32),
-        safe_normalize(jnp.asarray(summed, dtype)),
+        safe_normalize(jnp.asarray(summed[normal_of.ravel()[first]], dtype)),
+        uv,
     )
 
 
@@ -361,11 +415,14 @@ def _subdivide(verts, tris):
     return np.concatenate([verts, mids]), new.reshape(-1, 3)
 
 
-def icosphere(subdivisions=3, radius=1.0):
+def icosphere(subdivisions=3, radius=1.0, uv=False):
     """Watertight sphere Mesh centred at the origin, from the regular icosahedron.
 
     subdivisions: int in [0, 8]; V = 10 * 4**s + 2, F = 20 * 4**s. Normals are the exact
     sphere normals (unit positions), as `glNormal` in the lecture's `subSphere`.
+    uv: give it a longitude / latitude UV map (diffshade.scene.uv.sphere_corner_uv: u
+    around the y axis, 0.5 facing +z, the seam at -z; v = 1 at the north pole, y up);
+    the vertices on the seam and at the poles are then split, so V grows.
     """
     _check_count(subdivisions, "subdivisions", 0, 8)
     _check_positive(radius, "radius")
@@ -374,15 +431,29 @@ def icosphere(subdivisions=3, radius=1.0):
     tris = _ICOSAHEDRON_FACES
     for _ in range(subdivisions):
         verts, tris = _subdivide(verts, tris)
+    _check_flag(uv, "uv")
+    coords = None
+    if uv:
+        source, tris, coords = split_by_corner_uv(tris, sphere_corner_uv(verts, tris))
+        verts = verts[source]
     unit = jnp.asarray(verts, float_dtype())
-    return Mesh(unit * radius, jnp.asarray(tris, jnp.int32), unit)
+    return Mesh(unit * radius, jnp.asarray(tris, jnp.int32), unit,
+                None if coords is None else jnp.asarray(coords, float_dtype()))
 
 
-def torus(major_radius=1.0, minor_radius=0.35, major_segments=48, minor_segments=24):
+def _check_flag(value, name):
+    if not isinstance(value, bool):
+        raise ValueError(f"{name}: {value!r}; expected true or false")
+
+
+def torus(major_radius=1.0, minor_radius=0.35, major_segments=48, minor_segments=24,
+          uv=False):
     """Watertight torus Mesh around the y axis (y up), centred at the origin.
 
     V = major_segments * minor_segments, F = 2 * V, faces CCW seen from outside, exact
     analytic normals. Needs 0 < minor_radius < major_radius and segments >= 3.
+    uv: give it UVs (u around the y axis, v around the tube, each in [0, 1]); the two
+    closing rings of vertices are then split, so V = (major + 1) * (minor + 1).
     """
     _check_positive(major_radius, "major_radius")
     _check_positive(minor_radius, "minor_radius")
@@ -397,9 +468,14 @@ def torus(major_radius=1.0, minor_radius=0.35, major_segments=48, minor_segments
     cos_u, sin_u, cos_v, sin_v = np.cos(u), np.sin(u), np.cos(v), np.sin(v)
     normals = np.stack(np.broadcast_arrays(cos_v * cos_u, sin_v, cos_v * sin_u), -1)
     ring = np.stack(np.broadcast_arrays(cos_u, 0.0 * v, sin_u), -1) * major_radius
-    return Mesh(*_jax_arrays((ring + minor_radius * normals).reshape(-1, 3),
-                             _grid_faces(major_segments, minor_segments),
-                             normals.reshape(-1, 3), float_dtype()))
+    verts, normals = (ring + minor_radius * normals).reshape(-1, 3), normals.reshape(-1, 3)
+    tris = _grid_faces(major_segments, minor_segments)
+    _check_flag(uv, "uv")
+    if not uv:
+        return Mesh(*_jax_arrays(verts, tris, normals, float_dtype()))
+    source, tris, coords = split_by_corner_uv(
+        tris, torus_corner_uv(tris, major_segments, minor_segments))
+    return Mesh(*_jax_arrays(verts[source], tris, normals[source], float_dtype(), coords))
 
 
 def _grid_faces(rows, cols):
@@ -424,11 +500,14 @@ def _three_numbers(value):
     return arr if arr.shape == (3,) and np.all(representable(arr)) else None
 
 
-def box(size=(1.0, 1.0, 1.0)):
+def box(size=(1.0, 1.0, 1.0), uv=False):
     """Axis-aligned box Mesh centred at the origin with side lengths size: 3 floats > 0.
 
     24 vertices (4 per side, so each side has its own flat normal), 12 faces CCW outward.
+    uv: give it UVs: each side shows the whole texture, unmirrored seen from outside (its
+    corners at (0, 0), (1, 0), (1, 1), (0, 1)); V stays 24.
     """
+    _check_flag(uv, "uv")
     sides = _three_numbers(size)
     if sides is None or not np.all(sides > 0):
         raise ValueError(f"size: {size!r}; expected 3 finite numbers > 0")
@@ -443,15 +522,17 @@ def box(size=(1.0, 1.0, 1.0)):
         corners.append(side)
         normals.append(np.broadcast_to(np.eye(3)[axis] * sign, (4, 3)))
     tris = (np.arange(6)[:, None, None] * 4 + np.array([[0, 1, 2], [0, 2, 3]])).reshape(-1, 3)
+    coords = np.tile((square + 1.0) / 2.0, (6, 1)) if uv else None
     return Mesh(*_jax_arrays(np.concatenate(corners) * half, tris, np.concatenate(normals),
-                             float_dtype()))
+                             float_dtype(), coords))
 
 
 def mesh_from_trimesh(tm, *, weighting="angle", crease_angle=None):
     """Mesh from a trimesh.Trimesh (a trimesh.Scene is concatenated first).
 
-    Only positions and faces are taken: normals are our own (`vertex_normals`, or crease
-    splitting when crease_angle is given), never trimesh's.
+    Positions, faces and UVs (tm.visual.uv, when the file had them: trimesh has split
+    the vertices at UV seams) are taken: normals are our own (`vertex_normals` over the
+    welded positions, or crease splitting when crease_angle is given), never trimesh's.
     """
     import trimesh  # here, not at import: it imports scipy (slow) and most runs never need it
 
@@ -460,7 +541,9 @@ def mesh_from_trimesh(tm, *, weighting="angle", crease_angle=None):
     if not isinstance(tm, trimesh.Trimesh):
         raise TypeError(f"tm: {type(tm).__name__}; expected trimesh.Trimesh or trimesh.Scene")
     verts, faces = np.asarray(tm.vertices), np.asarray(tm.faces)
-    return mesh_from_arrays(verts, faces, weighting=weighting, crease_angle=crease_angle)
+    uv = getattr(tm.visual, "uv", None)
+    uv = None if uv is None or len(uv) != len(verts) else np.asarray(uv)
+    return mesh_from_arrays(verts, faces, uv=uv, weighting=weighting, crease_angle=crease_angle)
 
 
 _READABLE = "a mesh file trimesh reads (OBJ, PLY, STL, GLB, ...)"
@@ -588,7 +671,7 @@ def transform_mesh(mesh, matrix):
     linear = matrix[:3, :3]
     vertices = mesh.vertices @ linear.T + matrix[:3, 3]
     normals = safe_normalize(mesh.normals @ _inverse_transpose_direction(linear).T)
-    return Mesh(vertices, mesh.faces, normals)
+    return Mesh(vertices, mesh.faces, normals, mesh.uv)
 
 
 def _axis_rotation(axis, angle):

@@ -9,6 +9,8 @@ describes one object; `make_scene(objects=[...])` joins several (`join_objects`)
   objects' names (static; None when no object is named);
 - the materials are stacked along a leading object axis ([O, 3], shininess [O]); an
   optional field absent from some materials (ks, emission, or any other) is zeros there.
+  Textured materials cannot be stacked: textures are for scenes of one object (the
+  joined mesh keeps UVs only when every object's mesh has them).
 Shading takes each sample's material by its object id (`take_material`). A scene of one
 object keeps the single-object form (no ids, an unstacked material, the transform in
 `Scene.model`), so it compiles exactly as a scene built from a mesh does.
@@ -84,7 +86,8 @@ def _placed(obj: SceneObject):
     mesh = obj.mesh
     return Mesh(transform_points(obj.transform, mesh.vertices).astype(mesh.vertices.dtype),
                 mesh.faces,
-                transform_normals(obj.transform, mesh.normals).astype(mesh.normals.dtype))
+                transform_normals(obj.transform, mesh.normals).astype(mesh.normals.dtype),
+                mesh.uv)
 
 
 def object_names(objects):
@@ -106,9 +109,11 @@ def join_objects(objects):
     object's front one where it has none), or None when no object has one."""
     meshes = [_placed(o) for o in objects]
     offsets = np.cumsum([0] + [m.vertices.shape[0] for m in meshes])[:-1]
+    uv = (None if any(m.uv is None for m in meshes)
+          else jnp.concatenate([m.uv for m in meshes]))
     mesh = Mesh(jnp.concatenate([m.vertices for m in meshes]),
                 jnp.concatenate([m.faces + off for m, off in zip(meshes, offsets, strict=True)]),
-                jnp.concatenate([m.normals for m in meshes]))
+                jnp.concatenate([m.normals for m in meshes]), uv)
     def repeated(counts):
         return jnp.asarray(np.repeat(np.arange(len(meshes)), counts), jnp.int32)
     ids = ObjectIds(repeated([m.faces.shape[0] for m in meshes]),
@@ -125,4 +130,6 @@ def split_mesh(mesh: Mesh, ids: ObjectIds, index: int) -> Mesh:
     """Object `index`'s part of a joined mesh (numpy arrays), its faces renumbered."""
     vertices = np.flatnonzero(np.asarray(ids.vertices) == index)
     faces = np.asarray(mesh.faces)[np.asarray(ids.faces) == index] - vertices[0]
-    return Mesh(np.asarray(mesh.vertices)[vertices], faces, np.asarray(mesh.normals)[vertices])
+    uv = None if mesh.uv is None else np.asarray(mesh.uv)[vertices]
+    return Mesh(np.asarray(mesh.vertices)[vertices], faces, np.asarray(mesh.normals)[vertices],
+                uv)

@@ -21,10 +21,11 @@ import numpy as np
 from diffshade.numerics import float_dtype, representable
 from diffshade.scene.camera import Camera
 from diffshade.scene.lights import LightGroups, group_lights
-from diffshade.scene.materials import Material
+from diffshade.scene.materials import TEXTURED_FIELDS, Material, has_textures
 from diffshade.scene.materials import material as make_material
 from diffshade.scene.mesh import Mesh
 from diffshade.scene.objects import ObjectIds, SceneObject, join_objects
+from diffshade.scene.textures import is_texture
 
 
 @partial(jax.tree_util.register_dataclass,
@@ -129,19 +130,45 @@ def _check_objects(objects, mesh, material, back_material):
     return list(objects)
 
 
+def _textured_field(material):
+    return next(name for name in TEXTURED_FIELDS if is_texture(getattr(material, name)))
+
+
+def _check_textures(mesh, materials, where):
+    """ValueError unless a textured material (of `materials`, {name: Material or None})
+    is on a mesh with UVs, in a scene of one object (where: its key, or None)."""
+    for name, mat in materials.items():
+        if not has_textures(mat):
+            continue
+        field = f"{name}.{_textured_field(mat)}"
+        if where is not None:
+            raise ValueError(f"{where}.{field}: a texture in a scene of several objects; "
+                             "expected textures only in a scene of one object")
+        if mesh.uv is None:
+            raise ValueError(f"{field}: a texture on a mesh without UVs; expected a mesh "
+                             "with texture coordinates (mesh_from_arrays(..., uv=...), an "
+                             "OBJ with vt, icosphere/torus/box(uv=True))")
+
+
 def _geometry(mesh, material, back_material, objects, model):
     """(mesh, material, back_material, ObjectIds or None, model) of make_scene's
     arguments: one object keeps the single-object form, its transform in the model."""
     if objects is None:
         _check_types(("mesh", mesh, Mesh), _optional_material("material", material),
                      _optional_material("back_material", back_material))
+        _check_textures(mesh, {"material": material, "back_material": back_material}, None)
         return (mesh, make_material() if material is None else material, back_material,
                 None, _model_matrix(model))
     objects = _check_objects(objects, mesh, material, back_material)
     model = _model_matrix(model)
     if len(objects) == 1:
         one = objects[0]
+        _check_textures(one.mesh, {"material": one.material,
+                                   "back_material": one.back_material}, None)
         return one.mesh, one.material, one.back_material, None, model @ one.transform
+    for i, o in enumerate(objects):
+        _check_textures(o.mesh, {"material": o.material, "back_material": o.back_material},
+                        f"objects[{i}]")
     mesh, ids, front, back = join_objects(objects)
     return mesh, front, back, ids, model
 

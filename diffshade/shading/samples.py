@@ -10,7 +10,10 @@ is added in one place. Per mode (RenderSettings.shading, OpenGL 1.x):
 Two-sided lighting (scene.two_sided) lights back faces with the reversed normal: the
 per-vertex modes then have a front and a back sample of every vertex, and a fragment
 reads the side its face shows. In a scene of several objects every sample also carries
-its object's id (of its face or vertex), which picks its material.
+its object's id (of its face or vertex), which picks its material. A scene whose material
+has a texture (and only such a scene) gives every sample its UV: the perspective-correct
+interpolated UV (Phong), the vertex's (Gouraud, flat_last) or the mean of the face's
+corners' (flat), where diffshade.shading.texturing reads the textures.
 
 `Reader` says how fragments read sample values: row `ids[...]` of `table` lists the
 samples (G of them) a fragment combines with `weights[..., G]`; no table means the
@@ -25,6 +28,7 @@ import jax.numpy as jnp
 from diffshade.numerics import safe_normalize
 from diffshade.raster.fragments import face_edge_coefficients
 from diffshade.raster.interpolation import interpolate_rows
+from diffshade.scene.materials import has_textures
 
 
 @jax.tree_util.register_dataclass
@@ -32,17 +36,24 @@ from diffshade.raster.interpolation import interpolate_rows
 class Samples:
     """points: [..., 3] world space; normals: [..., 3] unit, reversed on back sides under
     two-sided lighting; front: [...] bool, lit with the front material; objects: [...]
-    int32 object ids in a scene of several objects, else None."""
+    int32 object ids in a scene of several objects, else None; uv: [..., 2] texture
+    coordinates where the scene has textures, else None."""
 
     points: jax.Array
     normals: jax.Array
     front: jax.Array
     objects: jax.Array | None = None
+    uv: jax.Array | None = None
 
     def leaves(self):
-        """The arrays, in field order, without an absent `objects`."""
-        return (self.points, self.normals, self.front) + (
-            () if self.objects is None else (self.objects,))
+        """The arrays, in field order, without the absent ones (objects, uv)."""
+        return tuple(a for a in (self.points, self.normals, self.front, self.objects, self.uv)
+                     if a is not None)
+
+    def with_leaves(self, leaves):
+        """Samples of the same structure holding `leaves` (as `leaves()` lists them)."""
+        names = [f.name for f in dataclasses.fields(self) if getattr(self, f.name) is not None]
+        return Samples(**dict(zip(names, leaves, strict=True)))
 
 
 @jax.tree_util.register_dataclass
@@ -54,6 +65,12 @@ class Reader:
     ids: jax.Array
     weights: jax.Array | None = None
     table: jax.Array | None = None
+
+
+def uses_uv(scene) -> bool:
+    """Whether the scene's samples need UVs: its (front or back) material has a texture."""
+    return has_textures(scene.material) or (scene.two_sided and
+                                            has_textures(scene.back_material))
 
 
 def flat_samples(scene, proj):
@@ -82,10 +99,10 @@ def phong_samples(scene, proj, face_ids, bary, front, host=None):
     """Phong's samples of fragments given by their face ids [N, K] (-1 = empty),
     barycentrics [N, K, 3] and sides [N, K]: interpolated points and renormalized normals
     (render lights only the fragments that count this way, diffshade.render)."""
-    points, normals = interpolate_rows((proj.world, proj.normals), scene.mesh.faces, face_ids,
-                                       bary, host)
+    attrs = (proj.world, proj.normals) + ((scene.mesh.uv,) if uses_uv(scene) else ())
+    points, normals, *uv = interpolate_rows(attrs, scene.mesh.faces, face_ids, bary, host)
     normals = _oriented(safe_normalize(normals), front, scene.two_sided)
-    return Samples(points, normals, front, object_ids(scene, True, face_ids))
+    return Samples(points, normals, front, object_ids(scene, True, face_ids), *uv)
 
 
 def _phong(scene, proj, frags, host):
@@ -99,17 +116,19 @@ def _per_vertex(scene, proj, frags, corners):
     n_faces, n_vertices = faces.shape[0], proj.world.shape[0]
     weights = frags.bary if len(corners) == 3 else None
     objects = None if scene.objects is None else scene.objects.vertices
+    uv = scene.mesh.uv if uses_uv(scene) else None
     if not scene.two_sided:
         front = jnp.ones(n_vertices, bool)
-        return (Samples(proj.world, proj.normals, front, objects),
+        return (Samples(proj.world, proj.normals, front, objects, uv),
                 Reader(frags.face_ids, weights, faces))
     points = jnp.concatenate([proj.world, proj.world])
     normals = jnp.concatenate([proj.normals, -proj.normals])
     front = jnp.arange(2 * n_vertices) < n_vertices
     objects = None if objects is None else jnp.concatenate([objects, objects])
+    uv = None if uv is None else jnp.concatenate([uv, uv])
     ids = jnp.where(frags.front | ~frags.valid, frags.face_ids, frags.face_ids + n_faces)
     table = jnp.concatenate([faces, faces + n_vertices])
-    return Samples(points, normals, front, objects), Reader(ids, weights, table)
+    return Samples(points, normals, front, objects, uv), Reader(ids, weights, table)
 
 
 def _flat(scene, proj, frags):
@@ -117,7 +136,8 @@ def _flat(scene, proj, frags):
     normals = _oriented(normals, front, scene.two_sided)
     table = jnp.arange(points.shape[0], dtype=jnp.int32)[:, None]
     objects = None if scene.objects is None else scene.objects.faces
-    return Samples(points, normals, front, objects), Reader(frags.face_ids, None, table)
+    uv = scene.mesh.uv[scene.mesh.faces].mean(1) if uses_uv(scene) else None
+    return Samples(points, normals, front, objects, uv), Reader(frags.face_ids, None, table)
 
 
 def shading_samples(scene, proj, frags, shading, host=None):

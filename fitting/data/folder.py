@@ -13,7 +13,9 @@ A dataset is a folder of target images and diffshade scene files (docs/scene-for
     masks          optional, per view: white where the pixel counts
     truth.json     optional: the true material; of several objects, {"objects": {name:
                    material}} or {"objects": [one material per object]} (or one
-                   material, which every object has)
+                   material, which every object has); a textured kd (ks, shininess) is
+                   {"texture": FILE} (docs/textures.md), FILE beside it (synth writes
+                   truth.kd.npy, linear, and truth.kd.png to look at)
 
 A view entry is {"scene": file, "image": file} with optional "camera" (index into the
 scene file's cameras, default 0), "target" (a .npy read instead of "image" when it
@@ -51,7 +53,9 @@ from diffshade.io import (
     image_header,
     pinhole,
     read_json,
+    save_textures,
     scene_to_dict,
+    texture,
     undistort_image,
     undistort_mask,
     write_json,
@@ -75,15 +79,35 @@ MATERIAL_KEYS = ("ka", "kd", "ks", "shininess", "emission", "kt")
 
 def _check_material_value(key, value, where):
     """JSON material values: numbers ([r, g, b] for a coefficient; null for ks and
-    emission and kt, which may be absent). material() checks the ranges and lengths."""
+    emission and kt, which may be absent; {"texture": FILE} for kd, ks, shininess).
+    material() checks the ranges and lengths."""
     if value is None and key in ("ks", "emission", "kt"):
+        return
+    if isinstance(value, dict) and key in _TEXTURED:
+        if set(value) != {"texture"} or not isinstance(value["texture"], str):
+            _fail(where, value, '{"texture": FILE}')
         return
     items = value if isinstance(value, list) and key != "shininess" else [value]
     if not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in items):
         _fail(where, value, "a number" if key == "shininess" else "a number or [r, g, b]")
 
 
-def _one_material_from_dict(data, where):
+_TEXTURED = ("kd", "ks", "shininess")
+
+
+def _textures(data, where, base_dir):
+    """data with each {"texture": FILE} read (FILE relative to base_dir)."""
+    out = dict(data)
+    for key in _TEXTURED:
+        if isinstance(data.get(key), dict):
+            if base_dir is None:
+                _fail(f"{where}: {key}", data[key], "numbers here (a texture only in a "
+                      "dataset's truth.json)")
+            out[key] = texture(os.path.join(base_dir, data[key]["texture"]))
+    return out
+
+
+def _one_material_from_dict(data, where, base_dir=None):
     if not isinstance(data, dict) or set(data) - set(MATERIAL_KEYS):
         extra = sorted(set(data) - set(MATERIAL_KEYS)) if isinstance(data, dict) else \
             type(data).__name__
@@ -92,19 +116,20 @@ def _one_material_from_dict(data, where):
     for key, value in data.items():
         _check_material_value(key, value, f"{where}: {key}")
     try:
-        return ds.material(**data)
+        return ds.material(**_textures(data, where, base_dir))
     except ValueError as err:
         raise ValueError(f"{where}: {err}") from err
 
 
-def material_from_dict(data, where):
+def material_from_dict(data, where, base_dir=None):
     """Material from a parsed JSON object with keys among MATERIAL_KEYS (truth.json, an
     --init file); for several objects (diffshade.scene.objects) {"objects": [one such object
     per object]} gives a stacked Material and {"objects": {name: one such object}} a dict
     {name: Material} (fitting.data.views.material_for puts it in the objects' order).
-    ValueError naming `where` and the key otherwise."""
+    ValueError naming `where` and the key otherwise. base_dir: the folder textures
+    ({"texture": FILE}) are read from; None: no textures."""
     if not (isinstance(data, dict) and "objects" in data):
-        return _one_material_from_dict(data, where)
+        return _one_material_from_dict(data, where, base_dir)
     entries = data["objects"]
     if set(data) != {"objects"}:
         raise ValueError(f"{where} has {sorted(set(data) - {'objects'})} beside "
@@ -123,29 +148,35 @@ def material_from_dict(data, where):
 # ---- writing ----
 
 
-def material_dict(mat, names=None) -> dict:
+def material_dict(mat, names=None, texture_refs=None) -> dict:
     """{'ka', 'kd', 'ks', 'shininess', 'emission', 'kt'} as JSON-ready lists (None when
     absent); of a stacked Material (several objects), {'objects': [one such dict per
     object]}, or {'objects': {name: one such dict}} given the objects' `names`
-    (material_from_dict reads them all)."""
+    (material_from_dict reads them all). texture_refs: {field: FILE} of a textured
+    material's textures, written as {"texture": FILE}."""
     count = object_count(mat)
     if count is not None:
         dicts = [material_dict(unstack_material(mat, i)) for i in range(count)]
         return {"objects": dicts if names is None else dict(zip(names, dicts, strict=True))}
 
-    def rgb(value):
-        return None if value is None else np.asarray(value, np.float64).tolist()
-    return {"ka": rgb(mat.ka), "kd": rgb(mat.kd), "ks": rgb(mat.ks),
-            "shininess": float(mat.shininess), "emission": rgb(mat.emission),
-            "kt": rgb(mat.kt)}
+    refs = texture_refs or {}
+
+    def rgb(value, key=None, write=lambda v: np.asarray(v, np.float64).tolist()):
+        if key in refs:
+            return {"texture": refs[key]}
+        return None if value is None else write(value)
+    return {"ka": rgb(mat.ka), "kd": rgb(mat.kd, "kd"), "ks": rgb(mat.ks, "ks"),
+            "shininess": rgb(mat.shininess, "shininess", float),
+            "emission": rgb(mat.emission), "kt": rgb(mat.kt)}
 
 
-def _write_view(out_dir, dataset, i):
+def _write_view(out_dir, dataset, i, texture_refs=None):
     """view_NNN.json (mesh inline, or the built-in shape's reference), .png, .npy, mask."""
     view, name = dataset.views[i], f"view_{i:03d}"
     scene = view_scene(dataset, i, material_for(dataset, dataset.truth or DEFAULT_INIT))
     write_json(os.path.join(out_dir, f"{name}.json"),
-               scene_to_dict(scene, dataset.settings, dataset.info.get("mesh_ref")))
+               scene_to_dict(scene, dataset.settings, dataset.info.get("mesh_ref"),
+                             texture_refs))
     ds.write_png(os.path.join(out_dir, f"{name}.png"), view.target)
     ds.write_npy(os.path.join(out_dir, f"{name}.npy"), view.target.astype(np.float32))
     entry = {"scene": f"{name}.json", "image": f"{name}.png", "target": f"{name}.npy",
@@ -155,6 +186,19 @@ def _write_view(out_dir, dataset, i):
         ds.write_png(os.path.join(out_dir, entry["mask"]), view.mask.astype(np.float64),
                      color_space="linear")
     return entry
+
+
+def _write_truth_textures(out_dir, truth):
+    """{field: FILE} of the truth's textures, written as truth.FIELD.npy (linear, what
+    the scene files and truth.json refer to) and truth.FIELD.png (sRGB, to look at)."""
+    if truth is None or object_count(truth) is not None:
+        return {}
+    refs = save_textures(os.path.join(out_dir, "truth.json"), truth, "truth")
+    for key in refs:
+        texels = np.asarray(getattr(truth, key).texels)
+        ds.write_png(os.path.join(out_dir, f"truth.{key}.png"),
+                     texels if key != "shininess" else texels / max(texels.max(), 1e-12))
+    return refs
 
 
 def _names(dataset):
@@ -167,10 +211,11 @@ def save_dataset(dataset: Dataset, out_dir) -> str:
     returns its path. The float targets (.npy) are what load_dataset reads back."""
     out_dir = os.fspath(out_dir)
     os.makedirs(out_dir, exist_ok=True)
-    entries = [_write_view(out_dir, dataset, i) for i in range(len(dataset.views))]
+    refs = _write_truth_textures(out_dir, dataset.truth)
+    entries = [_write_view(out_dir, dataset, i, refs) for i in range(len(dataset.views))]
     if dataset.truth is not None:
         write_json(os.path.join(out_dir, "truth.json"),
-                   material_dict(dataset.truth, _names(dataset)))
+                   material_dict(dataset.truth, _names(dataset), refs))
     write_json(os.path.join(out_dir, "dataset.json"),
                {"format": FORMAT, "version": VERSION, "views": entries, "info": dataset.info})
     return out_dir
@@ -445,7 +490,7 @@ def load_dataset(path, color_space=None, saturation=None) -> Dataset:
     truth_path = os.path.join(path, "truth.json")
     if not os.path.isfile(truth_path):
         return dataset
-    truth = material_from_dict(read_json(truth_path, "truth.json"), truth_path)
+    truth = material_from_dict(read_json(truth_path, "truth.json"), truth_path, path)
     return dataclasses.replace(dataset, truth=material_for(dataset, truth, truth_path))
 
 

@@ -9,8 +9,10 @@ from fitting.solve.gauss_newton import levenberg_marquardt
 from fitting.solve.linear import solve_linear
 from fitting.solve.options import FIT_METHODS, METHODS, FitOptions
 from fitting.solve.step import make_optimizer, make_step
+from fitting.solve.texture import DEFAULT_SMOOTHNESS, TextureSolution, solve_kd_texture
 
 __all__ = [
     "levenberg_marquardt", "solve_linear", "FIT_METHODS", "METHODS", "FitOptions",
     "make_optimizer", "make_step",
+    "DEFAULT_SMOOTHNESS", "TextureSolution", "solve_kd_texture",
 ]

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffshade.numerics import float_dtype
-from diffshade.scene import Material, material, stack_materials, unstack_material
+from diffshade.scene import Material, Texture, material, stack_materials, unstack_material
 from fitting.spec.gains import GAIN_NAMES, fitted_gains, gain_values
 
 COEFFICIENTS = ("ka", "kd", "ks")
@@ -191,7 +191,10 @@ def _light_values(lights, spec):
 
 
 def object_count(material_: Material):
-    """The number of objects of a stacked Material ([O, 3] leaves), or None for one."""
+    """The number of objects of a stacked Material ([O, 3] leaves), or None for one (a
+    textured material is one: textures are for scenes of one object)."""
+    if isinstance(material_.kd, Texture):
+        return None
     return None if jnp.ndim(material_.kd) < 2 else int(jnp.shape(material_.kd)[0])
 
 

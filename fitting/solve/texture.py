@@ -1,0 +1,195 @@
+"""A kd texture in closed form: the texels that best explain the views, by least squares.
+
+With geometry, cameras, lights and every other material parameter fixed (the shininess
+included), an unclamped render is affine in the kd texels t: image_v = A_v t + b_v, b_v
+the render with kd = 0. `solve_kd_texture` minimizes
+
+    sum_v || m_v * (A_v t + b_v - y_v) ||^2 + lam * t' L t
+
+over the texels of a RES x RES map, m_v the views' pixel masks, y_v their targets and L
+the graph Laplacian of the texel grid (4 neighbours, wrapping as the texture does:
+t' L t is the sum of squared differences of neighbouring texels), by conjugate gradients
+on the normal equations (A'MA + lam L) t = A'M(y - b), preconditioned by their diagonal
+(Jacobi). A_v is the JVP of the render at t = 0 (`jax.linearize`) and A_v' its transpose
+(`jax.linear_transpose`): no matrix is formed, each iteration costs a forward and a
+backward render per view.
+
+The prior's weight follows one rule: lam = smoothness * (the mean data weight of a seen
+texel), the data weight of texel i being (A'MA 1)_i, what the views pin it by; so
+`smoothness` is unitless (default DEFAULT_SMOOTHNESS) and the same value means the same
+on any scene, resolution or exposure. A texel is *seen* when its data weight is above
+1e-9 of the mean's (some view's lit pixel reads it); its coverage is the number of views
+that do. The texels no view sees are reported as unseen (NaN), never invented: the prior
+fills them only inside the solve, so that the system is well posed.
+
+The standard error of a seen texel is sigma / sqrt((A'MA)_ii), sigma^2 the residual
+variance (residual sum of squares over the counted values less the seen unknowns): the
+texel's error were its neighbours known, without the prior (the unregularized solve's
+marginal error is at least this; the prior lowers it). The
+diagonal (A'MA)_ii comes from PROBE_STRIDE^2 probes (and a few more when RES is not a
+multiple of it): each probe holds texels PROBE_STRIDE apart, so it is exact wherever no
+pixel reads two texels that far apart (a texel not much smaller than a pixel).
+"""
+
+from functools import partial
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from diffshade import RenderSettings, render, replace
+
+__all__ = ["DEFAULT_SMOOTHNESS", "TextureSolution", "solve_kd_texture"]
+
+DEFAULT_SMOOTHNESS = 1e-3
+PROBE_STRIDE = 4
+
+
+class TextureSolution(NamedTuple):
+    """texels: [R, R, 3] linear kd, NaN where unseen (row 0 = v = 1); coverage: [R, R]
+    int, the views that see each texel; iterations: CG iterations run; smoothness and
+    lam: the prior's unitless setting and its weight; residual: the relative residual
+    of the normal equations at the end; std_error: [R, R, 3] per texel (NaN where
+    unseen; module docstring)."""
+
+    texels: jax.Array
+    coverage: jax.Array
+    iterations: int
+    smoothness: float
+    lam: float
+    residual: float
+    std_error: jax.Array
+
+
+def _view_map(scene, settings):
+    """t [R, R, 3] -> the view's [H, W, 3] render with t as its kd texels."""
+    def image(texels):
+        kd = replace(scene.material.kd, texels=texels)
+        return render(replace(scene, material=replace(scene.material, kd=kd)), settings)[..., :3]
+    return image
+
+
+def _laplacian(t):
+    """L t of the texel grid graph with wrapped neighbours: [R, R, 3] -> [R, R, 3]."""
+    return 4.0 * t - sum(jnp.roll(t, shift, axis) for axis in (0, 1) for shift in (1, -1))
+
+
+def _pcg(operator, rhs, inverse_diagonal, tol, maxiter):
+    """Conjugate gradients preconditioned by the inverse diagonal (Jacobi) for
+    operator(x) = rhs from x = 0: (x, iterations, relative residual). Jacobi evens out
+    texels seen by many pixels and by few (at a grazing angle, near a pole), whose
+    scales differ by orders of magnitude and would otherwise cost most iterations."""
+    norm_rhs = jnp.sqrt(jnp.vdot(rhs, rhs))
+
+    def more(state):
+        _, r, _, _, k = state
+        return (k < maxiter) & (jnp.sqrt(jnp.vdot(r, r)) > tol * norm_rhs)
+
+    def step(state):
+        x, r, p, rz, k = state
+        ap = operator(p)
+        alpha = rz / jnp.vdot(p, ap)
+        x, r = x + alpha * p, r - alpha * ap
+        z = inverse_diagonal * r
+        rz_new = jnp.vdot(r, z)
+        return x, r, z + (rz_new / rz) * p, rz_new, k + 1
+    z = inverse_diagonal * rhs
+    start = (jnp.zeros_like(rhs), rhs, z, jnp.vdot(rhs, z), 0)
+    x, r, _, _, k = jax.lax.while_loop(more, step, start)
+    return x, k, jnp.sqrt(jnp.vdot(r, r)) / jnp.maximum(norm_rhs, jnp.finfo(rhs.dtype).tiny)
+
+
+def _linear_parts(scenes, settings, masks, res, dtype):
+    """Per view (b_v [H, W, 3], A_v, A_v') of the affine render in the texels."""
+    zero = jnp.zeros((res, res, 3), dtype)
+    parts = []
+    for scene, mask in zip(scenes, masks, strict=True):
+        b, apply = jax.linearize(_view_map(scene, settings), zero)
+        weight = mask[..., None].astype(dtype)
+        masked = lambda t, apply=apply, weight=weight: weight * apply(t)  # noqa: E731
+        parts.append((b, masked, jax.linear_transpose(masked, zero)))
+    return parts
+
+
+def _probe_colours(res, stride):
+    """[res] int: texel index -> probe colour along an axis: i mod stride, except the
+    last res mod stride texels, which get colours of their own, so that texels of one
+    colour are at least `stride` apart, across the wrap too."""
+    full = res - res % stride
+    index = np.arange(res)
+    return np.where(index < full, index % stride, stride + index - full)
+
+
+def _diagonal(data, res, dtype, stride=PROBE_STRIDE):
+    """The diagonal [R, R, 3] of the data operator by probes (module docstring)."""
+    stride = min(stride, res)
+    colours = _probe_colours(res, stride)
+    count = int(colours.max()) + 1
+    diagonal = jnp.zeros((res, res, 3), dtype)
+    for row in range(count):
+        for col in range(count):
+            probe = ((colours[:, None] == row) & (colours[None, :] == col))
+            probe = jnp.broadcast_to(jnp.asarray(probe, dtype)[..., None], (res, res, 3))
+            diagonal = diagonal + probe * data(probe)
+    return diagonal
+
+
+def _std_error(parts, targets, masks, texels, seen, diagonal):
+    """sigma / sqrt(diag(A'MA)) per texel, NaN where unseen (module docstring)."""
+    rss = sum(jnp.sum(jnp.where(mask[..., None], forward(texels) + b - y, 0.0) ** 2)
+              for (b, forward, _), y, mask in zip(parts, targets, masks, strict=True))
+    values = 3 * sum(jnp.sum(mask) for mask in masks)
+    sigma = jnp.sqrt(rss / jnp.maximum(values - 3 * jnp.sum(seen), 1))
+    safe = jnp.where(seen[..., None], diagonal, 1.0)
+    return jnp.where(seen[..., None] & (diagonal > 0), sigma / jnp.sqrt(safe), jnp.nan)
+
+
+def solve_kd_texture(scenes, targets, masks, res, settings=None, *,
+                     smoothness=DEFAULT_SMOOTHNESS, tol=1e-6, maxiter=1000) -> TextureSolution:
+    """The kd texture (RES x RES) that explains `targets` (module docstring).
+
+    scenes: one Scene per view, of one object whose mesh has UVs and whose material's kd
+    is a Texture (its texels are ignored; its wrap is kept); targets: [H, W, 3] linear
+    images; masks: [H, W] bool (the pixels that count); settings: RenderSettings (clamp
+    is turned off: the model must stay linear, so saturated pixels belong out of the
+    masks). smoothness >= 0: the prior's unitless weight."""
+    settings = RenderSettings() if settings is None else settings
+    settings = replace(settings, clamp=False)
+    if not (isinstance(smoothness, (int, float)) and smoothness >= 0):
+        raise ValueError(f"smoothness: got {smoothness!r}; expected a number >= 0")
+    targets = [jnp.asarray(y) for y in targets]
+    masks = [jnp.asarray(m, bool) for m in masks]
+    texels, coverage, iterations, lam, residual, std_error = _solve(
+        list(scenes), targets, masks, smoothness, tol, maxiter, res=res, settings=settings)
+    return TextureSolution(texels, coverage, int(iterations), float(smoothness), float(lam),
+                           float(residual), std_error)
+
+
+@partial(jax.jit, static_argnames=("res", "settings"))
+def _solve(scenes, targets, masks, smoothness, tol, maxiter, *, res, settings):
+    """solve_kd_texture's arrays, as one compiled program (the views unrolled)."""
+    dtype = targets[0].dtype
+    parts = _linear_parts(scenes, settings, masks, res, dtype)
+
+    def data(t):
+        return sum(transpose(forward(t))[0] for _, forward, transpose in parts)
+    per_view = [transpose(forward(jnp.ones((res, res, 3), dtype)))[0]
+                for _, forward, transpose in parts]
+    weights = sum(per_view)
+    mean_weight = jnp.mean(weights)
+    seen = weights.max(-1) > 1e-9 * mean_weight
+    lam = smoothness * jnp.sum(jnp.where(seen[..., None], weights, 0.0)) / jnp.maximum(
+        3 * jnp.sum(seen), 1)
+    rhs = sum(transpose(jnp.where(mask[..., None], y - b, 0.0).astype(dtype))[0]
+              for (b, _, transpose), y, mask in zip(parts, targets, masks, strict=True))
+    # a texel no view sees is pinned by the prior alone (lam > 0) or by a tiny ridge
+    ridge = jnp.where(seen, 0.0, 1e-6 * mean_weight)[..., None]
+    diagonal = _diagonal(data, res, dtype)
+    inverse = 1.0 / jnp.maximum(diagonal + 4.0 * lam + ridge, 1e-12 * mean_weight)
+    texels, iterations, residual = _pcg(lambda t: data(t) + lam * _laplacian(t) + ridge * t,
+                                        rhs, inverse, tol, maxiter)
+    coverage = sum((w.max(-1) > 1e-9 * mean_weight).astype(jnp.int32) for w in per_view)
+    std_error = _std_error(parts, targets, masks, texels, seen, diagonal)
+    return (jnp.where(seen[..., None], texels, jnp.nan), coverage, iterations, lam, residual,
+            std_error)
