@@ -36,6 +36,7 @@ from diffshade.io.undistort import (
     undistort_image,
     undistort_mask,
     undistort_points,
+    undistort_rounding,
 )
 
 __all__ = [
@@ -47,4 +48,5 @@ __all__ = [
     "SceneFileError", "camera_to_dict", "load_material", "load_scene", "load_scenes",
     "read_json", "save_scene", "scene_from_dict", "scene_to_dict", "scenes_from_dict",
     "distort_image", "pinhole", "undistort_image", "undistort_mask", "undistort_points",
+    "undistort_rounding",
 ]
