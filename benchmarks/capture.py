@@ -31,15 +31,14 @@ masks on load) and scores the fifth; the margin is 2 px because the outline is r
 twice (by the lens here, by the undistortion on load), each bilinear step reaching one
 pixel further. Printed: kd against the albedo beside the 8-bit rounding bound (and the
 standard error), the held-out view's PSNR beside what 8-bit quantization allows (and how
-much of its sRGB error lies on the terminator's darkest pixels), and a
+much of its sRGB error lies on the terminator's darkest pixels), the misfit check, and a
 camera check (silhouette IoU of the undistorted photo's coverage against diffshade's own
 render of the pinhole camera). Without Mitsuba one line says so and the script exits 0.
 
-The 8-bit figures are computed here (`eight_bit_figures`): undistortion on load mixes
-neighbouring codes, so the loaded targets are no longer 8-bit codes and `diffshade fit`
-reports neither a rounding bound nor the 8-bit PSNR for them. Here each undistorted
-pixel's worst-case rounding shift is the bilinear mix of its photo pixels' half code
-steps, and its quantization variance the mix with squared weights.
+The 8-bit figures are `diffshade fit`'s own (result.json's rounding_bound and the
+held-out view's psnr_*_8bit): undistortion on load mixes neighbouring codes, so the
+loaded targets are no longer 8-bit codes, and the fit carries each photo pixel's half code
+step through the bilinear weights instead (fitting.data.rounding, docs/real-capture.md).
 """
 
 import argparse
@@ -55,7 +54,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import finish_record, run_record  # noqa: E402
-from lens import bilinear, lens_photo, load_positions, pinhole_frame  # noqa: E402
+from lens import lens_photo, pinhole_frame  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 ALBEDO = (0.62, 0.45, 0.28)
@@ -221,57 +220,17 @@ def fit(folder, result_dir, steps):
         return json.load(f)
 
 
-def half_steps(photo):
-    """Per value of an 8-bit sRGB photo (linear, decoded): how far the value before
-    rounding can lie from it, the larger half code step through the sRGB curve."""
-    from diffshade.io import decode, encode
-
-    codes = np.round(encode(np.asarray(photo, np.float64), "srgb") * 255.0)
-    centre = decode(codes / 255.0, "srgb")
-    above = decode(np.minimum(codes + 0.5, 255.0) / 255.0, "srgb") - centre
-    below = centre - decode(np.maximum(codes - 0.5, 0.0) / 255.0, "srgb")
-    return np.maximum(above, below)
-
-
-def resampled_rounding(photo):
-    """(worst-case shift, quantization variance) [H, W, 3] of each undistorted pixel of an
-    8-bit photo: a bilinear mix sum w_k c_k of rounded codes is off by at most sum w_k h_k,
-    and, for independent errors uniform on [-h_k, h_k], has variance sum w_k^2 h_k^2 / 3."""
-    half = half_steps(photo)
-    u, v = load_positions(K, DIST, WIDTH, HEIGHT)
-    return bilinear(half, u, v), bilinear(half**2 / 3.0, u, v, power=2)
-
-
-def eight_bit_figures(folder, kd):
-    """The 8-bit rounding bound of each kd channel and the PSNR (linear, sRGB) that 8-bit
-    quantization allows on the held-out view, for the undistorted photos of `folder`.
-
-    kd alone is fitted and the model is linear in it: per channel kd = sum S t / sum S^2
-    over the counted pixels (S the render with kd = 1), so rounding that moves each target
-    t_i by at most h_i moves kd by at most sum |S_i| h_i / sum S_i^2."""
+def dark_figures(folder, kd):
+    """dark_share of the held-out view of the dataset in `folder`, rendered with kd."""
     import diffshade as ds
-    from diffshade.io import read_image
     from fitting import load_dataset
     from fitting.report.holdout import evaluate
 
     dataset = load_dataset(folder)
-    # S from a render with kd = 0.5, halved: kd = 1 would clip the brightest pixels at 1
-    half_kd = ds.material(ka=0.0, kd=0.5, ks=0.0, shininess=10.0)
-    num, den = np.zeros(3), np.zeros(3)
-    for i in range(len(EYES)):
-        shift, variance = resampled_rounding(read_image(os.path.join(folder, f"photo_{i}.png")))
-        shading, counted, _ = evaluate(dataset, i, half_kd, EDGE_MARGIN)
-        shading = np.asarray(shading, np.float64) / 0.5
-        if i == HOLDOUT:
-            fitted = np.clip(shading * np.asarray(kd), 0.0, 1.0)
-            slope = srgb_slope(fitted[counted])
-            limits = (10 * np.log10(1 / np.mean(variance[counted])),
-                      10 * np.log10(1 / np.mean(variance[counted] * slope**2)),
-                      dark_share(fitted, dataset.views[i].target, counted))
-            continue
-        num += np.sum(np.abs(shading[counted]) * shift[counted], axis=0)
-        den += np.sum(shading[counted] ** 2, axis=0)
-    return num / den, limits
+    material = ds.material(ka=0.0, kd=kd, ks=0.0, shininess=10.0)
+    prediction, counted, _ = evaluate(dataset, HOLDOUT, material, EDGE_MARGIN)
+    fitted = np.clip(np.asarray(prediction, np.float64), 0.0, 1.0)
+    return dark_share(fitted, dataset.views[HOLDOUT].target, counted)
 
 
 def dark_share(prediction, target, counted):
@@ -289,27 +248,18 @@ def dark_share(prediction, target, counted):
             "psnr_srgb_rest": float(10 * np.log10(1 / error2[rest].mean()))}
 
 
-def srgb_slope(values, eps=1e-6):
-    """d sRGB(x) / dx at linear values (central differences)."""
-    from diffshade.io import encode
-
-    return (encode(values + eps, "srgb") - encode(np.maximum(values - eps, 0.0), "srgb")) / (
-        values + eps - np.maximum(values - eps, 0.0))
-
-
-def summary(result, bounds, limits, ious):
-    """The benchmark's figures: kd against the albedo with its bounds, the held-out view's
-    PSNR and what 8-bit quantization allows, and the camera check."""
+def summary(result, dark, ious):
+    """The benchmark's figures: kd against the albedo with the fit's rounding bound, the
+    held-out view's PSNR and what 8-bit quantization allows (the fit's), and the camera
+    check."""
     rows = []
-    for channel, albedo, fitted, bound in zip("rgb", ALBEDO, result["values"]["kd"], bounds,
-                                              strict=True):
+    for channel, albedo, fitted in zip("rgb", ALBEDO, result["values"]["kd"], strict=True):
         name = f"kd[{channel}]"
+        bound = result["rounding_bound"][name]
         rows.append({"parameter": name, "albedo": albedo, "fitted": fitted,
                      "error": fitted - albedo, "std_error": result["std_errors"][name],
-                     "rounding_bound": float(bound),
-                     "within": bool(abs(fitted - albedo) <= bound)})
-    held = {**result["holdout"][0], "psnr_linear_8bit": float(limits[0]),
-            "psnr_srgb_8bit": float(limits[1]), "dark": limits[2]}
+                     "rounding_bound": bound, "within": bool(abs(fitted - albedo) <= bound)})
+    held = {**result["holdout"][0], "dark": dark}
     return {"kd": rows, "holdout": held, "std_error_kind": result["std_error_kind"],
             "misfit": result["misfit"], "silhouette_iou": ious}
 
@@ -361,9 +311,8 @@ def main(argv=None):
                       [c for _, c in shots])
         result = fit(os.path.join(folder, "data"), os.path.join(folder, "result"),
                      args.steps)
-        bounds, limits = eight_bit_figures(os.path.join(folder, "data"),
-                                           result["values"]["kd"])
-    figures = summary(result, bounds, limits, camera_check([c for _, c in shots]))
+        dark = dark_figures(os.path.join(folder, "data"), result["values"]["kd"])
+    figures = summary(result, dark, camera_check([c for _, c in shots]))
     report(figures)
     from diffshade.io import write_json
 

@@ -1,6 +1,5 @@
-"""The lens of benchmarks/capture.py, in NumPy: OpenCV's radial-tangential model both ways,
-a photo made from a finer square-pixel pinhole image through it, and the photo positions
-that undistortion on load samples.
+"""The lens of benchmarks/capture.py, in NumPy: OpenCV's radial-tangential model inverted,
+and a photo made from a finer square-pixel pinhole image through it.
 
 Conventions are OpenCV's (docs/calibrated-cameras.md): the centre of pixel (0, 0) at
 (0, 0); normalized coordinates (x, y) = ((u - cx) / fx, (v - cy) / fy) before distortion.
@@ -41,10 +40,9 @@ def bilinear_corners(shape, u, v):
             (v0 + 1, u0, (1 - fu) * fv), (v0 + 1, u0 + 1, fu * fv)]
 
 
-def bilinear(image, u, v, power=1):
-    """image [H, W, C] sampled bilinearly at (u, v); power 2 sums the squared weights (the
-    variance of an interpolated value from the corners' variances)."""
-    return sum(w[..., None] ** power * image[rows, cols]
+def bilinear(image, u, v):
+    """image [H, W, C] sampled bilinearly at (u, v)."""
+    return sum(w[..., None] * image[rows, cols]
                for rows, cols, w in bilinear_corners(image.shape, u, v))
 
 
@@ -88,23 +86,3 @@ def lens_photo(pinhole_image, focal, K, dist, width, height, samples):
     image = np.asarray(pinhole_image, np.float64)
     return np.stack([bilinear(image, u[..., i], v[..., i]) for i in range(u.shape[-1])],
                     0).mean(axis=0)
-
-
-def distort_normalized(dist, x, y):
-    """OpenCV's radial-tangential model: the distorted normalized coordinates of (x, y)."""
-    k1, k2, p1, p2, k3 = list(dist) + [0.0] * (5 - len(dist))
-    r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    return (x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
-            y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y)
-
-
-def load_positions(K, dist, width, height):
-    """Photo positions (u, v), each [H, W], that undistortion on load samples for each
-    pixel centre of the pinhole image with the same K, clipped into the photo (pixels
-    whose sample leaves it do not count anyway)."""
-    K = np.asarray(K, np.float64)
-    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
-    xd, yd = distort_normalized(dist, (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1])
-    return (np.clip(K[0, 0] * xd + K[0, 2], 0, width - 1),
-            np.clip(K[1, 1] * yd + K[1, 2], 0, height - 1))

@@ -30,6 +30,7 @@ import jax
 import numpy as np
 
 from diffshade.scene import Material
+from fitting.data.rounding import carried_rounding
 from fitting.data.views import Dataset, material_for
 from fitting.model.cache import build_cache
 from fitting.report.misfit import Misfit, misfit
@@ -174,11 +175,12 @@ def fit_result(state, dataset, data, *, with_uncertainty=True, warn=False, truth
     values = jax.tree.map(np.asarray, to_values(state.best_params, spec))
     views, data = data, fit_data(data)  # sharded views: the report a chunk at a time
     widths = [v.camera.width for v in dataset.views]
-    report = (uncertainty(values, views, spec, widths=widths, warn=warn)
+    rounding = carried_rounding(dataset.views)
+    report = (uncertainty(values, views, spec, widths=widths, rounding=rounding, warn=warn)
               if with_uncertainty else None)
     bound = tuple(n for n, b in zip(value_names(values), at_bound(values, spec), strict=True)
                   if b)
-    check = misfit(values, views, spec, widths) if with_uncertainty else None
+    check = misfit(values, views, spec, widths, rounding) if with_uncertainty else None
     if check is not None and not check.explained:  # correlated residuals: robust errors
         report = widened(report)
     found = (*([f"fit stopped: {stop_message}"] if status == "non-finite" else []),

@@ -11,7 +11,7 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 
-from lens import bilinear, lens_photo, pinhole_frame  # noqa: E402
+from lens import lens_photo, pinhole_frame  # noqa: E402
 
 K = [[52.0, 0.0, 20.0], [0.0, 47.0, 13.0], [0.0, 0.0, 1.0]]  # fx != fy, off-centre
 
@@ -69,14 +69,3 @@ def test_without_mitsuba_one_line_and_exit_status_0(tmp_path):
         "Mitsuba 3 did not run (ImportError: libLLVM not found (simulated)); "
         "pip install '.[peers]' and see docs/performance.md"]
     assert not out.exists()
-
-
-def test_squared_weights_give_the_variance_of_an_interpolated_value():
-    # corners with independent errors of variance 1: the interpolated value's variance is
-    # ((1 - fu)^2 + fu^2) ((1 - fv)^2 + fv^2); with power 1 the weights sum to 1
-    ones = np.ones((4, 5, 1))
-    u, v = np.array([0.0, 1.25, 3.5, 4.0]), np.array([0.0, 0.75, 2.2, 3.0])
-    fu, fv = np.array([0.0, 0.25, 0.5, 0.0]), np.array([0.0, 0.75, 0.2, 0.0])
-    expected = ((1 - fu) ** 2 + fu**2) * ((1 - fv) ** 2 + fv**2)
-    np.testing.assert_allclose(bilinear(ones, u, v, power=2)[:, 0], expected, atol=1e-12)
-    np.testing.assert_allclose(bilinear(ones, u, v)[:, 0], 1.0, atol=1e-12)

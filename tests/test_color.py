@@ -26,7 +26,7 @@ from diffshade import cli
 from diffshade.io.color import decode, encode, linear_to_srgb, srgb_to_linear
 from diffshade.io.png import SIGNATURE, decode_png16, encode_png
 from fitting import fit
-from fitting.report.uncertainty import rounding_steps
+from fitting.data.rounding import rounding_steps
 
 # ---- the transfer functions ----
 

@@ -38,6 +38,7 @@ from diffshade.io.undistort import (
     undistort_image,
     undistort_mask,
     undistort_points,
+    undistort_rounding,
 )
 
 __all__ = [
@@ -50,5 +51,6 @@ __all__ = [
     "read_json", "save_scene", "save_textures", "scene_from_dict", "scene_to_dict",
     "scenes_from_dict",
     "distort_image", "pinhole", "undistort_image", "undistort_mask", "undistort_points",
+    "undistort_rounding",
     "obj_textures", "texture",
 ]

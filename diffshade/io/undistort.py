@@ -8,8 +8,10 @@ bilinearly in linear colour. `undistort_mask` says which pinhole pixels that sam
 covers (all four neighbours inside the photo and counted), so a resampled edge pixel never
 enters a fit. `distort_image` is the inverse (synthetic photos, tests), with
 `undistort_points` inverting the lens model by fixed-point iteration, as OpenCV's
-undistortPoints does. Coordinates here are OpenCV's (pixel centres at integers);
-docs/calibrated-cameras.md measures what the resampling costs.
+undistortPoints does. `undistort_rounding` carries a photo's per-pixel rounding half-steps
+through the same bilinear weights (an undistorted 8-bit photo is no longer 8-bit codes).
+Coordinates here are OpenCV's (pixel centres at integers); docs/calibrated-cameras.md
+measures what the resampling costs.
 """
 
 import dataclasses
@@ -75,6 +77,22 @@ def undistort_image(image, camera: Camera) -> np.ndarray:
     u, v = _photo_positions(camera)
     colours, inside = _bilinear(np.asarray(image, np.float64), u, v)
     return np.where(inside[..., None], colours, 0.0).astype(np.asarray(image).dtype)
+
+
+def undistort_rounding(half_steps, camera: Camera):
+    """(shift, variance), each [H, W, C] float64, of the pinhole image undistort_image
+    makes of a photo whose values are off by at most half_steps [H, W, C] (h_k, e.g. half
+    an 8-bit code step in linear units): the mix sum w_k c_k of its four photo pixels is
+    off by at most sum w_k h_k, and, for independent errors uniform on [-h_k, h_k], has
+    variance sum w_k^2 h_k^2 / 3. Pixels whose sample leaves the photo are 0."""
+    half = np.asarray(half_steps, np.float64)
+    (u0, u1, v0, v1), (wu, wv), inside = _neighbours(*_photo_positions(camera),
+                                                      *half.shape[1::-1])
+    corners = [(v0, u0, (1 - wu) * (1 - wv)), (v0, u1, wu * (1 - wv)),
+               (v1, u0, (1 - wu) * wv), (v1, u1, wu * wv)]
+    shift = sum(w[..., None] * half[r, c] for r, c, w in corners)
+    variance = sum(w[..., None] ** 2 * half[r, c] ** 2 / 3.0 for r, c, w in corners)
+    return tuple(np.where(inside[..., None], a, 0.0) for a in (shift, variance))
 
 
 def undistort_mask(mask, camera: Camera) -> np.ndarray:

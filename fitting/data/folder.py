@@ -61,6 +61,7 @@ from diffshade.io import (
     write_json,
 )
 from diffshade.scene import stack_materials, unstack_material
+from fitting.data.rounding import resampled_rounding
 from fitting.data.views import Dataset, View, material_for, view_scene
 from fitting.spec.params import DEFAULT_INIT, object_count
 
@@ -446,20 +447,22 @@ def _load_view(path, entry, index, options, cache):
     threshold = saturation if saturation is not None else (
         IMAGE_SATURATION if is_image else None)
     mask = _view_mask(path, entry, target, alpha, threshold)
-    camera, target, mask = _pinhole_view(scene.camera, target, mask)
-    return scene, settings, View(camera, scene.lights, target, mask)
+    return scene, settings, View(**_pinhole_view(scene.camera, target, mask),
+                                 lights=scene.lights)
 
 
 def _pinhole_view(camera, target, mask):
-    """(camera, target, mask) of a distorted camera's photo resampled into its pinhole
-    image (the one diffshade renders); others as given. A target of the wrong size is left
-    for Dataset to name."""
+    """{camera, target, mask, rounding} of a distorted camera's photo resampled into its
+    pinhole image (the one diffshade renders), the photo's 8-bit rounding carried through
+    (fitting.data.rounding.resampled_rounding); others as given. A target of the wrong size
+    is left for Dataset to name."""
     if not np.any(np.asarray(camera.dist)) or target.shape[:2] != (camera.height,
                                                                    camera.width):
-        return camera, target, mask
+        return {"camera": camera, "target": target, "mask": mask}
     mask = undistort_mask(mask, camera)
-    return (pinhole(camera), undistort_image(target, camera),
-            None if mask.all() else mask)
+    return {"camera": pinhole(camera), "target": undistort_image(target, camera),
+            "mask": None if mask.all() else mask,
+            "rounding": resampled_rounding(target, camera)}
 
 
 def load_dataset(path, color_space=None, saturation=None) -> Dataset:

@@ -34,17 +34,21 @@ from diffshade.scene import (
     stack_materials,
 )
 from diffshade.settings import RenderSettings
+from fitting.data.rounding import Rounding
 
 
 @dataclasses.dataclass(frozen=True)
 class View:
     """camera: Camera; lights: LightGroups (a list of lights is grouped); target: [H, W, 3]
-    float linear colours; mask: [H, W] bool, True where the pixel counts (None: all)."""
+    float linear colours; mask: [H, W] bool, True where the pixel counts (None: all);
+    rounding: fitting.data.rounding.Rounding of a target resampled from 8-bit codes (an
+    undistorted photo), or None (the rounding, if any, is read from the target's codes)."""
 
     camera: Camera
     lights: LightGroups
     target: np.ndarray
     mask: np.ndarray | None = None
+    rounding: Rounding | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "lights", group_lights(self.lights))

@@ -14,7 +14,10 @@ shows them). For 8-bit targets it also gives the PSNR that their rounding alone 
 perfect prediction against targets rounded to the nearest code: the error uniform over
 half a code step h either side, MSE = mean(h^2) / 3). Linear codes allow 10 log10(12 *
 255^2) = 58.9 dB on linear values (on sRGB values less in the darks, where the sRGB curve
-is steep, and more in the lights); sRGB codes 58.9 dB on sRGB values. `write_panels` writes
+is steep, and more in the lights); sRGB codes 58.9 dB on sRGB values. A target undistorted
+from an 8-bit photo on load is no longer codes: its View.rounding (fitting.data.rounding)
+gives each pixel's error variance instead (the bilinear mix of its photo pixels', with
+squared weights), on sRGB values through the sRGB curve's slope. `write_panels` writes
 per view holdout_NNN.png: target | prediction | ERROR_GAIN x |prediction - target| on the
 counted pixels (sRGB-encoded, as every PNG);
 `holdout_results` computes everything first, so that nothing is written on an error.
@@ -26,9 +29,9 @@ import os
 import numpy as np
 
 from diffshade.io import encode, write_png
+from fitting.data.rounding import code_rounding, rounding_encoding
 from fitting.model.cache import view_samples
 from fitting.report.result import ERROR_GAIN, PANEL_GAP, counted_mask, render_rgb
-from fitting.report.uncertainty import rounding_encoding, steps_in
 
 
 def split_views(dataset, holdout, name="holdout"):
@@ -61,26 +64,34 @@ def psnr(prediction, target, mask) -> float:
     return float("inf") if mse == 0.0 else float(10.0 * np.log10(1.0 / mse))
 
 
-def _psnr_of_halfsteps(half) -> float:
-    """The PSNR of an error uniform on [-h, h] per value: 10 log10(3 / mean(h^2))."""
-    return float(10.0 * np.log10(3.0 / np.mean(np.asarray(half, np.float64) ** 2)))
+def _psnr_of_variance(variance) -> float:
+    """The PSNR of an error of the given variance per value: 10 log10(1 / mean(variance))."""
+    return float(10.0 * np.log10(1.0 / np.mean(np.asarray(variance, np.float64))))
 
 
-def rounding_limits(target, counted):
+def _srgb_slope(values, eps=1e-6):
+    """d sRGB(x) / dx at linear values (central differences, one-sided at 0)."""
+    low = np.maximum(values - eps, 0.0)
+    return (encode(values + eps, "srgb") - encode(low, "srgb")) / (values + eps - low)
+
+
+def rounding_limits(target, counted, rounding=None):
     """(linear, sRGB) PSNR that the 8-bit rounding of `target` [H, W, 3] (linear values)
-    allows over the counted pixels (module docstring), or (None, None) when the target is
-    not 8-bit codes or no pixel counts."""
-    encoding = rounding_encoding([target])
+    allows over the counted pixels (module docstring), or (None, None) when the target has
+    no known rounding or no pixel counts. rounding: the target's full-image Rounding
+    (fitting.data.rounding; an undistorted photo's View.rounding), None: from its codes.
+    Without an exact sRGB variance (a resampled target) the sRGB one is the linear one
+    through the sRGB curve's slope at the target."""
     values = np.asarray(target, np.float64)[counted]
-    if encoding is None or not values.size:
+    if rounding is None:
+        encoding = rounding_encoding([target])
+        rounding = None if encoding is None else code_rounding(target, encoding)
+    if rounding is None or not values.size:
         return None, None
-    if encoding == "srgb":
-        return _psnr_of_halfsteps(steps_in(values, "srgb")), _psnr_of_halfsteps(
-            np.full(values.shape, 0.5 / 255.0))
-    half = 0.5 / 255.0
-    srgb = (encode(np.minimum(values + half, 1.0), "srgb")
-            - encode(np.maximum(values - half, 0.0), "srgb")) / 2.0
-    return _psnr_of_halfsteps(np.full(values.shape, half)), _psnr_of_halfsteps(srgb)
+    variance = np.asarray(rounding.variance)[counted]
+    srgb = (variance * _srgb_slope(values) ** 2 if rounding.srgb_variance is None
+            else np.asarray(rounding.srgb_variance)[counted])
+    return _psnr_of_variance(variance), _psnr_of_variance(srgb)
 
 
 def evaluate(dataset, index, material, edge_margin=1):
@@ -91,7 +102,7 @@ def evaluate(dataset, index, material, edge_margin=1):
     prediction = render_rgb(dataset, index, material)
     counted = counted_mask(view.target.shape, view_samples(dataset, index, edge_margin).pixels)
     shown = [np.clip(x, 0.0, 1.0) for x in (prediction, view.target)]
-    limits = rounding_limits(view.target, counted)
+    limits = rounding_limits(view.target, counted, view.rounding)
     scores = {"pixels": int(counted.sum()), "psnr_linear": psnr(*shown, counted),
               "psnr_srgb": psnr(*(encode(x, "srgb") for x in shown), counted),
               "psnr_linear_8bit": limits[0], "psnr_srgb_8bit": limits[1]}

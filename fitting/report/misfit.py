@@ -9,9 +9,11 @@ neighbouring pixels and larger than that floor. Over the kept pixels of every vi
     noise^2        = mean over pairs of horizontally or vertically adjacent kept pixels
                      of (r_i - r_j)^2 / 2   (white noise survives the difference; a smooth
                      misfit mostly cancels, so this over- rather than underestimates it)
-    quantization^2 = mean of step_i^2 / 12 when the targets are 8-bit codes (step_i the
-                     width of the code's interval in linear units: 1/255, or through the
-                     sRGB curve; fitting.report.uncertainty.rounding_steps), else 0
+    quantization^2 = mean of the variance of each target's rounding error when the
+                     targets are 8-bit codes (step_i^2 / 12, step_i the width of the code's
+                     interval in linear units: 1/255, or through the sRGB curve), or an
+                     undistorted 8-bit photo (the bilinear mix of its pixels' variances
+                     with squared weights); fitting.data.rounding. Else 0
     floor          = max(noise, quantization),   ratio = rms(r) / floor
 
 The images are not explained when ratio > MAX_RATIO and rms(r) > MIN_RMS (half an 8-bit
@@ -23,7 +25,7 @@ import dataclasses
 
 import numpy as np
 
-from fitting.report.uncertainty import rounding_encoding, rows_fold, steps_in
+from fitting.report.uncertainty import kept_rounding, rows_fold
 from fitting.solve.distribute import fit_data
 
 MAX_RATIO = 3.0
@@ -79,10 +81,11 @@ def _neighbour_squares(r, pixels, width):
     return total, count
 
 
-def misfit(values, data, spec, widths) -> Misfit:
+def misfit(values, data, spec, widths, rounding=None) -> Misfit:
     """The Misfit of the physical `values` on the cached `data` (fitting.model.build_cache, or
     its ShardedViews: then a chunk of views at a time); widths: the image width of each
-    view."""
+    view; rounding: each view's full-image Rounding (fitting.report.uncertainty.kept_rounding;
+    None: from the targets' codes)."""
     base = fit_data(data)
 
     def add(total, rows, weight, view, target):
@@ -97,11 +100,9 @@ def misfit(values, data, spec, widths) -> Misfit:
     squares, size, total, count = rows_fold(values, data, spec)(add, (0.0, 0, 0.0, 0))
     rms = float(np.sqrt(squares / size)) if size else 0.0
     noise = float(np.sqrt(total / (2 * count))) if count else 0.0
-    targets = [v.target for v in base.views]  # each view's, taken one at a time
-    encoding = rounding_encoding(targets)
-    quantization = 0.0 if encoding is None else float(np.sqrt(
-        sum(np.sum((2 * steps_in(np.asarray(t, np.float64), encoding)) ** 2)
-            for t in targets) / max(sum(np.size(t) for t in targets), 1) / 12))
+    kept = kept_rounding(data, rounding)
+    quantization = 0.0 if kept is None else float(np.sqrt(
+        sum(np.sum(r.variance) for r in kept) / max(sum(np.size(r.variance) for r in kept), 1)))
     floor = max(noise, quantization, 1e-12)
     ratio = rms / floor
     return Misfit(rms, noise, quantization, floor, ratio, not (ratio > MAX_RATIO and rms > MIN_RMS))

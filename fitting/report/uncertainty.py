@@ -34,7 +34,7 @@ import warnings
 import jax
 import numpy as np
 
-from diffshade.io import decode, encode
+from fitting.data.rounding import dataset_rounding
 from fitting.model.batch import batched, unpadded
 from fitting.model.cache import FitData
 from fitting.report.robust import cluster_scores, sandwich, tile_ids
@@ -261,13 +261,16 @@ def _embedded(block, free):
     return out
 
 
-def uncertainty(values: dict, data, spec: FitSpec, *, widths=None, highlight_threshold=0.01,
-                min_pixels=10, max_condition=1e6, warn=True) -> UncertaintyReport:
+def uncertainty(values: dict, data, spec: FitSpec, *, widths=None, rounding=None,
+                highlight_threshold=0.01, min_pixels=10, max_condition=1e6,
+                warn=True) -> UncertaintyReport:
     """Standard errors of the physical `values` (the optimum of a fit on `data`, a
     FitData or its ShardedViews: then J^T J and the rounding bound are summed a chunk of
     views at a time), Gauss-Newton and robust, and identifiability warnings (see module
     docstring). widths: each view's image width, for the robust estimate's pixel tiles
-    (None: runs of consecutive pixels, fitting.report.robust.tile_ids)."""
+    (None: runs of consecutive pixels, fitting.report.robust.tile_ids). rounding: each
+    view's full-image Rounding for the rounding bound (kept_rounding; None: from the
+    targets' codes)."""
     fold = rows_fold(values, data, spec)
     names = tuple(value_names(values))
     free = ~at_bound(values, spec)
@@ -287,7 +290,7 @@ def uncertainty(values: dict, data, spec: FitSpec, *, widths=None, highlight_thr
             warnings.warn(message, IdentifiabilityWarning, stacklevel=2)
     flat = np.concatenate([np.ravel(np.asarray(x, np.float64))
                            for x in jax.tree.leaves(values)])
-    bound, notes = _rounding(fit_data(data), fold, free, inverse)
+    bound, notes = _rounding(fold, free, inverse, kept_rounding(data, rounding))
     if bound is not None:
         bound = _scatter(bound, free)
     std_errors = np.sqrt(np.diag(covariance))
@@ -303,61 +306,38 @@ def _scatter(free_values, free):
     return out
 
 
-def _codes_8bit(values, encoding):
-    """values' 8-bit codes under `encoding`, or None when they are not all 8-bit codes."""
-    codes = encode(values, encoding) * 255.0
-    return np.round(codes) if np.all(np.abs(codes - np.round(codes)) < 1e-3) else None
+def kept_rounding(data, rounding=None):
+    """Per view of `data` (a FitData or its ShardedViews), the Rounding
+    (fitting.data.rounding) of its kept pixels' targets: `rounding` (one full-image
+    Rounding per view, e.g. fitting.data.rounding.dataset_rounding of the dataset's views,
+    which carries an undistorted photo's) at the kept pixels, or, when None, read from the
+    kept targets' 8-bit codes; None when the targets have no known rounding."""
+    views = fit_data(data).views
+    if rounding is None:
+        return dataset_rounding(views)
+    return tuple(r.at(np.asarray(v.pixels)) for r, v in zip(rounding, views, strict=True))
 
 
-def rounding_encoding(targets):
-    """The encoding in which every array of `targets` (linear values, e.g. each view's)
-    holds 8-bit codes: 'linear', else 'srgb', else None (rounding_steps)."""
-    targets = list(targets)  # each converted in turn: one array's float64 copy at a time
-    for encoding in ("linear", "srgb"):
-        if all(_codes_8bit(np.asarray(t, np.float64), encoding) is not None
-               for t in targets):
-            return encoding
-    return None
-
-
-def steps_in(targets, encoding):
-    """rounding_steps of 8-bit `targets` (float64) in a known encoding (rounding_encoding)."""
-    if encoding == "linear":
-        return np.full(targets.shape, 0.5 / 255.0)
-    codes = np.round(encode(targets, encoding) * 255.0)
-    centre = decode(codes / 255.0, "srgb")
-    above = decode(np.minimum(codes + 0.5, 255.0) / 255.0, "srgb") - centre
-    below = centre - decode(np.maximum(codes - 0.5, 0.0) / 255.0, "srgb")
-    return np.maximum(above, below)
-
-
-def rounding_steps(targets):
-    """Worst-case |linear target - the value before 8-bit rounding| per value of `targets`
-    (linear, [...]), or (None, None) when they are not 8-bit codes; with the encoding the
-    codes were found in: 'linear' (0.5 / 255 everywhere) or 'srgb' (half a code step,
-    mapped through the sRGB curve: from 0.5 / 255 / 12.92 in the darks to ~0.0044 at 1)."""
-    targets = np.asarray(targets, np.float64)
-    encoding = rounding_encoding([targets])
-    return (None, None) if encoding is None else (steps_in(targets, encoding), encoding)
-
-
-def _rounding(data, fold, free, inverse):
+def _rounding(fold, free, inverse, rounding):
     """8-bit targets: rounding is no independent noise (a flat region rounds one way), so
     bound its effect instead: the linearized estimate moves by (J^T J)^-1 J^T delta for
-    target errors |delta_i| <= step_i (`rounding_steps`), at most |(J^T J)^-1 J^T| @ step,
-    summed over the rows of `fold` (rows_fold; a second pass over a sharded fit's chunks,
-    once (J^T J)^-1 is known)."""
-    encoding = rounding_encoding(v.target for v in data.views)
-    if encoding is None:
+    target errors |delta_i| <= shift_i (kept_rounding: half a code step, or its bilinear mix
+    for an undistorted photo), at most |(J^T J)^-1 J^T| @ shift, summed over the rows of
+    `fold` (rows_fold; a second pass over a sharded fit's chunks, once (J^T J)^-1 is
+    known)."""
+    if rounding is None:
         return None, ()
 
     def add(total, rows, weight, view, target):
         jac = rows[1]
-        keep = _kept(weight, jac)
-        jac = np.asarray(jac.reshape(-1, jac.shape[-1])[keep][:, free], np.float64)
-        return total + np.abs(inverse @ jac.T) @ steps_in(target.reshape(-1)[keep], encoding)
+        for i, v in enumerate(view):
+            n = int(np.sum(weight[i] > 0))  # a view's kept pixels are its first rows
+            if n:
+                rows_i = np.asarray(jac[i, :n].reshape(-1, jac.shape[-1])[:, free], np.float64)
+                total = total + np.abs(inverse @ rows_i.T) @ rounding[v].shift[:n].reshape(-1)
+        return total
 
     bound = fold(add, np.zeros(int(free.sum())))
-    return bound, (f"targets are 8-bit ({encoding}-encoded): rounding errors are not "
+    return bound, (f"targets are {rounding[0].source}: rounding errors are not "
                    "independent (a flat region rounds one way), so the standard errors "
                    "understate the error; rounding_bound is the worst-case shift it can cause",)
