@@ -164,6 +164,13 @@ def _bin_faces(box, tiles_x, tiles_y, tile, capacity):
     return ids, overflow.sum()
 
 
+def _owns_edge(e, a, b, s):
+    """The top-left tie rule of a pixel centre exactly on an edge (candidates._owns_edge):
+    [P, C] bool."""
+    a, b = jnp.where(s < 0.0, -a, a), jnp.where(s < 0.0, -b, b)
+    return (e != 0.0) | (a > 0.0) | ((a == 0.0) & (b < 0.0))
+
+
 def _hard_keys(data, x, y):
     """NDC depth of each (pixel, face) pair, +inf where the face does not cover the pixel
     (candidates._covered_depth). data: per-face arrays gathered to [C, ...]; x, y: [P, 1]
@@ -173,6 +180,8 @@ def _hard_keys(data, x, y):
          for i in range(3)]
     s = (e[0] + e[1]) + e[2]
     inside = (s != 0.0) & ~((e[0] * s < 0.0) | (e[1] * s < 0.0) | (e[2] * s < 0.0))
+    for i in range(3):
+        inside &= _owns_edge(e[i], coeffs[:, i, 0], coeffs[:, i, 1], s)
     w = _dot3(*e, *corner_w.T)
     z = _dot3(*e, *corner_z.T) / w
     covered = inside & ~(w * s <= 0.0) & (z >= -1.0) & (z <= 1.0)
