@@ -6,6 +6,8 @@
   the exact shadow (diffshade.analytic.SphereOverPlane, NumPy ray/sphere tests) only the
   ambient terms ka * (global + light ambient), elsewhere those plus kd * Id * N.L (and
   the spot's cone), except within 2 pixels of an edge (shadow, cone, silhouette).
+- Self-shadowing: a floor lit at 70-80 degrees from its normal (a directional and a point
+  light, shadows on, nothing to cast a shadow) is lit everywhere: the slope-scaled bias.
 - Structure: a light without shadows adds nothing to the program; each shadowed light
   adds one rasterization.
 - Transforms, float64: check_grads (forward and reverse, order 1) with respect to the
@@ -123,6 +125,57 @@ def test_shadows_match_the_exact_shadow_of_a_sphere_over_a_floor(raster, camera)
         # sphere's silhouette, where the blend may show its shadowed underside)
         dark = on_floor & (np.abs(image[..., c] - ambient[c]) < 1e-5) & (cones[c] > 0)
         assert not np.any(dark & ~shadow & ~near_edge(shadow, on_floor)), name
+
+
+GRAZING_SIZE = 32
+
+
+def grazing_floor():
+    """A 4 x 4 floor of 32 faces at y = 0 (normal +y) seen from above at 45 degrees, and
+    the floor point [H, W, 3] under each pixel centre (None off the floor)."""
+    xs = np.linspace(-2.0, 2.0, 5)
+    verts = [[x, 0.0, z] for z in xs for x in xs]
+    faces = []
+    for j in range(4):
+        for i in range(4):
+            a, b, c, d = j * 5 + i, j * 5 + i + 1, (j + 1) * 5 + i + 1, (j + 1) * 5 + i
+            faces += [[a, d, c], [a, c, b]]
+    mesh = ds.mesh_from_arrays(np.array(verts), np.array(faces))
+    camera = ds.look_at((0.0, 3.0, 3.0), (0.0, 0.0, 0.0), width=GRAZING_SIZE,
+                        height=GRAZING_SIZE, fov_y=50.0)
+    origins, dirs = pixel_rays(camera)
+    points = origins + (-origins[..., 1] / dirs[..., 1])[..., None] * dirs
+    return mesh, camera, points
+
+
+@pytest.mark.parametrize("raster", SETTINGS)
+@pytest.mark.parametrize("angle", [70.0, 75.0, 80.0])
+def test_a_receiver_lit_at_a_grazing_angle_does_not_shadow_itself(raster, angle):
+    """A directional light (blue) at `angle` degrees from the floor's normal and a point
+    light (red) low over the floor, both with shadows and nothing to cast a shadow: every
+    floor pixel is lit, ka * global + kd * cos(incidence) per channel. A depth bias that
+    does not grow with the slope lets the floor shadow itself there (acne)."""
+    mesh, camera, points = grazing_floor()
+    theta = np.deg2rad(angle)
+    to_sun = np.array([np.sin(theta), np.cos(theta), 0.0])
+    bulb = np.array([-8.0, 8.0 / np.tan(theta), 0.5])
+    lights = [ds.directional_light(-to_sun, rgb(2, 1.0), shadows=True),
+              ds.point_light(bulb, rgb(0, 1.0), shadows=True)]
+    scene = ds.make_scene(mesh, camera, lights, ds.material(ka=KA, kd=KD, ks=None),
+                          global_ambient=GLOBAL)
+    image = np.asarray(ds.render(scene, SETTINGS[raster]), np.float64)
+    on_floor = (np.abs(points[..., 0]) < 2.0) & (np.abs(points[..., 2]) < 2.0)
+    floor = on_floor & ~near_edge(on_floor)
+    to_bulb = bulb - points
+    cos_bulb = to_bulb[..., 1] / np.linalg.norm(to_bulb, axis=-1)
+    # the point light's incidence over the floor: grazing too (60 to 85 degrees)
+    incidence = np.rad2deg(np.arccos(cos_bulb[floor]))
+    assert 60.0 < incidence.min() < angle < incidence.max() < 85.0
+    assert floor.sum() >= 300
+    for c, cos in ((2, np.cos(theta)), (0, cos_bulb)):
+        want = KA * GLOBAL + KD * np.broadcast_to(cos, floor.shape)
+        np.testing.assert_allclose(image[floor, c], want[floor], atol=LIT_ATOL[raster],
+                                   err_msg=f"channel {c}")
 
 
 def test_a_light_without_shadows_adds_no_shadow_pass():
