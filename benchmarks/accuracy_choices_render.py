@@ -128,7 +128,8 @@ def soft_overlap(quick, rounds):
 # ---------------------------------------------------------------- 2. the kernels path
 def kernels(quick, rounds):
     """Both paths on the study's sphere; at 64 px the subdivision-4 sphere puts more faces
-    on a jax tile than its capacity (diffshade.raster.search.TILE_CAPACITY)."""
+    on a jax tile than its capacity (diffshade.raster.search.TILE_CAPACITY): the jax
+    search takes several passes there."""
     level, sizes = (3, (64,)) if quick else (4, (64, 128, 256))
     rows, calls, images = [], {}, {}
     for size in sizes:

@@ -8,7 +8,7 @@ pixel on a regular grid and averages the composited colour and the coverage.
 
 `SphereOverPlane` is the reference for shadows: its mesh, its exact hard shadow from
 a point or directional light (ray/sphere tests in NumPy float64, per pixel centre), and
-the irradiance of its floor from a disk or a spherical light with the sphere's shadow
+the irradiance of its floor from a rectangle, a disk or a spherical light with the sphere's shadow
 (penumbrae: a midpoint quadrature over the light, each node tested against the sphere).
 """
 
@@ -157,12 +157,14 @@ class SphereOverPlane:
         return origins + t[..., None] * dirs
 
     def floor_irradiance(self, points, light, nodes=64, chunk=256):
-        """Irradiance per unit colour of floor points [..., 3] (normal +y) from a disk or a
-        spherical light (the radiometry of docs/area-lights.md), NumPy float64: (E with
-        the sphere's shadow, E without it), [...] each. light: ("disk", centre, emitting
-        normal, radius) or ("sphere", centre, radius). A midpoint rule of nodes^2 points
-        (`chunk` at a time): over the disk's area (uniform in r^2 and azimuth), or over
-        the sphere's cone of directions (uniform in solid angle)."""
+        """Irradiance per unit colour of floor points [..., 3] (normal +y) from a
+        rectangle, a disk or a spherical light (the radiometry of docs/area-lights.md),
+        NumPy float64: (E with the sphere's shadow, E without it), [...] each. light:
+        ("rect", centre, edge_u, edge_v: emitting towards edge_u x edge_v), ("disk",
+        centre, emitting normal, radius) or ("sphere", centre, radius). A midpoint rule of
+        nodes^2 points (`chunk` at a time): over the rectangle's area, over the disk's
+        (uniform in r^2 and azimuth), or over the sphere's cone of directions (uniform in
+        solid angle)."""
         u = (np.arange(nodes) + 0.5) / nodes
         a, b = (x.ravel() for x in np.meshgrid(u, u, indexing="ij"))
         points = np.asarray(points, np.float64)[..., None, :]  # [..., 1, 3]: nodes next
@@ -181,17 +183,19 @@ def _quadrature_nodes(light, points, a, phi):
     """(vectors from points [..., 1, 3] towards each node [..., N, 3], each node's share of
     E times the node count [..., N], how far along the vector the light is) for nodes at
     unit-square coordinates (a, phi / 2 pi) [N]."""
+    if light[0] == "rect":
+        centre, edge_u, edge_v = (np.asarray(x, np.float64) for x in light[1:])
+        normal = np.cross(edge_u, edge_v)
+        at = (centre + (a - 0.5)[:, None] * edge_u
+              + (phi / (2.0 * np.pi) - 0.5)[:, None] * edge_v)
+        return _planar_share(at - points, normal / np.linalg.norm(normal))
     if light[0] == "disk":
         _, centre, normal, radius = light
         normal = np.asarray(normal, np.float64) / np.linalg.norm(normal)
         t1, t2 = _tangents(normal)
         r = radius * np.sqrt(a)
         at = np.asarray(centre) + (r * np.cos(phi))[:, None] * t1 + (r * np.sin(phi))[:, None] * t2
-        to_light = at - points
-        dist2 = np.sum(to_light * to_light, -1)
-        unit = to_light / np.sqrt(dist2)[..., None]
-        facing = np.maximum(-unit @ normal, 0.0)
-        return to_light, np.maximum(unit[..., 1], 0.0) * facing / dist2, 1.0
+        return _planar_share(at - points, normal)
     _, centre, radius = light
     axis = np.asarray(centre, np.float64) - points
     dist2 = np.sum(axis * axis, -1)
@@ -205,6 +209,16 @@ def _quadrature_nodes(light, points, a, phi):
     # radiance 1 / (pi R^2) times the cone's solid angle 2 pi (1 - cos a); seen from the
     # floor, the occluder is never beyond the light
     return to_light, np.maximum(to_light[..., 1], 0.0) * 2.0 * one_minus / radius**2, np.inf
+
+
+def _planar_share(to_light, normal):
+    """A planar light's node (vectors to it [..., N, 3], its emitting unit normal [3]):
+    (to_light, cos at the floor * cos at the light / r^2, 1: the light is where the
+    vector ends)."""
+    dist2 = np.sum(to_light * to_light, -1)
+    unit = to_light / np.sqrt(dist2)[..., None]
+    facing = np.maximum(-unit @ normal, 0.0)
+    return to_light, np.maximum(unit[..., 1], 0.0) * facing / dist2, 1.0
 
 
 def _tangents(normal):

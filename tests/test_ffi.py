@@ -123,20 +123,66 @@ def _clips(views, seed=4):
     return np.asarray(clips, np.float32), faces
 
 
-def _search(clip, faces, near, far, radius, sigma, gamma, *, k=4, size=16):
-    shapes = (jax.ShapeDtypeStruct((size, size, k), jnp.int32),
+def _search(clip, faces, near, far, radius, sigma, gamma, *, k=4, size=16, height=None):
+    height = size if height is None else height
+    shapes = (jax.ShapeDtypeStruct((height, size, k), jnp.int32),
               jax.ShapeDtypeStruct((), jnp.int32))
 
     def fallback(*arrays):  # never run under jit on the CPU: the target is
         raise AssertionError("the Python callback ran instead of the FFI target")
     return hostcall.host_call(fallback, shapes, clip, faces, near, far, radius, sigma, gamma,
                      batched=True, ffi=("search_soft" if radius > 0.0 else "search_hard",
-                                        (size, size, k, False, True)))
+                                        (size, height, k, False, True)))
 
 
-def _direct(clip, faces, near, far, radius, sigma, gamma, k=4, size=16):
-    return candidates.find_candidates(clip, faces, near, far, width=size, height=size, k=k,
+def _direct(clip, faces, near, far, radius, sigma, gamma, k=4, size=16, height=None):
+    return candidates.find_candidates(clip, faces, near, far, width=size,
+                                      height=size if height is None else height, k=k,
                                       radius_px=radius, sigma=sigma, gamma=gamma)
+
+
+def _naive_hard_search(clip, faces, width, height, k):
+    """The k nearest covering faces per pixel by a loop over pixels and faces: the pixel's
+    NDC point p = (x, y, 1) is sum_i l_i (X_i, Y_i, W_i) of the face's clip corners, and
+    the face covers it when every l_i >= 0 (then W = 1: in front) and z = sum_i l_i Z_i
+    lies in [-1, 1]; nearest first by z, then by face id. -> [height, width, k], -1 empty."""
+    clip = np.asarray(clip, np.float64)
+    ids = np.full((height, width, k), -1, np.int32)
+    for row in range(height):
+        for col in range(width):
+            p = np.array([(2 * col + 1) / width - 1, 1 - (2 * row + 1) / height, 1.0])
+            hits = []
+            for f, face in enumerate(faces):
+                corners = clip[face][:, [0, 1, 3]].T
+                if abs(np.linalg.det(corners)) < 1e-12:
+                    continue
+                weights = np.linalg.solve(corners, p)
+                z = weights @ clip[face][:, 2]
+                if np.all(weights >= 0.0) and -1.0 <= z <= 1.0:
+                    hits.append((z, f))
+            found = [f for _, f in sorted(hits)[:k]]
+            ids[row, col, :len(found)] = found
+    return ids
+
+
+@pytest.mark.parametrize("radius", [0.0, 2.0])
+@pytest.mark.parametrize("width, height", [(13, 7), (6, 11)])
+def test_search_target_on_a_non_square_image(radius, width, height):
+    """Rows and columns are not swapped: the target equals find_candidates, and in hard
+    mode a naive loop over pixels and faces, on images wider than tall and taller than
+    wide (the faces cover the image unevenly, so a transposed result cannot pass)."""
+    clip, faces = _clips(1)
+    scalars = (np.float32(0.1), np.float32(100.0), np.float32(radius), np.float32(1.0),
+               np.float32(1e-3))
+    ids, dropped = jax.jit(lambda c: _search(c, faces, *scalars, size=width,
+                                             height=height))(clip[0])
+    want_ids, want_dropped = _direct(clip[0], faces, *scalars, size=width, height=height)
+    np.testing.assert_array_equal(np.asarray(ids), want_ids)
+    assert int(dropped) == int(want_dropped)
+    if radius == 0.0:
+        naive = _naive_hard_search(clip[0], faces, width, height, 4)
+        assert (naive[..., 0] >= 0).sum() >= 10 and (naive[..., 1] >= 0).sum() >= 5
+        np.testing.assert_array_equal(np.asarray(ids), naive)
 
 
 @pytest.mark.parametrize("radius", [0.0, 2.0])

@@ -16,11 +16,11 @@ import diffshade as ds
 from data_synth import make_dataset
 from diffshade.scene.lights import group_lights
 from fitting import DEFAULT_INIT, Dataset, FitSpec, IdentifiabilityWarning, View, fit, view_scene
-from fitting.driver import relative_errors
+from fitting.driver import FitResult, relative_errors
 from fitting.model import build_cache, make_loss
 from fitting.model.loss import mean_rho
 from fitting.report.misfit import _neighbour_squares
-from fitting.report.result import render_rgb
+from fitting.report.result import comparison_table, render_rgb
 from fitting.report.uncertainty import uncertainty
 from fitting.solve import make_optimizer, make_step
 from fitting.solve.linear import (
@@ -317,6 +317,29 @@ def test_values_at_a_bound_have_no_standard_error(small):
     assert any("ended at a bound" in w for w in result.warnings)
     assert not result.misfit.explained
     assert any("does not explain the images" in w for w in result.warnings)
+
+
+def test_a_grey_coefficient_at_a_bound_is_marked_on_each_of_its_channel_rows():
+    """kd fitted grey (one value) is at a bound and ka[g] alone of the RGB ka: with a true
+    material per channel the table has a row per channel, and every row of the grey kd
+    says "at bound" while only ka's green row does (the rows written out by hand)."""
+    values = {"ka": np.array([0.1, 0.2, 0.3]), "kd": np.array(1.0),
+              "shininess": np.array(20.0)}
+    truth = ds.material(ka=(0.1, 0.2, 0.3), kd=(0.9, 1.0, 0.95), ks=0.0, shininess=20.0)
+    result = FitResult(material=truth, lights=(), values=values, params=values, loss=0.0,
+                       loss_history=np.zeros(1), converged=True, n_steps=1, wall_time=0.0,
+                       method="adam", errors=None, uncertainty=None, warnings=(),
+                       at_bound=("ka[g]", "kd"))
+    rows = {line.split()[0]: line.split()[1:] for line in
+            result.summary(truth).splitlines()[2:]}
+    assert rows == {"ka[r]": ["0.1", "0.1"], "ka[g]": ["0.2", "0.2", "at", "bound"],
+                    "ka[b]": ["0.3", "0.3"], "kd[r]": ["0.9", "1", "at", "bound"],
+                    "kd[g]": ["1", "1", "at", "bound"], "kd[b]": ["0.95", "1", "at", "bound"],
+                    "shininess": ["20", "20"]}
+    # without a truth: the grey kd is one row, at bound
+    blind = {line.split()[0]: line.split()[1:]
+             for line in comparison_table(result).splitlines()[2:]}
+    assert blind["kd"] == ["1", "at", "bound"] and blind["ka[r]"] == ["0.1"]
 
 
 def test_neighbour_differences_match_a_loop():

@@ -6,6 +6,8 @@
   the exact shadow (diffshade.analytic.SphereOverPlane, NumPy ray/sphere tests) only the
   ambient terms ka * (global + light ambient), elsewhere those plus kd * Id * N.L (and
   the spot's cone), except within 2 pixels of an edge (shadow, cone, silhouette).
+- Self-shadowing: a floor lit at 70-80 degrees from its normal (a directional and a point
+  light, shadows on, nothing to cast a shadow) is lit everywhere: the slope-scaled bias.
 - Structure: a light without shadows adds nothing to the program; each shadowed light
   adds one rasterization.
 - Transforms, float64: check_grads (forward and reverse, order 1) with respect to the
@@ -13,9 +15,9 @@
   a directional, a disk and a sphere light in one program), and render_views against a
   loop of renders.
 - The flag in the Python factories and in scene files, and its bad values.
-- Area and sphere lights with shadows: the penumbrae of a disk and a sphere light against
-  a ray-traced quadrature over each light (SphereOverPlane.floor_irradiance, NumPy
-  ray/sphere tests); their soft penumbrae are in the check_grads above.
+- Area and sphere lights with shadows: the penumbrae of a rectangle, a disk and a sphere
+  light against a ray-traced quadrature over each light (SphereOverPlane.floor_irradiance,
+  NumPy ray/sphere tests); their soft penumbrae are in the check_grads above.
 """
 
 import jax
@@ -125,6 +127,57 @@ def test_shadows_match_the_exact_shadow_of_a_sphere_over_a_floor(raster, camera)
         assert not np.any(dark & ~shadow & ~near_edge(shadow, on_floor)), name
 
 
+GRAZING_SIZE = 32
+
+
+def grazing_floor():
+    """A 4 x 4 floor of 32 faces at y = 0 (normal +y) seen from above at 45 degrees, and
+    the floor point [H, W, 3] under each pixel centre (None off the floor)."""
+    xs = np.linspace(-2.0, 2.0, 5)
+    verts = [[x, 0.0, z] for z in xs for x in xs]
+    faces = []
+    for j in range(4):
+        for i in range(4):
+            a, b, c, d = j * 5 + i, j * 5 + i + 1, (j + 1) * 5 + i + 1, (j + 1) * 5 + i
+            faces += [[a, d, c], [a, c, b]]
+    mesh = ds.mesh_from_arrays(np.array(verts), np.array(faces))
+    camera = ds.look_at((0.0, 3.0, 3.0), (0.0, 0.0, 0.0), width=GRAZING_SIZE,
+                        height=GRAZING_SIZE, fov_y=50.0)
+    origins, dirs = pixel_rays(camera)
+    points = origins + (-origins[..., 1] / dirs[..., 1])[..., None] * dirs
+    return mesh, camera, points
+
+
+@pytest.mark.parametrize("raster", SETTINGS)
+@pytest.mark.parametrize("angle", [70.0, 75.0, 80.0])
+def test_a_receiver_lit_at_a_grazing_angle_does_not_shadow_itself(raster, angle):
+    """A directional light (blue) at `angle` degrees from the floor's normal and a point
+    light (red) low over the floor, both with shadows and nothing to cast a shadow: every
+    floor pixel is lit, ka * global + kd * cos(incidence) per channel. A depth bias that
+    does not grow with the slope lets the floor shadow itself there (acne)."""
+    mesh, camera, points = grazing_floor()
+    theta = np.deg2rad(angle)
+    to_sun = np.array([np.sin(theta), np.cos(theta), 0.0])
+    bulb = np.array([-8.0, 8.0 / np.tan(theta), 0.5])
+    lights = [ds.directional_light(-to_sun, rgb(2, 1.0), shadows=True),
+              ds.point_light(bulb, rgb(0, 1.0), shadows=True)]
+    scene = ds.make_scene(mesh, camera, lights, ds.material(ka=KA, kd=KD, ks=None),
+                          global_ambient=GLOBAL)
+    image = np.asarray(ds.render(scene, SETTINGS[raster]), np.float64)
+    on_floor = (np.abs(points[..., 0]) < 2.0) & (np.abs(points[..., 2]) < 2.0)
+    floor = on_floor & ~near_edge(on_floor)
+    to_bulb = bulb - points
+    cos_bulb = to_bulb[..., 1] / np.linalg.norm(to_bulb, axis=-1)
+    # the point light's incidence over the floor: grazing too (60 to 85 degrees)
+    incidence = np.rad2deg(np.arccos(cos_bulb[floor]))
+    assert 60.0 < incidence.min() < angle < incidence.max() < 85.0
+    assert floor.sum() >= 300
+    for c, cos in ((2, np.cos(theta)), (0, cos_bulb)):
+        want = KA * GLOBAL + KD * np.broadcast_to(cos, floor.shape)
+        np.testing.assert_allclose(image[floor, c], want[floor], atol=LIT_ATOL[raster],
+                                   err_msg=f"channel {c}")
+
+
 def test_a_light_without_shadows_adds_no_shadow_pass():
     plain, bulb = ds.point_light((0.0, 1.0, 2.0)), ds.point_light((1.0, 0.5, 2.0), 0.5)
     shadowed = ds.point_light((0.0, 1.0, 2.0), shadows=True)
@@ -232,6 +285,12 @@ AREA_POWER, AREA_SIZE, AREA_MAP = 4.0, 40, 64
 # about 1/samples; a sphere's samples cover its whole surface, so about half face a point:
 # it gets 32) and the 64^2 maps. Measured: disk 0.021 and 0.085, sphere 0.029 and 0.155.
 PENUMBRA_TOL = {"disk": (0.04, 0.15), "sphere": (0.05, 0.25)}
+#: a rectangle light 1.2 x 0.3 emitting down (centre, edge_u, edge_v: edge_u x edge_v is
+#: -y), elongated so that the penumbra's width differs across and along the sphere's shadow
+RECT = ((-0.5, 2.0, -1.0), (1.2, 0.0, 0.0), (0.0, 0.0, 0.3))
+#: measured: 0.020 and 0.069; with the rectangle's shadow-map sample points turned by 90
+#: degrees (edge_u and edge_v swapped) 0.023 and 0.112, scaled by 1/2 0.054 and 0.18
+RECT_TOL = (0.03, 0.09)
 
 
 def penumbra_scene(camera, samples=(16, 32)):
@@ -244,38 +303,62 @@ def penumbra_scene(camera, samples=(16, 32)):
                          global_ambient=GLOBAL)
 
 
+def penumbra_camera():
+    return ds.look_at((0.0, 4.5, 3.2), (0.0, -1.0, 0.5), width=AREA_SIZE, height=AREA_SIZE,
+                      fov_y=40.0)
+
+
+def assert_penumbra_matches(image, camera, name, light, tolerances):
+    """One channel of a render [H, W] under one light against the ray-traced quadrature
+    over the light: the penumbra within tolerances (mean, max) of the brightest floor
+    pixel, the umbra ambient only, the lit floor the unshadowed light; and the
+    tolerances tell the penumbra from the hard shadow of the light's centre."""
+    points = GEOMETRY.floor_points(camera)
+    on_floor, _ = GEOMETRY.shadow(camera, ("point", light[1]))
+    floor = on_floor & ~near_edge(on_floor, width=1)
+    seen, unshadowed = GEOMETRY.floor_irradiance(points, light, nodes=32)
+    want = KA * GLOBAL + KD * AREA_POWER * seen
+    scale = KD * AREA_POWER * unshadowed[floor].max()
+    fraction = seen / np.where(unshadowed > 0, unshadowed, 1.0)
+    penumbra = floor & (fraction > 0.02) & (fraction < 0.98)
+    # the umbra and the fully lit floor: a pixel away from the penumbra (the icosphere
+    # is inscribed in the reference's sphere, and the maps have texels)
+    umbra = floor & (fraction <= 1e-9) & ~near_edge(fraction <= 1e-9, width=1)
+    lit = floor & (fraction >= 1.0 - 1e-9) & ~near_edge(fraction >= 1.0 - 1e-9, width=1)
+    assert penumbra.sum() >= 120 and umbra.sum() >= 10 and lit.sum() >= 250, name
+    error = np.abs(image - want)
+    mean_tol, max_tol = tolerances
+    assert error[penumbra].mean() < mean_tol * scale, (name, error[penumbra].mean() / scale)
+    assert error[penumbra].max() < max_tol * scale, (name, error[penumbra].max() / scale)
+    # the umbra keeps only the ambient term; lit points the unshadowed light (its
+    # samples' estimate of the irradiance: 1% for a disk, exact for a sphere and for a
+    # rectangle's closed form)
+    np.testing.assert_allclose(image[umbra], KA * GLOBAL, atol=1e-6, err_msg=name)
+    np.testing.assert_allclose(image[lit], want[lit], atol=0.01 * scale, err_msg=name)
+    _, hard = GEOMETRY.shadow(camera, ("point", light[1]))
+    hard_error = np.abs(KD * AREA_POWER * unshadowed * ~hard - KD * AREA_POWER * seen)
+    assert hard_error[penumbra].mean() > 2 * mean_tol * scale, name
+
+
 def test_area_and_sphere_light_penumbrae_match_a_ray_traced_reference():
-    camera = ds.look_at((0.0, 4.5, 3.2), (0.0, -1.0, 0.5), width=AREA_SIZE, height=AREA_SIZE,
-                        fov_y=40.0)
+    camera = penumbra_camera()
     settings = ds.RenderSettings(shadow_map_size=AREA_MAP, clamp=False)
     image = np.asarray(ds.render(penumbra_scene(camera), settings), np.float64)
-    points = GEOMETRY.floor_points(camera)
-    on_floor, _ = GEOMETRY.shadow(camera, ("point", DISK[0]))
-    floor = on_floor & ~near_edge(on_floor, width=1)
     references = {"disk": ("disk", *DISK), "sphere": ("sphere", *BALL)}
     for c, (name, light) in enumerate(references.items()):
-        seen, unshadowed = GEOMETRY.floor_irradiance(points, light, nodes=32)
-        want = KA * GLOBAL + KD * AREA_POWER * seen
-        scale = KD * AREA_POWER * unshadowed[floor].max()
-        fraction = seen / np.where(unshadowed > 0, unshadowed, 1.0)
-        penumbra = floor & (fraction > 0.02) & (fraction < 0.98)
-        # the umbra and the fully lit floor: a pixel away from the penumbra (the icosphere
-        # is inscribed in the reference's sphere, and the maps have texels)
-        umbra = floor & (fraction <= 1e-9) & ~near_edge(fraction <= 1e-9, width=1)
-        lit = floor & (fraction >= 1.0 - 1e-9) & ~near_edge(fraction >= 1.0 - 1e-9, width=1)
-        assert penumbra.sum() >= 120 and umbra.sum() >= 10 and lit.sum() >= 250, name
-        error = np.abs(image[..., c] - want)
-        mean_tol, max_tol = PENUMBRA_TOL[name]
-        assert error[penumbra].mean() < mean_tol * scale, (name, error[penumbra].mean() / scale)
-        assert error[penumbra].max() < max_tol * scale, (name, error[penumbra].max() / scale)
-        # the umbra keeps only the ambient term; lit points the unshadowed light (its
-        # samples' estimate of the irradiance: 1% for a disk, exact for a sphere)
-        np.testing.assert_allclose(image[umbra, c], KA * GLOBAL, atol=1e-6, err_msg=name)
-        np.testing.assert_allclose(image[lit, c], want[lit], atol=0.01 * scale, err_msg=name)
-        # the tolerance tells a penumbra from the hard shadow of the light's centre
-        _, hard = GEOMETRY.shadow(camera, ("point", light[1]))
-        hard_error = np.abs(KD * AREA_POWER * unshadowed * ~hard - KD * AREA_POWER * seen)
-        assert hard_error[penumbra].mean() > 2 * mean_tol * scale, name
+        assert_penumbra_matches(image[..., c], camera, name, light, PENUMBRA_TOL[name])
+
+
+def test_rectangle_light_penumbra_matches_a_ray_traced_reference():
+    """A rectangle light (16 samples, emitting down) against the quadrature over its area,
+    each node's ray tested against the sphere (analytic.SphereOverPlane)."""
+    camera = penumbra_camera()
+    light = ds.area_light(RECT[0], *RECT[1:], color=AREA_POWER, samples=16, shadows=True)
+    scene = ds.make_scene(GEOMETRY.mesh(2, 4), camera, [light],
+                          ds.material(ka=KA, kd=KD, ks=None), global_ambient=GLOBAL)
+    settings = ds.RenderSettings(shadow_map_size=AREA_MAP, clamp=False)
+    image = np.asarray(ds.render(scene, settings), np.float64)
+    assert_penumbra_matches(image[..., 0], camera, "rect", ("rect", *RECT), RECT_TOL)
 
 
 # cost: 66 s of CPU with -n 0 on the loaded 2-core machine, where the two tests it

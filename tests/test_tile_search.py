@@ -2,7 +2,8 @@
 candidates.find_candidates, an independent implementation, in float64: face ids and
 `dropped` must be equal exactly, hard and soft, with and without back-face culling, for
 several K, image sizes that are not multiples of the tile, a mesh crossing the near plane
-and an orthographic camera; overflowing tiles count their untested (face, tile) pairs;
+and an orthographic camera; tiles touched by more faces than their capacity are searched in
+several passes (and a dense mesh through RenderSettings.kernels renders the host's image);
 traced parameters under jit, vmap over cameras and use inside grad. The host search's
 batch form (several views in one call, under vmap) against one call per view.
 """
@@ -16,7 +17,17 @@ import numpy as np
 import pytest
 from compiles import compiles
 
-from diffshade import Mesh, icosphere, look_at, make_scene, model_matrix, project, torus
+from diffshade import (
+    Mesh,
+    icosphere,
+    look_at,
+    make_scene,
+    model_matrix,
+    project,
+    rasterize_scene,
+    render,
+    torus,
+)
 from diffshade.host.candidates import find_candidates
 from diffshade.raster.search import search_faces
 from diffshade.raster.tile_search import search_tiles
@@ -161,20 +172,35 @@ def tile_pairs(scene, tile):
     return np.array(counts)
 
 
-def test_overflowing_tiles_count_their_untested_pairs():
-    """With capacity 32, crowded torus tiles lose faces: `dropped` is the host's fragment
-    count (0 at K = 8) plus the (face, tile) pairs that did not fit, and tiles that did
-    not overflow match the host exactly."""
+def test_tiles_beyond_capacity_take_more_passes_and_equal_the_host():
+    """With capacity 32, crowded torus tiles hold up to several times as many faces: they
+    are searched in passes of 32, and every pixel equals the host's, hard and soft."""
     scene, capacity, tile = ring(), 32, 16
-    want_ids, want_dropped = host(scene, 8, False)
-    assert want_dropped == 0
-    ids, dropped = device(scene, 8, False, soft=False, tile=tile, capacity=capacity)
-    pairs = tile_pairs(scene, tile)
-    assert pairs.max() > capacity
-    assert dropped == np.maximum(pairs - capacity, 0).sum()
-    full = np.repeat(np.repeat((pairs > capacity).reshape(3, 4), tile, 0), tile, 1)[:40, :50]
-    np.testing.assert_array_equal(ids[~full], want_ids[~full])
-    assert (ids[full] != want_ids[full]).any()
+    assert tile_pairs(scene, tile).max() > 3 * capacity
+    for k in (1, 8):
+        want = host(scene, k, False)
+        assert_same(device(scene, k, False, soft=False, tile=tile, capacity=capacity), want)
+    radius, sigma, gamma = SOFT[1]
+    want = host(scene, 8, False, radius, sigma, gamma)
+    assert want[1] > 0
+    assert_same(device(scene, 8, False, True, radius, sigma, gamma, tile=tile,
+                       capacity=capacity), want, near_ties=True)
+
+
+@pytest.mark.parametrize("raster", ["hard", "soft"])
+def test_the_jax_path_renders_the_host_image_of_a_dense_mesh(raster):
+    """5,120 faces in 64 x 64 pixels, as many as 4 per pixel in the tiles of the default
+    search (RenderSettings.kernels 'jax' against 'host', float64): the same face ids,
+    drop counts and image, with soft raster's default footprint too."""
+    scene = make_scene(icosphere(4), look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), width=64,
+                                             height=64, fov_y=45.0))
+    paths = {kernels: RenderSettings(raster=raster, kernels=kernels)
+             for kernels in ("host", "jax")}
+    frags = {name: rasterize_scene(scene, s) for name, s in paths.items()}
+    assert int(frags["host"].dropped) == int(frags["jax"].dropped) > 0
+    np.testing.assert_array_equal(frags["jax"].face_ids, frags["host"].face_ids)
+    np.testing.assert_allclose(render(scene, paths["jax"]), render(scene, paths["host"]),
+                               atol=1e-12)
 
 
 def test_jit_with_traced_parameters_equals_eager():

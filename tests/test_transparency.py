@@ -106,6 +106,101 @@ def test_kt_zero_renders_as_the_opaque_material(mesh, settings):
     np.testing.assert_allclose(render(glass, settings), render(opaque, settings), atol=1e-12)
 
 
+# ---------------------------------------------------------------- shared edges
+# A glass grid (cells split along their diagonals) in front of the opaque rear quad. Its
+# shared edges pass exactly through pixel centres: the diagonals of square cells whose
+# corners lie on pixel boundaries ("diagonals"), and, with the corners on pixel centres,
+# every grid line, the outer boundary and the vertices where up to eight faces meet
+# ("centres"). Each pixel must see the glass once. Hard raster's tie rule (top-left) makes
+# the glass cover the half-open box x0 <= x < x1, y0 < y <= y1 (NDC, y up); the "centres"
+# images are a power of two pixels a side, so that NDC pixel centres are exact and lie on
+# the outer boundary exactly.
+EDGE_CASES = {  # name: (width, height, box, cells a side)
+    "diagonals": (SIZE, SIZE, (-1.0, 1.0, -1.0, 1.0), 2),
+    "diagonals_wide": (20, 12, (-1.0, 1.0, -0.5, 0.5), (4, 2)),
+    "centres": (SIZE, SIZE, (-1.125, 0.875, -0.875, 1.125), 4),
+    "centres_tall": (8, 16, (-0.875, 0.625, -1.125, 0.875), (3, 4)),
+}
+
+
+def glass_grid(mesh, width, height, box, cells, kt=KT):
+    """Two-sided scene: the glass grid (front material, counter-clockwise) at z = 0.5 over
+    the rear quad (back material) at z = 0, pixels 0.25 wide (orthographic)."""
+    nx, ny = (cells, cells) if isinstance(cells, int) else cells
+    xs, ys = np.linspace(box[0], box[1], nx + 1), np.linspace(box[2], box[3], ny + 1)
+    verts = [[x, y, 0.5] for y in ys for x in xs]
+    faces = []
+    for j in range(ny):
+        for i in range(nx):
+            a, b, c, d = (j * (nx + 1) + i, j * (nx + 1) + i + 1,
+                          (j + 1) * (nx + 1) + i + 1, (j + 1) * (nx + 1) + i)
+            faces += [[a, b, c], [a, c, d]] if (i + j) % 2 == 0 else [[a, b, d], [b, c, d]]
+    rv, rf = quad(REAR_BOX, 0.0, clockwise=True)
+    normals = [[0.0, 0.0, 1.0]] * len(verts) + [[0.0, 0.0, -1.0]] * 4
+    m = mesh(verts + rv, faces + [[i + len(verts) for i in f] for f in rf], normals)
+    cam = look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), width=width, height=height,
+                  projection="orthographic", ortho_height=height / 4, near=0.5, far=10.0)
+    scene = two_quads(mesh, kt)
+    return replace(scene, mesh=m, camera=cam)
+
+
+def grid_closed_form(width, height, box, kt=KT):
+    """[H, W, 4] by NumPy: the glass over the half-open box, seen once, over the rear."""
+    kt = np.asarray(kt, np.float64)
+    front = np.clip(0.2 * 0.2 + np.array([0.9, 0.3, 0.2]) * 0.8 + 0.4 * 0.8, 0, 1)
+    rear = np.clip(0.1 * 0.2 + np.array([0.1, 0.7, 0.4]) * 0.8, 0, 1)
+    image = np.zeros((height, width, 4))
+    for row in range(height):
+        for col in range(width):
+            x, y = (col + 0.5 - width / 2) / 4, (height / 2 - row - 0.5) / 4
+            behind, alpha = (rear, 1.0) if inside(REAR_BOX, x, y) else (BACKGROUND, 0.0)
+            if box[0] <= x < box[1] and box[2] < y <= box[3]:
+                behind, alpha = (1 - kt) * front + kt * behind, 1 - np.mean(kt) * (1 - alpha)
+            image[row, col] = [*behind, alpha]
+    return image
+
+
+def on_shared_edge_count(width, height, box, cells):
+    """How many pixel centres lie on a diagonal of a cell (the cases' shared edges that are
+    not grid lines), so that a test cannot pass for want of such pixels."""
+    nx, ny = (cells, cells) if isinstance(cells, int) else cells
+    step_x, step_y = (box[1] - box[0]) / nx, (box[3] - box[2]) / ny
+    count = 0
+    for row in range(height):
+        for col in range(width):
+            x, y = (col + 0.5 - width / 2) / 4, (height / 2 - row - 0.5) / 4
+            u, v = (x - box[0]) / step_x, (y - box[2]) / step_y
+            if 0 < u < nx and 0 < v < ny and (u % 1 == v % 1 or u % 1 == 1 - v % 1):
+                count += 1
+    return count
+
+
+@pytest.mark.parametrize("kernels", ["host", "jax"])
+@pytest.mark.parametrize("case", EDGE_CASES)
+def test_hard_glass_is_seen_once_on_edges_through_pixel_centres(mesh, case, kernels):
+    width, height, box, cells = EDGE_CASES[case]
+    assert on_shared_edge_count(width, height, box, cells) >= 4
+    scene = glass_grid(mesh, width, height, box, cells)
+    image = np.asarray(render(scene, replace(HARD, kernels=kernels)))
+    np.testing.assert_allclose(image, grid_closed_form(width, height, box), atol=1e-12)
+
+
+@pytest.mark.parametrize("case", ["diagonals", "diagonals_wide"])
+def test_soft_glass_colour_is_seen_once_on_edges_through_pixel_centres(mesh, case):
+    """Sharp soft raster: the colour is the closed form's. Alpha is SoftRas's product over
+    faces, which counts the two half-covering faces of a pixel centre on a shared edge as
+    two layers (docs/transparency.md, Limits): it is checked off those pixels only."""
+    width, height, box, cells = EDGE_CASES[case]
+    scene = glass_grid(mesh, width, height, box, cells)
+    sharp = RenderSettings(raster="soft", sigma=1e-5, gamma=1e-4)
+    image, want = np.asarray(render(scene, sharp)), grid_closed_form(width, height, box)
+    np.testing.assert_allclose(image[..., :3], want[..., :3], atol=1e-6)
+    frags = rasterize_scene(scene, sharp)
+    on_edge = (np.asarray(frags.valid) & (np.asarray(frags.dist) == 0.0)).sum(-1) >= 2
+    assert on_edge.sum() >= 4
+    np.testing.assert_allclose(image[~on_edge, 3], want[~on_edge, 3], atol=1e-6)
+
+
 def recursive_blend(colours, kt, logits, valid, zt, background):
     """The soft composite of one pixel written out: sort by depth (nearest first), then
     from the farthest layer forward B_k = the normalized-weight (D e^(zt / gamma)) sum over

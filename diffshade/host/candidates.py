@@ -12,9 +12,11 @@ Coverage uses 2D homogeneous rasterization (Olano & Greer 1997): with v_i = (X, 
 of the clip-space vertices and p = (x_ndc, y_ndc, 1), the edge functions
 e_i = (v_j x v_k) . p give the perspective-correct barycentrics e_i / sum(e) directly, and
 a pixel is covered when all barycentrics are >= 0, the point is in front of the eye
-(det / sum(e) > 0) and its NDC depth lies in [-1, 1]. This is exactly OpenGL's clipping
-against the near and far planes, done per pixel: faces that cross the near plane are
-clipped, not culled, and no new triangles are made.
+(det / sum(e) > 0) and its NDC depth lies in [-1, 1]; a pixel centre exactly on an edge
+belongs to one face only, by the top-left tie rule (_owns_edge), so the two faces of a
+shared edge never both cover it (a transparent surface composites once). This is exactly
+OpenGL's clipping against the near and far planes, done per pixel: faces that cross the
+near plane are clipped, not culled, and no new triangles are made.
 
 Soft mode (SoftRas) grows each face's footprint by `radius_px` pixels: a pixel outside
 the projected triangle is a candidate when its squared distance to the triangle is at most
@@ -124,6 +126,19 @@ def _sort_list(ids, keys, pixel, count, scratch_ids, scratch_keys):
         ids[pixel, rank], keys[pixel, rank] = face, key
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _owns_edge(e, a, b, s):
+    """The tie rule for a pixel centre exactly on edge i (e = e_i == 0): the face owns it
+    when the edge is a top or left one, i.e. the face's inward normal sign(s) (a, b) (NDC,
+    y up) points right, or straight down. A neighbour across a shared edge has exactly
+    the negated coefficients, so exactly one of the two owns the pixel."""
+    if e != 0.0:
+        return True
+    if s < 0.0:
+        a, b = -a, -b
+    return a > 0.0 or (a == 0.0 and b < 0.0)
+
+
 @numba.njit(cache=True, nogil=True)
 def _covered_depth(coeffs, tri, f, x, y):
     """NDC depth of the pixel on face f, or +inf when the face does not cover it."""
@@ -132,6 +147,10 @@ def _covered_depth(coeffs, tri, f, x, y):
     e2 = coeffs[f, 2, 0] * x + coeffs[f, 2, 1] * y + coeffs[f, 2, 2]
     s = e0 + e1 + e2
     if s == 0.0 or e0 * s < 0.0 or e1 * s < 0.0 or e2 * s < 0.0:
+        return np.inf
+    if not (_owns_edge(e0, coeffs[f, 0, 0], coeffs[f, 0, 1], s)
+            and _owns_edge(e1, coeffs[f, 1, 0], coeffs[f, 1, 1], s)
+            and _owns_edge(e2, coeffs[f, 2, 0], coeffs[f, 2, 1], s)):
         return np.inf
     w = e0 * tri[f, 0, 3] + e1 * tri[f, 1, 3] + e2 * tri[f, 2, 3]
     if w * s <= 0.0:

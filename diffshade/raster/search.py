@@ -17,8 +17,9 @@ from diffshade.host.candidates import find_candidates
 from diffshade.host.hostcall import host_call
 from diffshade.raster.tile_search import search_tiles
 
-#: the JAX search's tiles (pixels a side) and faces kept per tile (tile_search.py): room
-#: for the faces near a tile of a densely tessellated mesh with the soft footprint grown
+#: the JAX search's tiles (pixels a side) and faces tested per tile and pass
+#: (tile_search.py): a tile touched by more faces takes more passes, so this trades
+#: passes against the work wasted on tiles with fewer faces, never correctness
 TILE, TILE_CAPACITY = 8, 128
 
 

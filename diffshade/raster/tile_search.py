@@ -5,15 +5,19 @@ reach which pixel, best first; discrete, no gradient) with the same coverage tes
 ranking keys and tie order, but as ordinary JAX ops: it runs under `jit`, `vmap` and
 inside `grad` on any backend, so an accelerator never calls back to the host.
 
-Two steps, both with static shapes:
+Two steps, both with static shapes, repeated in passes:
 1. Binning. The image is cut into tiles of `tile` x `tile` pixels. Each face's pixel box
    (the host's: near-clipped screen box in hard mode, the box grown by radius_px in soft
    mode) is tested against every tile: cost tiles x faces, chunked with `lax.map` so its
-   memory stays bounded. A tile keeps the first `capacity` faces that touch it, lowest
-   face ids first.
+   memory stays bounded. Pass p gives each tile the faces ranked p * capacity to
+   (p + 1) * capacity - 1 among those that touch it, lowest face ids first.
 2. Evaluation. Each pixel tests only its tile's list (cost pixels x capacity, never
-   pixels x faces) and keeps the best k keys with `lax.top_k`, which puts equal keys in
-   list order: lower face id first, as the host's stable insertion does.
+   pixels x faces) and merges the keys with the best k of the earlier passes by
+   `lax.top_k`, which puts equal keys in list order: lower face id first (earlier passes
+   hold lower ids), as the host's stable insertion does.
+There are as many passes as the most crowded tile needs (a `lax.while_loop`; one where
+no tile holds more than `capacity` faces), so no face is ever left untested: a dense mesh
+in a small image costs more passes, not wrong pixels.
 
 Bit-exactness: the arithmetic mirrors candidates.py operation by operation, and every
 product that feeds an addition goes through `_rounded`, because XLA's CPU backend would
@@ -23,9 +27,7 @@ and log1p (soft ranking only) are XLA's, not libm's, so two soft keys within an 
 of each other can still rank differently. float32 input is computed in float32 (the host
 always computes in float64), so there pixels on edges and near-tied faces may differ.
 
-`dropped` counts, in one number, reaching fragments beyond the k kept (as the host does)
-plus (face, tile) pairs that did not fit in a tile's capacity (those faces were never
-tested against that tile's pixels). With capacity large enough it equals the host's.
+`dropped` counts, in one number, reaching fragments beyond the k kept, as the host does.
 """
 
 import jax
@@ -145,10 +147,11 @@ def _soft_faces(clip, faces, width, height, cull_backfaces, radius_px):
     return data, _mask_box(jnp.stack([c0, c1, r0, r1], -1), ok)
 
 
-def _bin_faces(box, tiles_x, tiles_y, tile, capacity):
-    """Per tile, the first `capacity` faces whose pixel box [F, 4] touches it, ascending:
-    [T, capacity] int32 (-1 = empty), T = tiles_y * tiles_x in row-major order; and the
-    (face, tile) pairs that did not fit: [] int32. Cost T x F, in chunks of tiles."""
+def _bin_faces(box, tiles_x, tiles_y, tile, capacity, first):
+    """Per tile, the faces ranked first .. first + capacity - 1 (ascending ids) among those
+    whose pixel box [F, 4] touches it: [T, capacity] int32 (-1 = empty), T = tiles_y *
+    tiles_x in row-major order; and how many faces touch each tile: [T] int32. Cost T x F,
+    in chunks of tiles."""
     faces = box.shape[0]
     ty, tx = jnp.divmod(jnp.arange(tiles_x * tiles_y, dtype=jnp.int32), tiles_x)
 
@@ -156,12 +159,19 @@ def _bin_faces(box, tiles_x, tiles_y, tile, capacity):
         row, col = origin
         hit = ((box[:, 0] < col + tile) & (box[:, 1] >= col) & (box[:, 0] <= box[:, 1])
                & (box[:, 2] < row + tile) & (box[:, 3] >= row) & (box[:, 2] <= box[:, 3]))
-        ids = jnp.nonzero(hit, size=capacity, fill_value=-1)[0].astype(jnp.int32)
-        return ids, jnp.maximum(hit.sum(dtype=jnp.int32) - capacity, 0)
+        rank = jnp.cumsum(hit, dtype=jnp.int32) - 1
+        ids = jnp.nonzero(hit & (rank >= first), size=capacity, fill_value=-1)[0]
+        return ids.astype(jnp.int32), hit.sum(dtype=jnp.int32)
 
     batch = max(1, min(tiles_x * tiles_y, BIN_ELEMENTS // max(faces, 1)))
-    ids, overflow = lax.map(one_tile, (ty * tile, tx * tile), batch_size=batch)
-    return ids, overflow.sum()
+    return lax.map(one_tile, (ty * tile, tx * tile), batch_size=batch)
+
+
+def _owns_edge(e, a, b, s):
+    """The top-left tie rule of a pixel centre exactly on an edge (candidates._owns_edge):
+    [P, C] bool."""
+    a, b = jnp.where(s < 0.0, -a, a), jnp.where(s < 0.0, -b, b)
+    return (e != 0.0) | (a > 0.0) | ((a == 0.0) & (b < 0.0))
 
 
 def _hard_keys(data, x, y):
@@ -173,6 +183,8 @@ def _hard_keys(data, x, y):
          for i in range(3)]
     s = (e[0] + e[1]) + e[2]
     inside = (s != 0.0) & ~((e[0] * s < 0.0) | (e[1] * s < 0.0) | (e[2] * s < 0.0))
+    for i in range(3):
+        inside &= _owns_edge(e[i], coeffs[:, i, 0], coeffs[:, i, 1], s)
     w = _dot3(*e, *corner_w.T)
     z = _dot3(*e, *corner_z.T) / w
     covered = inside & ~(w * s <= 0.0) & (z >= -1.0) & (z <= 1.0)
@@ -235,19 +247,15 @@ def _soft_keys(data, px, py, radius_px, sigma, gamma, near, far, perspective):
     return jnp.where(z < jnp.inf, key, jnp.inf)
 
 
-def _best(keys, ids, k):
-    """The k smallest keys [P, C] per pixel, equal keys in list order: face ids [P, k]
-    (-1 = empty) and the reaching fragments that did not fit: [] int32."""
-    reach = keys < jnp.inf
+def _merge(keys, ids, best_keys, best_ids):
+    """The k = best_keys.shape[-1] smallest of a pass's keys [P, C] (faces ids [C]) and
+    the earlier passes' best (best_keys, best_ids [P, k]), equal keys in list order
+    (the earlier passes' first, then ascending ids): (keys, ids) [P, k]."""
     keys = jnp.where(keys == 0.0, 0.0, keys)   # -0.0 and 0.0 tie, as in the host
-    if keys.shape[-1] < k:
-        pad = ((0, 0), (0, k - keys.shape[-1]))
-        keys, reach, ids = (jnp.pad(keys, pad, constant_values=jnp.inf),
-                            jnp.pad(reach, pad), jnp.pad(ids, (0, pad[1][1]), constant_values=-1))
-    _, slot = lax.top_k(-keys, k)
-    best = jnp.where(jnp.take_along_axis(reach, slot, -1), ids[slot], -1)
-    count = reach.sum(-1, dtype=jnp.int32)
-    return best.astype(jnp.int32), jnp.maximum(count - k, 0).sum()
+    keys = jnp.concatenate([best_keys, keys], -1)
+    ids = jnp.concatenate([best_ids, jnp.broadcast_to(ids, keys.shape[:1] + ids.shape)], -1)
+    _, slot = lax.top_k(-keys, best_keys.shape[-1])
+    return jnp.take_along_axis(keys, slot, -1), jnp.take_along_axis(ids, slot, -1)
 
 
 def _tile_pixels(origin, tile, width, height, dtype):
@@ -278,7 +286,7 @@ def search_tiles(clip, faces, near, far, radius_px, sigma, gamma, *, width, heig
     soft_blend weight (see candidates.find_candidates, whose results this reproduces;
     unlike it, the mode is chosen by `soft`, not by radius_px > 0).
     Returns (face_ids [height, width, k] int32, -1 = empty; dropped [] int32: reaching
-    fragments beyond the k kept plus (face, tile) pairs beyond a tile's capacity).
+    fragments beyond the k kept). capacity: faces per tile and pass (module docstring).
     """
     clip, near, far, radius_px, sigma, gamma = lax.stop_gradient(
         (clip, near, far, radius_px, sigma, gamma))
@@ -292,10 +300,12 @@ def search_tiles(clip, faces, near, far, radius_px, sigma, gamma, *, width, heig
     else:
         data, box = _hard_faces(clip, faces, width, height, cull_backfaces)
     tiles_x, tiles_y = -(-width // tile), -(-height // tile)
-    tile_faces, overflow = _bin_faces(box, tiles_x, tiles_y, tile, capacity)
+    tiles = jnp.arange(tiles_x * tiles_y, dtype=jnp.int32)
+    origins = (tiles // tiles_x * tile, tiles % tiles_x * tile)
+    batch = max(1, TILE_ELEMENTS // (tile * tile * capacity))
 
     def one_tile(args):
-        ids, origin = args
+        ids, origin, best_keys, best_ids, reached = args
         row, col, ndc, centre = _tile_pixels(origin, tile, width, height, dtype)
         face_data = jax.tree.map(lambda a: a[jnp.maximum(ids, 0)], data)
         if soft:
@@ -304,12 +314,22 @@ def search_tiles(clip, faces, near, far, radius_px, sigma, gamma, *, width, heig
         else:
             keys = _hard_keys(face_data, *ndc)
         tested = _in_box(box[jnp.maximum(ids, 0)], row, col) & (ids >= 0)
-        return _best(jnp.where(tested, keys, jnp.inf), ids, k)
+        keys = jnp.where(tested, keys, jnp.inf)
+        reached = reached + (keys < jnp.inf).sum(-1, dtype=jnp.int32)
+        return (*_merge(keys, ids, best_keys, best_ids), reached)
 
-    tiles = jnp.arange(tiles_x * tiles_y, dtype=jnp.int32)
-    origins = (tiles // tiles_x * tile, tiles % tiles_x * tile)
-    batch = max(1, TILE_ELEMENTS // (tile * tile * capacity))
-    ids, dropped = lax.map(one_tile, (tile_faces, origins), batch_size=batch)
+    def search_pass(p, state):
+        tile_faces, _ = _bin_faces(box, tiles_x, tiles_y, tile, capacity, p * capacity)
+        return lax.map(one_tile, (tile_faces, origins, *state), batch_size=batch)
+
+    pixels = (tiles_x * tiles_y, tile * tile)
+    empty = (jnp.full(pixels + (k,), jnp.inf, dtype), jnp.full(pixels + (k,), -1, jnp.int32),
+             jnp.zeros(pixels, jnp.int32))
+    tile_faces, touching = _bin_faces(box, tiles_x, tiles_y, tile, capacity, 0)
+    state = lax.map(one_tile, (tile_faces, origins, *empty), batch_size=batch)
+    passes = (touching.max() + capacity - 1) // capacity
+    best_keys, ids, reached = lax.fori_loop(1, passes, search_pass, state)
+    ids = jnp.where(best_keys < jnp.inf, ids, -1)
     ids = ids.reshape(tiles_y, tiles_x, tile, tile, k).transpose(0, 2, 1, 3, 4)
     ids = ids.reshape(tiles_y * tile, tiles_x * tile, k)[:height, :width]
-    return ids, dropped.sum() + overflow
+    return ids, jnp.maximum(reached - k, 0).sum()
