@@ -2,13 +2,16 @@
 central differences in float64, and a calibrated camera perturbed by 0.5 degrees and 2 px
 recovered, with the material, from an antialiased photo (a 4 x 4 supersampled render)."""
 
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import diffshade as ds
-from fitting import Dataset, FitSpec, View, fit
+from diffshade import cli
+from fitting import Dataset, FitSpec, View, fit, save_dataset
 from fitting.refine import fit_with_poses, pose_records
 from fitting.solve import pose as P
 
@@ -87,7 +90,7 @@ def test_pose_gradient_matches_central_differences():
         np.testing.assert_allclose(2.0 * np.asarray(jtr), central, rtol=1e-5, atol=1e-6)
 
 
-@pytest.mark.cost(90)
+@pytest.mark.cost(60)
 def test_perturbed_camera_recovered_with_the_material():
     R, t = looking_at_origin(EYE)
     R1, t1 = perturbed(R, t, 0.5, 2.0)
@@ -95,18 +98,25 @@ def test_perturbed_camera_recovered_with_the_material():
     before = np.linalg.norm(projected(K, R, t) - projected(K, R1, t1), axis=1)
     assert before.min() > 1.8  # every corner starts about 2 px off
     # one view of flat faces cannot separate ks and shininess from kd: they are held
-    init = ds.material(ka=0.3, kd=0.5, ks=0.3, shininess=20.0)
-    result, refined = fit_with_poses(dataset_of(R1, t1, photo(R, t)),
-                                     FitSpec(ks=None, shininess=False), init, rounds=2)
+    spec, init = FitSpec(ks=None, shininess=False), ds.material(ka=0.3, kd=0.5, ks=0.3,
+                                                                 shininess=20.0)
+    result, refined = fit_with_poses(dataset_of(R1, t1, photo(R, t)), spec, init, rounds=2)
     record = pose_records(refined)[0]["camera"]
     after = np.linalg.norm(projected(K, R, t) - projected(
         np.array(record["K"]), np.array(record["R"]), np.array(record["t"])), axis=1)
-    # the photo's 4 x 4 box filter and the soft edges differ: a quarter pixel is what
-    # a 24 px box's outline and shading determine (2 px at the start)
-    assert after.max() < 0.4 and np.sqrt(np.mean(after**2)) < 0.3
-    print(after, result.values)
-    np.testing.assert_allclose(result.values["kd"], [0.6, 0.4, 0.3], rtol=0.05)
-    np.testing.assert_allclose(result.values["ka"], [0.2, 0.2, 0.2], rtol=0.1)
+    # an eighth of the start (measured 0.18 px): what the outline and shading of a 24 px
+    # box fix, given that the photo's 4 x 4 box filter and the soft rasterizer's edges
+    # differ
+    assert after.max() < 0.25
+    # the material: as the true camera gives it (the box-filtered photo, not the pose,
+    # keeps both from the truth: ka 0.28, kd 0.55 for 0.2, 0.6), ten times closer to it
+    # than the calibration's (measured: 0.009 and 0.004 against 0.13 and 0.23)
+    reference, unrefined = (fit(dataset_of(*pose, photo(R, t)), spec, init,
+                                with_uncertainty=False) for pose in ((R, t), (R1, t1)))
+    gap = {k: np.abs(result.values[k] - reference.values[k]).max() for k in ("ka", "kd")}
+    start_gap = {k: np.abs(unrefined.values[k] - reference.values[k]).max()
+                 for k in ("ka", "kd")}
+    assert all(gap[k] < 0.1 * start_gap[k] for k in gap), (gap, start_gap)
 
 
 def test_lights_fitted_with_a_calibrated_camera():
@@ -126,3 +136,21 @@ def test_lights_fitted_with_a_calibrated_camera():
     point = result.values["lights"][0]["point"]
     np.testing.assert_allclose(point["color"], [[0.8, 0.7, 0.6]], atol=1e-3)
     np.testing.assert_allclose(point["position"], [[-1.0, 2.0, 3.0]], atol=1e-2)
+
+
+@pytest.mark.cost(30)
+def test_fit_refine_pose_writes_the_refined_cameras(tmp_path, capsys):
+    """`diffshade fit --refine-pose`: result.json's "poses" hold each view's refined
+    camera in OpenCV form, where the true camera puts the box (as fit_with_poses)."""
+    R, t = looking_at_origin(EYE)
+    save_dataset(dataset_of(*perturbed(R, t, 0.5, 2.0), photo(R, t)), tmp_path / "data")
+    code = cli.main([str(a) for a in ("fit", tmp_path / "data", "-o", tmp_path / "out", "--fit",
+                                      "ka,kd", "--refine-pose", "--quiet")])
+    assert code == 0, capsys.readouterr().err
+    poses = json.loads((tmp_path / "out" / "result.json").read_text())["poses"]
+    camera = {k: np.array(v) for k, v in poses[0]["camera"].items()}
+    assert camera["width"] == SIZE and np.allclose(camera["K"], intrinsics(), atol=1e-3)
+    after = np.linalg.norm(projected(intrinsics(), R, t)
+                           - projected(camera["K"], camera["R"], camera["t"]), axis=1)
+    assert after.max() < 0.25
+    assert 0.1 < poses[0]["rotation_deg"] < 2.0
