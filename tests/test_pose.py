@@ -154,3 +154,19 @@ def test_fit_refine_pose_writes_the_refined_cameras(tmp_path, capsys):
                            - projected(camera["K"], camera["R"], camera["t"]), axis=1)
     assert after.max() < 0.25
     assert 0.1 < poses[0]["rotation_deg"] < 2.0
+
+
+@pytest.mark.parametrize("argument, value", [("rotation_prior_deg", -1.0),
+                                             ("translation_prior", float("nan")),
+                                             ("image_noise", "0.05")])
+def test_bad_priors_refused_in_one_line(argument, value):
+    R, t = looking_at_origin(EYE)
+    data = dataset_of(R, t, np.zeros((SIZE, SIZE, 3)))
+    with pytest.raises(ValueError, match=f"^{argument}: got {value!r}; expected a positive"):
+        P.refine_poses(data, TRUTH, **{argument: value})
+
+
+def test_bad_rounds_refused():
+    R, t = looking_at_origin(EYE)
+    with pytest.raises(ValueError, match=r"^rounds: got 0; expected an integer >= 1"):
+        fit_with_poses(dataset_of(R, t, np.zeros((SIZE, SIZE, 3))), rounds=0)

@@ -2,11 +2,12 @@
 
 `refine_poses(dataset, material)` moves each view's camera by a rigid correction of its
 calibrated pose (OpenCV's R0, t0), 6 numbers per view: a rotation vector w that turns the
-object about its own centre c (in camera axes) and a translation u (camera axes),
+object about its own centre (the mesh's bounding box's) and a translation u, in camera
+axes,
 
     x_cam = exp([w]x) (R0 x + t0 - c) + c + u,
 
-minimizing, view by view,
+c in camera coordinates, minimizing, view by view,
 
     sum over counted pixels |blur(render - target)|^2 / image_noise^2
         + |w|^2 / rotation_prior^2 + |u|^2 / translation_prior^2,
@@ -17,7 +18,9 @@ u moves the object across the image, w turns it in place (about the camera's cen
 small turn and a sideways shift look almost alike).
 
 The render is diffshade's soft rasterizer, so the silhouette moves smoothly with the
-pose; its edges pull only within a pixel or two, so the images are compared blurred,
+pose, set so that its edges sit where a photo's do (SIGMA, GAMMA, the colour composited
+by coverage, back faces culled unless the dataset is two-sided); its edges pull only
+within a pixel or two, so the images are compared blurred,
 coarse to fine (`BLURS`, Gaussian standard deviations in pixels): a wide blur first
 spreads each edge's pull over several pixels, then finer ones sharpen the estimate (as
 an image pyramid does for Lucas-Kanade alignment). Interior pixels constrain the pose
