@@ -73,6 +73,7 @@ def dataset_of(R, t, target):
     return Dataset(MESH, [View(camera, LIGHTS, target)], global_ambient=0.3)
 
 
+@pytest.mark.cost(10)
 def test_pose_gradient_matches_central_differences():
     with jax.enable_x64(True):
         R, t = looking_at_origin(EYE)
