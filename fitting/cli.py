@@ -6,7 +6,7 @@
         [--color-space srgb|linear] [--tol T] [--atol T] [--gtol T] [--patience N]
         [--lr R] [--lr-shininess R] [--lr-position R] [--edge-margin N]
         [--shininess-range LOW,HIGH] [--max-bad N] [--checkpoint-every N] [--resume]
-        [--holdout N,M] [--quiet]
+        [--holdout N,M] [--quiet] [--refine-pose]
 
 The fit is fitting.run's, the driver `fitting.fit` uses, with the same options: one flag
 per field of fitting.solve.options.FitOptions. A dataset of several objects (scene files with
@@ -54,6 +54,7 @@ from fitting.inputs import non_negative_float, non_negative_int, positive_float,
 from fitting.model.cache import build_cache
 from fitting.model.loss import LOSSES
 from fitting.plan import CHECKPOINT, flag, prepare
+from fitting.refine import pose_records, refined_poses
 from fitting.report.holdout import holdout_results, holdout_table, write_panels
 from fitting.report.result import STATUS_LABELS, comparison_table, write_result
 from fitting.run import advance, finish, start_run
@@ -165,6 +166,10 @@ def register(subparsers):
                              "the fit; render them with the fitted material and report "
                              "their PSNR (holdout_NNN.png, result.json 'holdout')")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--refine-pose", action="store_true",
+                        help="refine each view's pose near its calibration, alternating "
+                             "with the material, before the fit (result.json 'poses': the "
+                             "refined cameras in OpenCV form; docs/calibrated-cameras.md)")
     add_texture_options(parser)
     parser.set_defaults(run=run_fit)
 
@@ -248,7 +253,7 @@ def _holdout(plan, result, edge_margin):
     return holdout_results(plan.held, plan.holdout, result.material, edge_margin)
 
 
-def _report(args, dataset, views, state, status, message, signum, plan):
+def _report(args, dataset, views, state, status, message, signum, plan, poses=None):
     """Write the checkpoint and the result files, print the tables; returns the exit code.
     views: the cached data, or its ShardedViews (the report's sums a chunk at a time)."""
     result_path = os.path.join(args.output, "result.json")
@@ -260,6 +265,8 @@ def _report(args, dataset, views, state, status, message, signum, plan):
     held, panels = _holdout(plan, result, state.options.edge_margin)
     extra = _extra(args, state, status, signum, message, plan) | (
         {"holdout": held} if held else {})
+    if poses is not None:
+        extra["poses"] = pose_records(poses)
     paths = write_result(args.output, dataset, result, state.init, extra,
                          f"diffshade fit: {state.method}, {state.kind} loss",
                          kept=[np.asarray(v.pixels) for v in data.views], ids=plan.fitted)
@@ -290,6 +297,10 @@ def run_fit(args) -> int:
     with _Signals() as signals:
         dataset, plan = prepare(args)
         start = time.perf_counter()
+        poses = None
+        if args.refine_pose:
+            poses = refined_poses(dataset, plan.spec, plan.init, options=plan.options)
+            dataset = poses.dataset
         data = build_cache(dataset, plan.init, edge_margin=plan.options.edge_margin)
         views = for_options(data, plan.options)  # sharded and chunked, or data itself
         data = fit_data(views)  # (sharded: its views, in host memory)
@@ -312,4 +323,5 @@ def run_fit(args) -> int:
             print(f"diffshade: error: fit stopped: {message}; no step had a finite loss, "
                   "nothing written", file=sys.stderr)
             return EXIT_NON_FINITE
-        return _report(args, dataset, views, state, status, message, signals.received, plan)
+        return _report(args, dataset, views, state, status, message, signals.received, plan,
+                       poses)
