@@ -53,6 +53,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import peers  # noqa: E402
 from common import finish_record, run_record  # noqa: E402
 from lens import lens_photo, pinhole_frame  # noqa: E402
 
@@ -89,17 +90,7 @@ def mitsuba_to_world(R, t):
 
 def mitsuba_mesh(mi, mesh):
     """The capture's mesh (positions, faces, normals) as a Mitsuba shape of albedo ALBEDO."""
-    props = mi.Properties()
-    props["bsdf"] = mi.load_dict({"type": "diffuse",
-                                  "reflectance": {"type": "rgb", "value": list(ALBEDO)}})
-    shape = mi.Mesh("sphere", len(mesh["vertices"]), len(mesh["faces"]), props=props,
-                    has_vertex_normals=True)
-    params = mi.traverse(shape)
-    params["vertex_positions"] = mi.Float(mesh["vertices"].ravel())
-    params["vertex_normals"] = mi.Float(mesh["normals"].ravel())
-    params["faces"] = mi.UInt32(mesh["faces"].ravel())
-    params.update()
-    return shape
+    return peers.mitsuba_mesh(mi, mesh, ALBEDO)
 
 
 def mitsuba_pinhole(mi, mesh, R, t, frame, spp):

@@ -152,18 +152,25 @@ def diffshade_worker(args):
             for key, r in out.items()}
 
 
-def mitsuba_scene(mi, mesh, size):
-    """The judged scene in Mitsuba (see the module docstring)."""
+def mitsuba_mesh(mi, mesh, albedo):
+    """A mesh (positions, faces, normals: NumPy arrays) as a Mitsuba shape with a diffuse
+    BSDF of reflectance `albedo`."""
     props = mi.Properties()
     props["bsdf"] = mi.load_dict({"type": "diffuse",
-                                  "reflectance": {"type": "rgb", "value": list(KD)}})
+                                  "reflectance": {"type": "rgb", "value": list(albedo)}})
     shape = mi.Mesh("sphere", len(mesh["vertices"]), len(mesh["faces"]), props=props,
                     has_vertex_normals=True)
     params = mi.traverse(shape)
     params["vertex_positions"] = mi.Float(mesh["vertices"].ravel())
-    params["faces"] = mi.UInt32(mesh["faces"].ravel())
     params["vertex_normals"] = mi.Float(mesh["normals"].ravel())
+    params["faces"] = mi.UInt32(mesh["faces"].ravel())
     params.update()
+    return shape
+
+
+def mitsuba_scene(mi, mesh, size):
+    """The judged scene in Mitsuba (see the module docstring)."""
+    shape = mitsuba_mesh(mi, mesh, KD)
     film = {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"},
             "pixel_format": "rgba"}
     sensor = {"type": "perspective", "fov": FOV_Y, "fov_axis": "y", "near_clip": 0.1,

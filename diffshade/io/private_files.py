@@ -108,6 +108,19 @@ def read_private(path, limit):
         return file.read(limit + 1)
 
 
+def read_cached(path, limit):
+    """read_private(path, limit) for a cache: None where there is no entry or it
+    is untrusted (warned once: the program then compiles), b"" where it is unreadable or
+    over the limit (damaged: the caller removes it)."""
+    try:
+        return read_private(path, limit)
+    except Untrusted as err:
+        warn_once(f"{err}; not loaded, the program is compiled")
+        return None
+    except (ValueError, OSError):
+        return b""
+
+
 def write_private(path, data):
     """Write `data` to `path` atomically (a temporary file of mode 0600, then a rename);
     OSError when it cannot be written (nothing is left behind)."""

@@ -30,7 +30,7 @@ from diffshade.io.private_files import (
     Untrusted,
     check_folder,
     private_folder,
-    read_private,
+    read_cached,
     warn_once,
     write_private,
 )
@@ -92,13 +92,7 @@ def read_entry(path, key, in_tree, device):
     a warning), a damaged or another key's entry is removed, to be written anew."""
     if not _trusted(os.path.dirname(path)):
         return None
-    try:
-        blob = read_private(path, MAX_ENTRY_BYTES)
-    except Untrusted as err:
-        warn_once(f"{err}; not loaded, the program is compiled")
-        return None
-    except (ValueError, OSError):
-        blob = b""  # unreadable or over the limit: damaged
+    blob = read_cached(path, MAX_ENTRY_BYTES)
     if blob is None:
         return None
     try:

@@ -25,9 +25,7 @@ from jax._src.compilation_cache_interface import CacheInterface
 
 from diffshade.io.private_files import (
     MAX_ENTRY_BYTES,
-    Untrusted,
-    read_private,
-    warn_once,
+    read_cached,
     write_private,
 )
 
@@ -51,13 +49,7 @@ class PrivateCache(CacheInterface):
 
     def get(self, key):
         path = self._file(key)
-        try:
-            blob = None if path is None else read_private(path, MAX_ENTRY_BYTES)
-        except Untrusted as err:
-            warn_once(f"{err}; not loaded, the program is compiled")
-            return None
-        except (ValueError, OSError):
-            blob = b""  # unreadable or over the limit: damaged
+        blob = None if path is None else read_cached(path, MAX_ENTRY_BYTES)
         if blob is None:
             return None
         head = MAGIC + key.encode() + b"\n"
