@@ -23,7 +23,7 @@ from nbclient import NotebookClient
 FOLDER = Path(__file__).resolve().parent
 ROOT = FOLDER.parent
 NAMES = ["01_quickstart", "02_fit_material", "03_accuracy_vs_time", "04_objects_shadows",
-         "05_real_capture"]
+         "05_real_capture", "06_texture"]
 TIMEOUT_S = 1800
 # Absolute paths of a POSIX or Windows machine; a committed output must not name one.
 MACHINE_PATH = re.compile(r"(?<![\w.~])(/(home|tmp|work|Users|root|var|private|opt)/|[A-Z]:\\)")

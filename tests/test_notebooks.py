@@ -18,7 +18,7 @@ from nbclient import NotebookClient
 
 NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
 NAMES = ["01_quickstart.ipynb", "02_fit_material.ipynb", "03_accuracy_vs_time.ipynb",
-         "04_objects_shadows.ipynb", "05_real_capture.ipynb"]
+         "04_objects_shadows.ipynb", "05_real_capture.ipynb", "06_texture.ipynb"]
 
 
 def _execute_module():
