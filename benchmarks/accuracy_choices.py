@@ -94,10 +94,13 @@ TABLES = {
          ("wrong_px", "wrong px", "{}"), ("edge_px", "edge px", "{}"),
          ("edge_error_px", "edge error px", "{:.3f}"), ("fwd_ms", "fwd ms", TIME)]),
     "fit_effects": (
-        "Inside a fit: shadows, an area light, views and lights",
+        "Inside a fit: shadows, an area light, transparency, views and lights",
         "The linear solver (64²). shadows, area light: 2 views of the shadows section's "
         "sphere over a floor lit by the sun and a point light casting shadows (or a disk "
         "light of radius 0.5 in its place, targets with 64 samples), the model as given; "
+        "transparency: 2 views of a box over a table (sun and a point light casting "
+        "shadows), kd fitted from 0.5 with the rest known, the box opaque or of kt "
+        "(0.35, 0.5, 0.65), kt known or fitted from 0.5 (the table's from 0.05); "
         "views × lights: the data_synth sphere under noise σ = 0.01 (seed 3).",
         [("case", "case", "{}"), ("model", "model", "{}"),
          ("n_views", "views", "{}"), ("n_lights", "lights per view", "{}"),

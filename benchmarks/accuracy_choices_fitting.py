@@ -4,7 +4,8 @@
   sphere over a floor, against the exact shadow (SphereOverPlane.shadow).
 - fit_effects: the linear solver's recovery error and time with and without shadows in
   its model (targets with shadows), with an area light modelled with as many samples as
-  the targets' or fewer, and against the number of views and of lights.
+  the targets' or fewer, with a transparent box (kt known, or fitted with kd) against an
+  opaque one, and against the number of views and of lights.
 - fit_resolution: the linear solver against image size under noise sigma = 0.01 and on
   8-bit targets (median and largest error over seeds).
 
@@ -14,6 +15,7 @@ common.time_settings (a fit is one call: cache building, solve), interleaved per
 
 import dataclasses
 
+import jax.numpy as jnp
 import numpy as np
 from accuracy_fitting import NOISE_SEEDS, material_error
 from accuracy_shadows import GEOMETRY, GLOBAL, KA, LIGHT, LIGHT_AMBIENT, boundary, scene
@@ -21,7 +23,7 @@ from common import time_settings
 
 import diffshade as ds
 from data_synth import make_dataset
-from fitting import View, dataset_of_scene, fit, view_scene
+from fitting import FitSpec, View, dataset_of_scene, fit, view_scene
 
 SHADOW_SIZE = 128
 
@@ -69,9 +71,9 @@ def _with_times(rows, calls, rounds, column):
     return rows
 
 
-def _fit_call(dataset):
+def _fit_call(dataset, spec=None, init=None):
     """One linear fit, returning arrays so that the timer can wait on them."""
-    return lambda: fit(dataset, method="linear", with_uncertainty=False).material
+    return lambda: fit(dataset, spec, init, method="linear", with_uncertainty=False).material
 
 
 # ---------------------------------------------------------------- 7. inside a fit
@@ -119,6 +121,60 @@ FLOOR_CASES = [
 ]
 
 
+# tests/test_fit_effects' box on a table, the box lifted off the table top: faces that
+# coincide in depth (the box's bottom on the table) leave their order to float rounding
+BOX = dict(ka=(0.25, 0.2, 0.15), kd=(0.6, 0.3, 0.2), ks=(0.4, 0.35, 0.3), shininess=30.0)
+TABLE = dict(ka=(0.2, 0.25, 0.3), kd=(0.3, 0.45, 0.7), ks=0.1, shininess=8.0)
+KT = (0.35, 0.5, 0.65)
+
+
+def box_dataset(size, glass):
+    """2 views of a box (transparent when `glass`) over a table, lit by a point light
+    casting shadows and the sun; targets rendered with the truth."""
+    box = ds.material(**BOX, kt=KT if glass else None)
+    objects = [ds.scene_object(ds.box((0.7, 0.7, 0.7)), box,
+                               transform=ds.model_matrix((0.1, 0.4, 0.0), (0.0, 30.0, 0.0))),
+               ds.scene_object(ds.box((2.4, 0.2, 1.8)), ds.material(**TABLE),
+                               transform=ds.model_matrix((0.0, -0.1, 0.0)))]
+    views = []
+    for eye in ((0.4, 1.8, 2.4), (-1.6, 1.4, 1.8)):
+        camera = ds.look_at(eye, (0.0, 0.2, 0.0), width=size, height=size, fov_y=50.0)
+        lights = [ds.point_light((1.2, 2.2, 0.8), 0.8, shadows=True),
+                  ds.directional_light(*SUN)]
+        views.append(View(camera, lights, np.zeros((size, size, 3))))
+    scene_ = ds.make_scene(objects=objects, camera=views[0].camera, global_ambient=0.3)
+    settings = ds.RenderSettings(shadow_map_size=256)
+    data = dataset_of_scene(scene_, views, truth=scene_.material, settings=settings)
+    return dataclasses.replace(data, views=[
+        dataclasses.replace(v, target=np.asarray(ds.render(view_scene(data, i, data.truth),
+                                                           settings))[..., :3])
+        for i, v in enumerate(data.views)])
+
+
+def box_fit(size, model):
+    """(dataset, spec, init) of a transparency row: kd fitted from 0.5 (and kt from 0.5 on
+    the box, 0.05 on the opaque table when `model` fits kt); the rest known."""
+    dataset = box_dataset(size, model != "opaque box, kd")
+    truth, fit_kt = dataset.truth, model == "glass box, kd + kt"
+    init = dataclasses.replace(truth, kd=jnp.full_like(truth.kd, 0.5))
+    if fit_kt:
+        init = dataclasses.replace(init, kt=jnp.asarray([[0.5] * 3, [0.05] * 3],
+                                                        truth.kd.dtype))
+    return dataset, FitSpec.from_names(["kd", "kt"] if fit_kt else ["kd"]), init
+
+
+def box_error(material, truth):
+    """Largest relative error of kd and of the box's kt (the table's kt is 0: absolute)."""
+    kd = np.abs(np.asarray(material.kd) - np.asarray(truth.kd)) / np.asarray(truth.kd)
+    if truth.kt is None:
+        return float(kd.max())
+    kt = np.abs(np.asarray(material.kt) - np.asarray(truth.kt))
+    return float(max(kd.max(), (kt[0] / np.asarray(truth.kt)[0]).max(), kt[1].max()))
+
+
+TRANSPARENCY_MODELS = ("opaque box, kd", "glass box, kd (kt known)", "glass box, kd + kt")
+
+
 def fit_effects(quick, rounds):
     size = 32 if quick else 64
     counts = ((1, 1), (2, 2)) if quick else ((1, 1), (1, 2), (1, 4), (2, 2), (4, 2), (8, 2))
@@ -126,6 +182,13 @@ def fit_effects(quick, rounds):
              for case, model, target, fitted in FLOOR_CASES]
     cases += [("views × lights", {"n_views": v, "n_lights": n}, None, None) for v, n in counts]
     rows, calls = [], {}
+    for model in TRANSPARENCY_MODELS[-1:] if quick else TRANSPARENCY_MODELS:
+        dataset, spec, init = box_fit(size, model)
+        result = fit(dataset, spec, init, method="linear", with_uncertainty=False)
+        calls[f"{len(rows)}"] = _fit_call(dataset, spec, init)
+        rows.append({"case": "transparency", "size": size, "model": model,
+                     "images": len(dataset.views),
+                     "max_rel_error": box_error(result.material, dataset.truth)})
     for case, params, target, fitted in cases:
         if target is not None:
             dataset = floor_dataset(size, 2, target(), fitted())

@@ -114,6 +114,9 @@ def test_fits_recover_the_truth_only_with_the_model_they_need(quick):
     assert error["with shadows"] < 1e-4 and error["without shadows"] > 1e-2
     # the targets' own light model recovers the truth; fewer samples are biased
     assert error["disk, 64 samples"] < 1e-4 < 1e-3 < error["disk, 4 samples"]
+    # a transparent box: kd and kt fitted together come back from the targets' own model
+    glass = {r["model"]: r["max_rel_error"] for r in rows if r["case"] == "transparency"}
+    assert glass["glass box, kd + kt"] < 1e-4
     noisy = [r["max_rel_error"] for r in rows if r["case"] == "views × lights"]
     assert all(1e-4 < e < 0.1 for e in noisy)  # noise sigma 0.01: not exact, not lost
     eight_bit = next(r for r in results["fit_resolution"] if r["quantized"] and r["size"] == 32)
