@@ -90,8 +90,9 @@ def mutated(draw, value, special=None, added=(), faults=3):
             continue
         fault = draw(st.sampled_from(["replace"] * 4 + ["drop", "copy"]))
         if fault == "replace" or key not in parent and isinstance(parent, dict):
-            parent[key] = draw(special[key] if key in special and draw(st.integers(0, 3))
-                               else json_value)
+            # a copy: a later fault must not change a strategy's shared value
+            parent[key] = copy.deepcopy(draw(special[key] if key in special
+                                             and draw(st.integers(0, 3)) else json_value))
         elif fault == "drop":
             del parent[key]
         elif isinstance(parent, list):

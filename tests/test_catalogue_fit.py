@@ -214,6 +214,7 @@ def view_files(draw):
 @CATALOGUE_SETTINGS
 @given(change=view_files())
 @example(change=(0, {"image": "cmyk.jpg"}, None))
+@example(change=(0, {"image": "flipped.png"}, (36, 2)))  # a chunk length: Pillow's message
 @example(change=(1, {"image": "huge.png"}, None))
 @example(change=(0, {"target": "object.npy"}, None))
 def test_fit_of_a_dataset_with_a_drawn_image_file(dataset, tmp_path, capsys, monkeypatch,
