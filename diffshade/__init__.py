@@ -34,6 +34,7 @@ from diffshade.raster.interpolation import interpolate
 from diffshade.raster.projection import project
 from diffshade.scene.area_lights import area_light, sphere_light
 from diffshade.scene.builtin import BUILTIN_SCENES, builtin_scene
+from diffshade.scene.calibration import camera_from_opencv, camera_to_opencv
 from diffshade.scene.camera import Camera, look_at
 from diffshade.scene.lights import ambient_light, directional_light, point_light, spot_light
 from diffshade.scene.materials import Material, material
@@ -59,7 +60,7 @@ __all__ = [
     "SceneObject", "ShadingCache",
     # building a scene
     "ambient_light", "area_light", "box", "directional_light", "icosphere", "load_mesh",
-    "look_at",
+    "look_at", "camera_from_opencv", "camera_to_opencv",
     "make_scene", "material", "mesh_from_arrays", "mesh_from_trimesh", "model_matrix",
     "point_light", "replace", "scene_object", "sphere_light", "spot_light", "torus",
     "BUILTIN_SCENES", "builtin_scene", "load_scene", "load_scenes", "save_scene",

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffshade.numerics import clamp01, dot, safe_normalize, safe_sqrt
-from diffshade.scene.camera import Camera, view_dir_infinite
+from diffshade.scene.camera import Camera, lens, view_dir_infinite
 from diffshade.scene.mesh import icosphere, mesh_from_arrays
 from diffshade.shading.lighting import shade
 
@@ -41,13 +41,13 @@ def camera_rays(camera: Camera, ndc):
     forward = safe_normalize(camera.target - camera.eye)
     side = safe_normalize(jnp.cross(forward, camera.up))
     up = jnp.cross(side, forward)
-    aspect = camera.width / camera.height
+    scale, offset = lens(camera)
+    eye_xy = (ndc - offset) / scale
+    across = eye_xy[..., :1] * side + eye_xy[..., 1:] * up
     if camera.projection == "perspective":
-        half_h = jnp.tan(jnp.deg2rad(camera.fov_y) / 2.0)
-        dirs = (ndc[..., :1] * half_h * aspect * side + ndc[..., 1:] * half_h * up + forward)
+        dirs = across + forward
         return jnp.broadcast_to(camera.eye, dirs.shape), safe_normalize(dirs)
-    half_h = camera.ortho_height / 2.0
-    origins = camera.eye + ndc[..., :1] * half_h * aspect * side + ndc[..., 1:] * half_h * up
+    origins = camera.eye + across
     return origins, jnp.broadcast_to(forward, origins.shape)
 
 
@@ -68,9 +68,16 @@ def render_analytic_sphere(scene, settings, center=(0.0, 0.0, 0.0), radius=1.0, 
     """The exact sphere lit like `scene` (its lights, material, viewer model, background):
     [H, W, 4] RGBA, alpha = fraction of samples that hit. The scene's mesh is ignored."""
     cam = scene.camera
+    ndc = _sample_ndc(cam.width, cam.height, supersample, cam.eye.dtype)
+    return sphere_at_ndc(scene, settings, ndc, center, radius)
+
+
+def sphere_at_ndc(scene, settings, ndc, center=(0.0, 0.0, 0.0), radius=1.0):
+    """The exact sphere lit like `scene`, seen through NDC points ndc [..., S, 2] of its
+    camera (S samples per pixel, averaged): [..., 4] RGBA."""
+    cam = scene.camera
     dtype = cam.eye.dtype
     center = jnp.asarray(center, dtype)
-    ndc = _sample_ndc(cam.width, cam.height, supersample, dtype)
     origins, dirs = camera_rays(cam, ndc)
     t, hit = intersect_sphere(origins, dirs, center, radius)
     points = origins + jnp.where(hit, t, 0.0)[..., None] * dirs
@@ -87,6 +94,7 @@ def render_analytic_sphere(scene, settings, center=(0.0, 0.0, 0.0), radius=1.0, 
 
 render_analytic_sphere = jax.jit(render_analytic_sphere,
                                  static_argnames=("radius", "supersample"))
+sphere_at_ndc = jax.jit(sphere_at_ndc, static_argnames=("radius",))
 
 
 
@@ -227,9 +235,11 @@ def pixel_rays(camera: Camera):
     side = np.cross(forward, up)
     side /= np.linalg.norm(side)
     true_up = np.cross(side, forward)
-    half_h = np.tan(np.deg2rad(float(camera.fov_y)) / 2.0)
-    x = (2.0 * (np.arange(camera.width) + 0.5) / camera.width - 1.0) * half_h
-    y = (1.0 - 2.0 * (np.arange(camera.height) + 0.5) / camera.height) * half_h
-    x *= camera.width / camera.height
+    scale_y = 1.0 / np.tan(np.deg2rad(float(camera.fov_y)) / 2.0)
+    aspect = camera.width / camera.height
+    scale = (scale_y * float(camera.focal_ratio) / aspect, scale_y)
+    offset = 2.0 * np.asarray(camera.shift, np.float64) / (camera.width, -camera.height)
+    x = (2.0 * (np.arange(camera.width) + 0.5) / camera.width - 1.0 - offset[0]) / scale[0]
+    y = (1.0 - 2.0 * (np.arange(camera.height) + 0.5) / camera.height - offset[1]) / scale[1]
     dirs = forward + x[None, :, None] * side + y[:, None, None] * true_up
     return np.broadcast_to(eye, dirs.shape), dirs

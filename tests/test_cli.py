@@ -177,10 +177,12 @@ def hello_command(subparsers):
 def test_commands_are_render_and_the_installed_entry_points():
     from data_synth.cli import register as register_synth
     from fitting.cli import register as register_fit
-    assert list(cli.COMMANDS) == ["render", "fit", "synth"]
+    from fitting.import_cli import register as register_import
+    # an entry point added to pyproject.toml needs `pip install -e .` to be installed
+    assert list(cli.COMMANDS) == ["render", "fit", "import", "synth"]
     assert cli.COMMANDS["render"] is cli._register_render
-    loaded = {name: cli.COMMANDS[name].entry_point.load() for name in ("fit", "synth")}
-    assert loaded == {"fit": register_fit, "synth": register_synth}
+    loaded = {name: cli.COMMANDS[name].entry_point.load() for name in ("fit", "import", "synth")}
+    assert loaded == {"fit": register_fit, "import": register_import, "synth": register_synth}
 
 
 def test_a_command_in_the_table_is_dispatched(monkeypatch, capsys):

@@ -47,7 +47,7 @@ FLOORS = {
         ("solve", ["fitting.solve"]),
         ("report", ["fitting.report"]),
         ("driver", ["fitting", "fitting.checkpoint", "fitting.cli", "fitting.driver",
-                    "fitting.inputs", "fitting.plan", "fitting.run"]),
+                    "fitting.import_cli", "fitting.inputs", "fitting.plan", "fitting.run"]),
     ],
     "data_synth": [("data_synth", ["data_synth", "data_synth.cli", "data_synth.materials",
                                    "data_synth.scenes"])],

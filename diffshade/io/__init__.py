@@ -4,11 +4,14 @@ The floor's public face, listed in `__all__` (diffshade's own modules import eac
 by full module path).
 """
 
+from diffshade.io.colmap import colmap_text, read_colmap
 from diffshade.io.color import COLOR_SPACES, decode, encode, linear_to_srgb, srgb_to_linear
 from diffshade.io.compile_cache import FAST_COMPILE, LIGHT_COMPILE, stored_jit
 from diffshade.io.images import read_image, write_json, write_npy, write_png, write_text
+from diffshade.io.nerf import read_transforms, transforms_dict
 from diffshade.io.scenefile import (
     SceneFileError,
+    camera_to_dict,
     load_scene,
     load_scenes,
     read_json,
@@ -17,11 +20,20 @@ from diffshade.io.scenefile import (
     scene_to_dict,
     scenes_from_dict,
 )
+from diffshade.io.undistort import (
+    distort_image,
+    pinhole,
+    undistort_image,
+    undistort_mask,
+    undistort_points,
+)
 
 __all__ = [
+    "colmap_text", "read_colmap", "read_transforms", "transforms_dict",
     "COLOR_SPACES", "decode", "encode", "linear_to_srgb", "srgb_to_linear",
     "FAST_COMPILE", "LIGHT_COMPILE", "stored_jit",
     "read_image", "write_json", "write_npy", "write_png", "write_text",
-    "SceneFileError", "load_scene", "load_scenes", "read_json", "save_scene", "scene_from_dict",
-    "scene_to_dict", "scenes_from_dict",
+    "SceneFileError", "camera_to_dict", "load_scene", "load_scenes", "read_json", "save_scene",
+    "scene_from_dict", "scene_to_dict", "scenes_from_dict",
+    "distort_image", "pinhole", "undistort_image", "undistort_mask", "undistort_points",
 ]

@@ -32,6 +32,7 @@ import numpy as np
 
 from diffshade.io.images import write_json
 from diffshade.scene.area_lights import area_light, sphere_light
+from diffshade.scene.calibration import camera_from_opencv, camera_to_opencv
 from diffshade.scene.camera import PROJECTIONS, look_at
 from diffshade.scene.lights import (
     AmbientLight,
@@ -61,7 +62,8 @@ from diffshade.scene.objects import object_names, split_mesh, unstack_material
 from diffshade.scene.scene import Scene, make_scene, object_count, scene_object
 from diffshade.settings import DATA_FIELDS, RenderSettings
 
-__all__ = ["FORMAT_VERSION", "SceneFileError", "load_scene", "load_scenes", "read_json",
+__all__ = ["FORMAT_VERSION", "SceneFileError", "camera_to_dict", "load_scene", "load_scenes",
+           "read_json",
            "save_scene", "scene_from_dict", "scene_to_dict", "scenes_from_dict"]
 
 FORMAT_VERSION = 1
@@ -299,10 +301,24 @@ _CAMERA = {
 }
 
 
+_MATRIX3 = _Kind("a 3x3 matrix (3 rows of 3 numbers)",
+                 lambda v: _is_row(v, 3, lambda row: _is_row(row, 3)))
+_DIST = _Kind("[k1, k2, p1, p2] or [k1, k2, p1, p2, k3]",
+              lambda v: _is_row(v, 4) or _is_row(v, 5))
+# OpenCV's calibration (docs/calibrated-cameras.md); a camera with "K" is of this form
+_OPENCV_CAMERA = {
+    "K": _Required(_MATRIX3), "R": _Required(_MATRIX3), "t": _Required(_VEC3),
+    "width": _Required(_PIXELS), "height": _Required(_PIXELS), "dist": _DIST,
+    "near": _NUMBER, "far": _NUMBER,
+}
+
+
 def _camera(value, path):
-    kwargs = _read_object(value, path, _CAMERA)
+    """A look-at camera, or an OpenCV one (docs/scene-format.md, "camera")."""
+    opencv = isinstance(value, dict) and any(key in value for key in ("K", "R", "t", "dist"))
+    kwargs = _read_object(value, path, _OPENCV_CAMERA if opencv else _CAMERA)
     with _at(path):
-        return look_at(**kwargs)
+        return camera_from_opencv(**kwargs) if opencv else look_at(**kwargs)
 
 
 _COLOURS = {"color": _RGB, "ambient": _RGB, "diffuse": _RGB, "specular": _RGB}
@@ -601,7 +617,20 @@ def _material_to_dict(mat):
                 {} if mat.kt is None else {"kt": _rgb(mat.kt)})
 
 
-def _camera_to_dict(camera):
+def _is_pinhole_look_at(camera):
+    """Whether the look-at keys describe camera (centred, fx = fy, no distortion)."""
+    return (not np.any(np.asarray(camera.shift)) and float(camera.focal_ratio) == 1.0
+            and not np.any(np.asarray(camera.dist)))
+
+
+def camera_to_dict(camera) -> dict:
+    """A scene file's camera object: the look-at keys, or the OpenCV ones for a camera
+    with an off-centre principal point, fx != fy or distortion."""
+    if not _is_pinhole_look_at(camera):
+        opencv = camera_to_opencv(camera)
+        return {**{k: _plain(opencv[k]) for k in ("K", "R", "t", "dist")},
+                "width": camera.width, "height": camera.height,
+                "near": _plain(camera.near), "far": _plain(camera.far)}
     arrays = {k: _plain(getattr(camera, k)) for k in ("eye", "target", "up", "fov_y", "near",
                                                       "far", "ortho_height")}
     return {**arrays, "width": camera.width, "height": camera.height,
@@ -651,7 +680,7 @@ def scene_to_dict(scene: Scene, settings: RenderSettings, mesh_ref=None) -> dict
     rectangles, area disks, sphere).
     """
     return {"version": FORMAT_VERSION, **_geometry_to_dict(scene, mesh_ref),
-            "camera": _camera_to_dict(scene.camera), "lights": _lights_to_list(scene.lights),
+            "camera": camera_to_dict(scene.camera), "lights": _lights_to_list(scene.lights),
             "global_ambient": _rgb(scene.global_ambient), "background": _rgb(scene.background),
             "local_viewer": scene.local_viewer, "two_sided": scene.two_sided,
             "settings": _settings_to_dict(settings)}

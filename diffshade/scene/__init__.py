@@ -8,6 +8,14 @@ function (the module is diffshade.scene.materials).
 
 from diffshade.scene.area_lights import area_light, sphere_light
 from diffshade.scene.builtin import BUILTIN_SCENES, builtin_scene
+from diffshade.scene.calibration import (
+    camera_from_opencv,
+    camera_to_opencv,
+    distort,
+    opencv_intrinsics,
+    opencv_pose,
+    with_pose,
+)
 from diffshade.scene.camera import Camera, look_at
 from diffshade.scene.lights import (
     LightGroups,
@@ -43,6 +51,8 @@ from diffshade.scene.transform import transform_normals, transform_points
 __all__ = [
     "area_light", "sphere_light",
     "BUILTIN_SCENES", "builtin_scene",
+    "camera_from_opencv", "camera_to_opencv", "distort", "opencv_intrinsics", "opencv_pose",
+    "with_pose",
     "Camera", "look_at",
     "LightGroups", "ambient_light", "directional_light", "group_lights", "point_light",
     "shadow_flags", "spot_light",

@@ -1,9 +1,13 @@
 """Camera: look-at view, perspective or orthographic projection, and image size.
 
-`Camera` is a frozen pytree. The eye, target, up, field of view and clip planes are array
-leaves (differentiable); the image size and projection kind are static (they choose shapes
-and code paths). Conventions (OpenGL): right-handed, the camera looks down -z in eye space,
-NDC in [-1, 1]^3, image rows from the top, pixel centres at half-integers.
+`Camera` is a frozen pytree. The eye, target, up, field of view, clip planes, principal
+point shift, focal ratio and lens distortion are array leaves (differentiable); the image
+size and projection kind are static (they choose shapes and code paths). Conventions
+(OpenGL): right-handed, the camera looks down -z in eye space, NDC in [-1, 1]^3, image rows
+from the top, pixel centres at half-integers. A calibrated camera (fx != fy, an off-centre
+principal point) is the same Camera with a non-zero `shift` and `focal_ratio` != 1
+(scene.calibration converts to and from OpenCV's K, R, t). `dist` only describes the
+photos: the renderer draws the undistorted (pinhole) image.
 """
 
 import dataclasses
@@ -22,12 +26,16 @@ MAX_IMAGE_SIZE = 16384
 
 
 @partial(jax.tree_util.register_dataclass,
-         data_fields=["eye", "target", "up", "fov_y", "near", "far", "ortho_height"],
+         data_fields=["eye", "target", "up", "fov_y", "near", "far", "ortho_height", "shift",
+                      "focal_ratio", "dist"],
          meta_fields=["width", "height", "projection"])
 @dataclasses.dataclass(frozen=True)
 class Camera:
     """eye, target, up: [3] float; fov_y: [] degrees; near, far: [] > 0;
     ortho_height: [] world units spanned vertically by an orthographic view;
+    shift: [2] pixels, the principal point minus the image centre (x right, y down);
+    focal_ratio: [] horizontal over vertical focal length (fx / fy); dist: [5] OpenCV's
+    (k1, k2, p1, p2, k3) of the photos (the renderer ignores it);
     width, height: static ints (pixels); projection: 'perspective' | 'orthographic'."""
 
     eye: jax.Array
@@ -37,6 +45,9 @@ class Camera:
     near: jax.Array
     far: jax.Array
     ortho_height: jax.Array
+    shift: jax.Array
+    focal_ratio: jax.Array
+    dist: jax.Array
     width: int
     height: int
     projection: str = "perspective"
@@ -107,7 +118,8 @@ def look_at(eye, target, up=(0.0, 1.0, 0.0), *, width=256, height=256, fov_y=45.
         raise ValueError(f"ortho_height: got {ortho_height!r}; expected a positive number")
     arr = partial(jnp.asarray, dtype=float_dtype())
     return Camera(arr(eye), arr(target), arr(up), arr(fov_y), arr(near), arr(far),
-                  arr(ortho_height), width, height, projection)
+                  arr(ortho_height), arr((0.0, 0.0)), arr(1.0), arr(np.zeros(5)), width,
+                  height, projection)
 
 
 def view_matrix(camera: Camera):
@@ -121,17 +133,31 @@ def view_matrix(camera: Camera):
     return jnp.concatenate([top, jnp.array([[0.0, 0.0, 0.0, 1.0]], top.dtype)], axis=0)
 
 
-def projection_matrix(camera: Camera):
-    """Eye -> clip: [4, 4] float (gluPerspective or glOrtho, aspect = width / height)."""
+def lens(camera: Camera):
+    """(scale [2], offset [2]) mapping eye space to NDC: x_ndc = scale * x + offset, where x
+    is (x_eye, y_eye) / -z_eye (perspective) or (x_eye, y_eye) (orthographic)."""
     aspect = camera.width / camera.height
+    if camera.projection == "perspective":
+        scale_y = 1.0 / jnp.tan(jnp.deg2rad(camera.fov_y) / 2.0)
+    else:
+        scale_y = 2.0 / camera.ortho_height
+    scale = jnp.stack([scale_y * camera.focal_ratio / aspect, scale_y])
+    # pixels -> NDC: x doubles over the width; y doubles over the height and flips
+    offset = 2.0 * camera.shift * jnp.array([1.0 / camera.width, -1.0 / camera.height],
+                                            camera.shift.dtype)
+    return scale, offset
+
+
+def projection_matrix(camera: Camera):
+    """Eye -> clip: [4, 4] float (gluPerspective or glOrtho, aspect = width / height, with
+    the principal point shifted off the image centre and fx != fy where the camera says)."""
+    (sx, sy), (ox, oy) = lens(camera)
     n, f = camera.near, camera.far
     depth = jnp.stack([-(f + n) / (f - n), -2.0 * f * n / (f - n)])
     if camera.projection == "perspective":
-        cot = 1.0 / jnp.tan(jnp.deg2rad(camera.fov_y) / 2.0)
-        rows = [[cot / aspect, 0, 0, 0], [0, cot, 0, 0], [0, 0, depth[0], depth[1]], [0, 0, -1, 0]]
+        rows = [[sx, 0, -ox, 0], [0, sy, -oy, 0], [0, 0, depth[0], depth[1]], [0, 0, -1, 0]]
     else:
-        half_h = camera.ortho_height / 2.0
-        rows = [[1.0 / (half_h * aspect), 0, 0, 0], [0, 1.0 / half_h, 0, 0],
+        rows = [[sx, 0, 0, ox], [0, sy, 0, oy],
                 [0, 0, -2.0 / (f - n), -(f + n) / (f - n)], [0, 0, 0, 1]]
     dtype = camera.near.dtype
     return jnp.stack([jnp.stack([jnp.asarray(x, dtype=dtype) for x in r]) for r in rows])

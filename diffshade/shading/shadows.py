@@ -115,8 +115,9 @@ def _cameras(eye, target, up, fov_y, near, far, ortho_height, size, projection):
     """One Camera of M maps from [M, 3] eye, target, up and [M] or [] scalars."""
     m = eye.shape[0]
     row = lambda v: jnp.broadcast_to(jnp.asarray(v, eye.dtype), (m,))
-    return Camera(eye, target, up, row(fov_y), row(near), row(far), row(ortho_height), size,
-                  size, projection)
+    zeros = jnp.zeros((m, 5), eye.dtype)
+    return Camera(eye, target, up, row(fov_y), row(near), row(far), row(ortho_height),
+                  zeros[:, :2], row(1.0), zeros, size, size, projection)
 
 
 def _range_from(position, world):

@@ -28,6 +28,10 @@ reaches the saturation threshold (linear). The threshold is load_dataset's `satu
 else dataset.json's "saturation" (a number, or null for none), else 1.0 (the top code, 255
 of an 8-bit file) for image targets and none for .npy targets.
 
+A camera with lens distortion ("dist", docs/calibrated-cameras.md) has its target and
+mask resampled on load into its pinhole image (the one diffshade renders, same K); only
+pixels whose resampled value comes wholly from counted photo pixels count.
+
 Image targets are decoded with, first found: load_dataset's `color_space`, the view's
 "color_space", dataset.json's "color_space", what the file declares, sRGB
 (diffshade.read_image). Masks are read as data. Every problem is a ValueError (or an
@@ -42,7 +46,15 @@ import os
 import numpy as np
 
 import diffshade as ds
-from diffshade.io import COLOR_SPACES, read_json, scene_to_dict, write_json
+from diffshade.io import (
+    COLOR_SPACES,
+    pinhole,
+    read_json,
+    scene_to_dict,
+    undistort_image,
+    undistort_mask,
+    write_json,
+)
 from diffshade.scene import stack_materials, unstack_material
 from fitting.data.views import Dataset, View, material_for, view_scene
 from fitting.spec.params import DEFAULT_INIT, object_count
@@ -346,8 +358,21 @@ def _load_view(path, entry, index, options, cache):
     threshold = saturation if saturation is not None else (
         IMAGE_SATURATION if is_image else None)
     scene = scenes[camera]
-    return scene, settings, View(scene.camera, scene.lights, target,
-                                 _view_mask(path, entry, target, alpha, threshold))
+    mask = _view_mask(path, entry, target, alpha, threshold)
+    camera, target, mask = _pinhole_view(scene.camera, target, mask)
+    return scene, settings, View(camera, scene.lights, target, mask)
+
+
+def _pinhole_view(camera, target, mask):
+    """(camera, target, mask) of a distorted camera's photo resampled into its pinhole
+    image (the one diffshade renders); others as given. A target of the wrong size is left
+    for Dataset to name."""
+    if not np.any(np.asarray(camera.dist)) or target.shape[:2] != (camera.height,
+                                                                   camera.width):
+        return camera, target, mask
+    mask = undistort_mask(mask, camera)
+    return (pinhole(camera), undistort_image(target, camera),
+            None if mask.all() else mask)
 
 
 def load_dataset(path, color_space=None, saturation=None) -> Dataset:
