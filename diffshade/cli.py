@@ -1,6 +1,7 @@
 """The `diffshade` command line: `main(argv) -> exit status`.
 
     diffshade render SCENE.json -o OUT.png [--shading MODE] [--size WxH] [--parts]
+        [--camera N] [--material RESULT.json]
     diffshade render --builtin sphere -o OUT.png
 
     diffshade synth ... (data_synth.cli),  diffshade fit ... (fitting.cli)
@@ -27,7 +28,7 @@ import numpy as np
 
 from diffshade.io import compile_cache
 from diffshade.io.images import write_npy, write_png
-from diffshade.io.scenefile import load_scene
+from diffshade.io.scenefile import load_material, load_scenes
 from diffshade.pipeline.rendering import render, render_parts
 from diffshade.scene.builtin import BUILTIN_SCENES, builtin_scene
 from diffshade.scene.camera import MAX_IMAGE_SIZE
@@ -60,6 +61,13 @@ def _size(text):
     return int(width), int(height)
 
 
+def _index(text):
+    """'N' -> N, an integer >= 0."""
+    if not text.isdigit():
+        raise argparse.ArgumentTypeError(f"got {text!r}; expected an index >= 0")
+    return int(text)
+
+
 def _register_render(subparsers):
     parser = subparsers.add_parser(
         "render", help="render a scene file or a built-in scene to an image",
@@ -75,6 +83,12 @@ def _register_render(subparsers):
                         help="override the scene's settings.shading")
     parser.add_argument("--size", type=_size, metavar="WxH",
                         help="override the image size (built-in default: 256x256)")
+    parser.add_argument("--camera", type=_index, metavar="N",
+                        help="the camera to render of a scene file with several "
+                             "(\"cameras\"), counted from 0")
+    parser.add_argument("--material", metavar="FILE.json",
+                        help="render with this material instead of the scene file's: a "
+                             "'diffshade fit' result.json, or a JSON material object")
     parser.add_argument("--parts", action="store_true",
                         help="also write OUT_ambient, OUT_diffuse, OUT_specular, "
                              "OUT_emission (unclamped, zero off the object)")
@@ -87,12 +101,30 @@ def _scene_and_settings(args):
         raise _UsageError("render: expected a scene file or --builtin NAME, not "
                           f"{'both' if args.scene else 'neither'}")
     if args.builtin:
+        for flag, value in (("--camera", args.camera), ("--material", args.material)):
+            if value is not None:
+                raise _UsageError(f"{flag}: got {value!r} with --builtin; expected a scene "
+                                  "file")
         return builtin_scene(args.builtin, *(args.size or (256, 256))), RenderSettings()
-    scene, settings = load_scene(args.scene)
+    scene, settings = _one_camera(args.scene, args.camera)
+    if args.material:
+        scene = replace(scene, material=load_material(args.material, scene))
     if args.size:
         width, height = args.size
         scene = replace(scene, camera=replace(scene.camera, width=width, height=height))
     return scene, settings
+
+
+def _one_camera(path, camera):
+    """(Scene, RenderSettings) of camera `camera` of the scene file (None: its only one)."""
+    scenes, settings = load_scenes(path)
+    if camera is None and len(scenes) > 1:
+        raise _UsageError(f"{path}: has {len(scenes)} cameras; expected --camera N to pick "
+                          f"one (0 to {len(scenes) - 1})")
+    if camera is not None and camera >= len(scenes):
+        raise _UsageError(f"--camera: got {camera}; expected an index below {len(scenes)}, "
+                          f"the cameras of {path}")
+    return scenes[camera or 0], settings
 
 
 def _write(path, image, kind):

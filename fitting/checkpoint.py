@@ -177,7 +177,9 @@ def _check_meta(meta):
                                  "a SHA-256 hex digest"),
               "color_space": (lambda x: x is None or x in COLOR_SPACES,
                               f"null or one of {COLOR_SPACES}"),
-              "checkpoint_every": (lambda x: _count(x, 1), "an integer >= 1")}
+              "checkpoint_every": (lambda x: _count(x, 1), "an integer >= 1"),
+              "holdout": (lambda x: isinstance(x, list) and all(_count(i, 0) for i in x)
+                          and len(set(x)) == len(x), "a list of distinct view indices >= 0")}
     for key, (check, expected) in checks.items():
         if key in meta and not check(meta[key]):
             _fail(f"meta.{key}", meta[key], expected)

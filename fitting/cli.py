@@ -6,13 +6,16 @@
         [--color-space srgb|linear] [--tol T] [--atol T] [--gtol T] [--patience N]
         [--lr R] [--lr-shininess R] [--lr-position R] [--edge-margin N]
         [--shininess-range LOW,HIGH] [--max-bad N] [--checkpoint-every N] [--resume]
-        [--quiet]
+        [--holdout N,M] [--quiet]
 
 The fit is fitting.run's, the driver `fitting.fit` uses, with the same options: one flag
 per field of fitting.solve.options.FitOptions. A dataset of several objects (scene files with
 "objects") has every object's material fitted at once: --init is every object's start
 (KA,KD,KS,N) or one per object (a file {"objects": ...}, fitting.data.views.material_for), and
 the table, material.mtl and result.json have each object's part (fitting.report.result).
+--holdout N,M keeps those views out of the fit and evaluates the fitted material on them
+(fitting.report.holdout): a PSNR table after the result table, holdout_NNN.png panels and
+result.json's "holdout".
 
 Everything that can be wrong with the input (options, the dataset folder, its targets,
 the output path, the checkpoint to resume; fitting.plan, fitting.inputs) is checked
@@ -51,6 +54,7 @@ from fitting.inputs import non_negative_float, non_negative_int, positive_float,
 from fitting.model.cache import build_cache
 from fitting.model.loss import LOSSES
 from fitting.plan import CHECKPOINT, flag, prepare
+from fitting.report.holdout import holdout_results, holdout_table, write_panels
 from fitting.report.result import STATUS_LABELS, comparison_table, write_result
 from fitting.run import advance, finish, start_run
 from fitting.solve.distribute import fit_data, for_options
@@ -74,6 +78,18 @@ def number_pair(text):
         raise argparse.ArgumentTypeError(f"got {text!r}; expected LOW,HIGH with "
                                          "0 < LOW < HIGH") from None
     return low, high
+
+
+def view_indices(text):
+    """argparse type: N,M,... distinct view indices >= 0."""
+    try:
+        indices = tuple(int(x) for x in text.split(","))
+    except ValueError:
+        indices = ()
+    if not indices or min(indices) < 0 or len(set(indices)) != len(indices):
+        raise argparse.ArgumentTypeError(f"got {text!r}; expected distinct view indices "
+                                         ">= 0 separated by commas, e.g. 3 or 0,4")
+    return indices
 
 
 def device_count(text):
@@ -142,6 +158,10 @@ def register(subparsers):
                         help="write RESULT/checkpoint.json every N steps (default 500)")
     parser.add_argument("--resume", action="store_true",
                         help="continue from RESULT/checkpoint.json")
+    parser.add_argument("--holdout", type=view_indices, metavar="N,M",
+                        help="keep these views (indices into dataset.json's views) out of "
+                             "the fit; render them with the fitted material and report "
+                             "their PSNR (holdout_NNN.png, result.json 'holdout')")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(run=run_fit)
 
@@ -207,8 +227,8 @@ def _progress(state, budget, disable=None, file=None):
 # ---- the command ----
 
 
-def _extra(args, state, status, signum, message):
-    return {"format": RESULT_FORMAT, "version": 1,
+def _extra(args, state, status, signum, message, plan):
+    return {"format": RESULT_FORMAT, "version": 1, "views": list(plan.fitted),
             "dataset": os.path.abspath(args.dataset), "loss_kind": state.kind,
             "color_space": args.color_space, "fit": state.spec.fitted,
             "options": state.options.as_dict(), "interrupted": signum is not None,
@@ -217,8 +237,16 @@ def _extra(args, state, status, signum, message):
             "checkpoint": CHECKPOINT}
 
 
-def _report(args, dataset, views, state, status, message, signum):
-    """Write the checkpoint and the result files, print the table; returns the exit code.
+def _holdout(plan, result, edge_margin):
+    """(result.json's "holdout" entries, {file name: panel}) of the held-out views, or
+    ([], {}) when none is held out; rendered with the fitted material (without gains)."""
+    if plan.held is None:
+        return [], {}
+    return holdout_results(plan.held, plan.holdout, result.material, edge_margin)
+
+
+def _report(args, dataset, views, state, status, message, signum, plan):
+    """Write the checkpoint and the result files, print the tables; returns the exit code.
     views: the cached data, or its ShardedViews (the report's sums a chunk at a time)."""
     result_path = os.path.join(args.output, "result.json")
     save_checkpoint(os.path.join(args.output, CHECKPOINT), state)
@@ -226,11 +254,16 @@ def _report(args, dataset, views, state, status, message, signum):
     data = fit_data(views)
     label = (f"interrupted ({SIGNALS.get(signum)})" if status == "stopped"
              else STATUS_LABELS[status])
-    paths = write_result(args.output, dataset, result, state.init,
-                         _extra(args, state, status, signum, message),
+    held, panels = _holdout(plan, result, state.options.edge_margin)
+    extra = _extra(args, state, status, signum, message, plan) | (
+        {"holdout": held} if held else {})
+    paths = write_result(args.output, dataset, result, state.init, extra,
                          f"diffshade fit: {state.method}, {state.kind} loss",
-                         kept=[np.asarray(v.pixels) for v in data.views])
+                         kept=[np.asarray(v.pixels) for v in data.views], ids=plan.fitted)
+    paths += write_panels(args.output, panels)
     print(comparison_table(result, result.truth, label))
+    if held:
+        print(holdout_table(held))
     for path in paths:
         print(path)
     if result.misfit is not None and not result.misfit.explained and status in (
@@ -257,7 +290,7 @@ def run_fit(args) -> int:
         data = fit_data(views)  # (sharded: its views, in host memory)
         state = plan.state or start_run(views, plan.spec, plan.init, plan.options)
         state.meta |= {"dataset_sha256": plan.fingerprint, "color_space": args.color_space,
-                       "checkpoint_every": plan.every}
+                       "checkpoint_every": plan.every, "holdout": list(plan.holdout)}
         if signals.received is not None:
             print(f"diffshade: interrupted by {SIGNALS[signals.received]} before the first "
                   "step; nothing written", file=sys.stderr)
@@ -274,4 +307,4 @@ def run_fit(args) -> int:
             print(f"diffshade: error: fit stopped: {message}; no step had a finite loss, "
                   "nothing written", file=sys.stderr)
             return EXIT_NON_FINITE
-        return _report(args, dataset, views, state, status, message, signals.received)
+        return _report(args, dataset, views, state, status, message, signals.received, plan)

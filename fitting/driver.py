@@ -19,7 +19,8 @@ can stall on the ks-shininess ridge from a poor start (see docs/fitting.md).
 `fit_result` reports a run at its best params: the values, the relative error of every
 fitted value when the truth is known (per channel), standard errors, the values that
 ended at a bound (no standard error), and whether the model explains the images
-(fitting.report.misfit).
+(fitting.report.misfit); when it does not, the standard errors are the robust ones
+(fitting.report.robust.widened).
 """
 
 import dataclasses
@@ -33,6 +34,7 @@ from fitting.data.views import Dataset, material_for
 from fitting.model.cache import build_cache
 from fitting.report.misfit import Misfit, misfit
 from fitting.report.result import comparison_table
+from fitting.report.robust import widened
 from fitting.report.uncertainty import UncertaintyReport, uncertainty
 from fitting.run import advance, finish, start_run
 from fitting.solve.distribute import device_list, fit_data, for_options
@@ -98,22 +100,29 @@ class FitResult:
 
     def as_dict(self) -> dict:
         """JSON-ready: method, status, loss, loss_history, converged, n_steps, wall_time,
-        values (lights included when fitted), errors, std_errors and rounding_bound (None
-        for a value at a bound), at_bound, misfit, warnings, notes."""
+        values (lights included when fitted), errors, std_errors (the ones the table
+        shows), std_error_kind (which: 'gauss-newton' or 'robust'), std_errors_gauss_newton
+        and std_errors_robust (both estimates) and rounding_bound (None for a value at a
+        bound), at_bound, misfit, warnings, notes."""
         plain = lambda tree: jax.tree.map(lambda x: np.asarray(x).tolist(), tree)
         report = self.uncertainty
         number = lambda name, x: None if name in self.at_bound else float(x)
+
+        def by_name(array):
+            return None if report is None or array is None else {
+                n: number(n, s) for n, s in zip(report.names, array, strict=True)}
         return {"method": self.method, "status": self.status, "loss": self.loss,
                 "loss_history": self.loss_history.tolist(), "converged": self.converged,
                 "n_steps": self.n_steps, "wall_time": self.wall_time,
                 "values": plain(self.values),
                 "errors": None if self.errors is None else plain(self.errors),
-                "std_errors": None if report is None else {
-                    n: number(n, s) for n, s in zip(report.names, report.std_errors,
-                                                    strict=True)},
-                "rounding_bound": None if report is None or report.rounding_bound is None
-                else {n: number(n, b) for n, b in zip(report.names, report.rounding_bound,
-                                                      strict=True)},
+                "std_errors": by_name(None if report is None else report.std_errors),
+                "std_error_kind": None if report is None else report.kind,
+                "std_errors_gauss_newton": by_name(
+                    None if report is None else report.gauss_newton_std_errors),
+                "std_errors_robust": by_name(
+                    None if report is None else report.robust_std_errors),
+                "rounding_bound": by_name(None if report is None else report.rounding_bound),
                 "at_bound": list(self.at_bound),
                 "misfit": None if self.misfit is None else self.misfit.as_dict(),
                 "warnings": list(self.warnings),
@@ -164,11 +173,14 @@ def fit_result(state, dataset, data, *, with_uncertainty=True, warn=False, truth
     spec, truth = state.spec, dataset.truth if truth is None else truth
     values = jax.tree.map(np.asarray, to_values(state.best_params, spec))
     views, data = data, fit_data(data)  # sharded views: the report a chunk at a time
-    report = uncertainty(values, views, spec, warn=warn) if with_uncertainty else None
+    widths = [v.camera.width for v in dataset.views]
+    report = (uncertainty(values, views, spec, widths=widths, warn=warn)
+              if with_uncertainty else None)
     bound = tuple(n for n, b in zip(value_names(values), at_bound(values, spec), strict=True)
                   if b)
-    check = (misfit(values, views, spec, [v.camera.width for v in dataset.views])
-             if with_uncertainty else None)
+    check = misfit(values, views, spec, widths) if with_uncertainty else None
+    if check is not None and not check.explained:  # correlated residuals: robust errors
+        report = widened(report)
     found = (*([f"fit stopped: {stop_message}"] if status == "non-finite" else []),
              *(report.warnings if report else ()),
              *([_bound_warning(bound, values, spec)] if bound else []),

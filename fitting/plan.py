@@ -3,7 +3,8 @@ options given, or the checkpoint's, resumed with every option it was started wit
 
 `prepare(args)` checks every input and writes nothing: the output folder, the checkpoint
 (on --resume: the options given must agree with it; --steps may change), the dataset
-folder and its targets (fitting.inputs). It returns the dataset and a `Plan`.
+folder and its targets (fitting.inputs), the views held out (--holdout). It returns the
+dataset of the views to fit and a `Plan`.
 """
 
 import dataclasses
@@ -19,6 +20,7 @@ from fitting.inputs import (
     load_checked_dataset,
     parse_material,
 )
+from fitting.report.holdout import split_views
 from fitting.solve.distribute import device_list
 from fitting.solve.options import PLACEMENT, FitOptions
 from fitting.spec.params import DEFAULT_INIT, FitSpec, object_count, start_material
@@ -85,8 +87,9 @@ def _check_init(args, init, dataset, checkpoint):
 
 class Plan(NamedTuple):
     """What `fit` will run: the fit spec, initial material and options, the RunState to
-    continue (None: a fresh run), how often to checkpoint, and the fingerprint of the
-    dataset's targets."""
+    continue (None: a fresh run), how often to checkpoint, the fingerprint of the fitted
+    views' targets, the dataset numbers of the fitted views and of the held-out ones, and
+    the dataset of the held-out views (None without --holdout)."""
 
     spec: FitSpec
     init: object
@@ -94,6 +97,21 @@ class Plan(NamedTuple):
     state: object
     every: int
     fingerprint: str
+    fitted: tuple = ()
+    holdout: tuple = ()
+    held: object = None
+
+
+def _holdout(args, meta, checkpoint):
+    """The views to hold out: --holdout, or on --resume the checkpoint's (which a given
+    --holdout must repeat)."""
+    saved = tuple(meta.get("holdout") or ())
+    if args.holdout is None:
+        return saved if args.resume else ()
+    if args.resume and tuple(args.holdout) != saved:
+        raise ValueError(f"--holdout: got {','.join(map(str, args.holdout))}; the checkpoint "
+                         f"{checkpoint!r} was made holding out {list(saved) or 'no view'}")
+    return tuple(args.holdout)
 
 
 def prepare(args):
@@ -120,6 +138,11 @@ def prepare(args):
     except ValueError as err:
         raise ValueError(f"--{err}") from None
     dataset = load_checked_dataset(args.dataset, args.color_space)
+    holdout = _holdout(args, meta, checkpoint)
+    fitted = tuple(i for i in range(len(dataset.views)) if i not in holdout)
+    held = None
+    if holdout:
+        dataset, held = split_views(dataset, holdout, "--holdout")
     if saved is None:  # one start for every object, or one per object
         init = start_material(material_for(dataset, init, "--init"), spec)
     else:
@@ -136,4 +159,4 @@ def prepare(args):
                              f"is at step {state.step}; expected at least {state.step}")
         state.options = options
     every = args.checkpoint_every or meta.get("checkpoint_every") or 500
-    return dataset, Plan(spec, init, options, state, every, fingerprint)
+    return dataset, Plan(spec, init, options, state, every, fingerprint, fitted, holdout, held)

@@ -157,8 +157,8 @@ def test_bad_camera_raises_a_clear_value_error(kwargs, name, value):
 # ---------------------------------------------------------------------------- lights
 
 LIGHTS = {
-    "attenuation_constant_zero": (lambda: ds.point_light((0, 0, 1), attenuation=(0, 0, 1)),
-                                  "attenuation", "(0, 0, 1)"),
+    "attenuation_all_zero": (lambda: ds.point_light((0, 0, 1), attenuation=(0, 0, 0)),
+                             "attenuation", "(0, 0, 0)"),
     "attenuation_negative": (lambda: ds.point_light((0, 0, 1), attenuation=(1, -1, 0)),
                              "attenuation", "(1, -1, 0)"),
     "attenuation_nan": (lambda: ds.spot_light((0, 0, 1), (0, 0, -1), attenuation=(1, NAN, 0)),

@@ -54,6 +54,7 @@ NAN = float("nan")
 CASES = {  # name: (change, the field the message names)
     "meta a list": (_set(["meta"], ["a", "list"]), "meta"),
     "meta color space": (_set(["meta", "color_space"], "cmyk"), "meta.color_space"),
+    "meta holdout": (_set(["meta", "holdout"], [1, 1]), "meta.holdout"),
     "step negative": (_set(["step"], -5), "step"),
     "step a string": (_set(["step"], "12"), "step"),
     "step beyond the budget": (_set(["options", "steps"], 0), "step"),

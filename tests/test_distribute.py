@@ -252,9 +252,11 @@ def test_linear_start_uncertainty_and_misfit_in_chunks_equal_the_plain_values():
             for got, want in zip(*moments, strict=True):
                 np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
             values = jax.tree.map(np.asarray, values)
-            got, want = (uncertainty(values, d, spec, warn=False) for d in (views, data))
+            got, want = (uncertainty(values, d, spec, widths=widths, warn=False)
+                         for d in (views, data))
             assert got.rounding_bound is not None and got.names == want.names
-            for name in ("values", "std_errors", "covariance", "rounding_bound"):
+            for name in ("values", "std_errors", "covariance", "rounding_bound",
+                         "robust_std_errors", "robust_covariance"):
                 np.testing.assert_allclose(getattr(got, name), getattr(want, name), rtol=1e-10)
             assert (got.n_residuals, got.dof, got.warnings, got.notes) == (
                 want.n_residuals, want.dof, want.warnings, want.notes)

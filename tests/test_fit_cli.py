@@ -183,9 +183,10 @@ def test_fit_writes_results_that_match_the_truth(data_root, tmp_path, capsys):
             if line.split() and line.split()[0] in ("ka[r]", "kd[b]", "shininess")}
     assert float(rows["kd[b]"][1]) == pytest.approx(TRUTH["kd"][2], rel=1e-4)
     assert float(rows["shininess"][2]) == pytest.approx(result["values"]["shininess"], rel=1e-4)
-    assert stdout.splitlines()[-9:] == [str(out / n) for n in (
+    assert stdout.splitlines()[-11:] == [str(out / n) for n in (
         "material.mtl", "result.json", "loss.png", "view_000.png", "view_001.png",
-        "residual_000.npy", "residual_000.png", "residual_001.npy", "residual_001.png")]
+        "residual_000.npy", "residual_000.png", "mask_000.png", "residual_001.npy",
+        "residual_001.png", "mask_001.png")]
     assert result["at_bound"] == [] and result["misfit"]["explained"] is True
     assert_no_temporaries(out)
 
@@ -750,7 +751,8 @@ def test_wrong_colour_encoding_is_flagged(srgb_png_dataset, tmp_path, capsys):
 
 def test_residual_files(data_root, tmp_path, capsys):
     """residual_*.npy is render(fitted material) - target in linear float32; residual_*.png
-    is |that| / residual_scale, clipped, sRGB-encoded."""
+    is |that| / residual_scale, clipped, sRGB-encoded, on the pixels mask_*.png says the
+    fit counted (the covered ones, one pixel in from the silhouette: edge_margin 1)."""
     out = tmp_path / "result"
     assert run_cli(["fit", data_root / "noisy", "-o", out], capsys)[0] == 0
     result = strict_json(out / "result.json")
@@ -771,8 +773,18 @@ def test_residual_files(data_root, tmp_path, capsys):
         assert got.dtype == np.float32 and got.shape == (SIZE, SIZE, 3)
         np.testing.assert_allclose(got, expected, atol=2e-5)
         assert image_transfer(out / f"residual_{i:03d}.png") == "srgb"
+        covered = np.asarray(ds.render(scene, dataset.settings))[..., 3] > 0.5
+        inside = covered.copy()  # eroded by one 4-neighbour step
+        inside[1:] &= covered[:-1]
+        inside[:-1] &= covered[1:]
+        inside[:, 1:] &= covered[:, :-1]
+        inside[:, :-1] &= covered[:, 1:]
+        counted = ds.read_image(out / f"mask_{i:03d}.png", color_space="linear").reshape(
+            SIZE, SIZE, -1)[..., 0] > 0.5
+        np.testing.assert_array_equal(counted, inside)
         png = ds.read_image(out / f"residual_{i:03d}.png")
-        np.testing.assert_allclose(png, np.clip(np.abs(expected) / scale, 0, 1), atol=0.02)
+        np.testing.assert_allclose(png, np.clip(np.abs(expected) / scale, 0, 1)
+                                   * counted[..., None], atol=0.02)
 
 
 def test_progress_estimate_leaves_out_the_compiling_step():

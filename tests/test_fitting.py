@@ -20,7 +20,7 @@ from fitting.driver import relative_errors
 from fitting.model import build_cache, make_loss
 from fitting.model.loss import mean_rho
 from fitting.report.misfit import _neighbour_squares
-from fitting.report.result import _render_rgb
+from fitting.report.result import render_rgb
 from fitting.report.uncertainty import uncertainty
 from fitting.solve import make_optimizer, make_step
 from fitting.solve.linear import box_least_squares, normal_equations
@@ -177,7 +177,7 @@ def test_fixed_geometry_and_panels_compile_no_host_callback(monkeypatch):
         raise AssertionError("a host callback was compiled into a program")
     monkeypatch.setattr(jax, "pure_callback", refuse)
     data = build_cache(dataset, DEFAULT_INIT, edge_margin=0)
-    image = _render_rgb(dataset, 0, DEFAULT_INIT)
+    image = render_rgb(dataset, 0, DEFAULT_INIT)
     monkeypatch.undo()
     expected = np.asarray(ds.render(view_scene(dataset, 0, DEFAULT_INIT), dataset.settings))
     np.testing.assert_array_equal(np.asarray(data.views[0].pixels),

@@ -200,6 +200,16 @@ CASES = {
     "light_at_surface": case(NOT_SMOOTH, "the bulb at the centroid, the spot at a vertex",
                              CENTRED, **ON_AXIS, bulb=(0.0, 0.0, 0.0),
                              spot=((-1.0, -1.0, 0.0), (0.0, 0.0, -1.0))),
+    "inverse_square": case(SMOOTH, "pure inverse-square attenuation (0, 0, 1)",
+                           attenuation=(0.0, 0.0, 1.0)),
+    "inverse_square_at_surface": case(NOT_SMOOTH, "attenuation (0, 0, 1) and d = 0: the bulb "
+                                      "at the centroid, the spot at a vertex", CENTRED,
+                                      **ON_AXIS, bulb=(0.0, 0.0, 0.0),
+                                      spot=((-1.0, -1.0, 0.0), (0.0, 0.0, -1.0)),
+                                      attenuation=(0.0, 0.0, 1.0)),
+    "inverse_square_near": case(NOT_SMOOTH, "attenuation (0, 0, 1), the bulb 1e-6 above the "
+                                "centroid", CENTRED, **ON_AXIS, bulb=(0.0, 0.0, 1e-6),
+                                attenuation=(0.0, 0.0, 1.0)),
     "light_at_eye": case(SMOOTH, "the bulb at the eye (L = V for a local viewer)",
                          bulb=(0.3, 0.4, 3.0)),
     "scale_1e-4": Case(lambda: scaled(1e-4), "every length times 1e-4", length=1e-4),

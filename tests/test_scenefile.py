@@ -249,7 +249,7 @@ def edited(keys, value, base=None):
      "lights[1].cutoff: got 120; expected degrees in [0, 90], or 180"),
     (("lights", 1, "direction"), DELETE, "lights[1].direction: missing; expected 3 numbers"),
     (("lights", 1, "direction"), [0, 0, 0], "lights[1].direction: got [0, 0, 0]; expected a"),
-    (("lights", 1, "attenuation"), [0, 1, 0], "lights[1].attenuation: got [0, 1, 0]"),
+    (("lights", 1, "attenuation"), [0, 0, 0], "lights[1].attenuation: got [0, 0, 0]"),
     (("lights", 0, "color"), [1, 1], "lights[0].color: got [1, 1]; expected a number (grey)"),
     (("lights",), {"type": "point"}, 'lights: got {"type": "point"}; expected an array'),
     (("material",), {"kd": -1}, "material.kd: got -1; expected a non-negative"),

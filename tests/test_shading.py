@@ -154,6 +154,19 @@ def test_attenuation_is_one_over_a_plus_bd_plus_cd2():
                                rtol=1e-12)
 
 
+def test_pure_inverse_square_attenuation_is_one_over_d2_and_finite_at_the_light():
+    dists = np.array([0.0, 1e-9, 0.5, 1.0, 3.0])
+    points = np.stack([np.zeros_like(dists), np.zeros_like(dists), -dists], 1)
+    light = point_light((0.0, 0.0, 0.0), (0.9, 0.6, 0.3), ambient=0.2,
+                        attenuation=(0.0, 0.0, 1.0))
+    out = lit(material(ka=0.5, kd=0.5), [light], points=points, global_ambient=0.0)
+    far = dists >= 0.5
+    np.testing.assert_allclose(out["diffuse"][far], 0.5 * np.array([0.9, 0.6, 0.3])
+                               / dists[far, None] ** 2, rtol=1e-12)
+    # at and next to the light the denominator is floored at tiny: large but finite
+    assert np.all(np.isfinite(out["ambient"])) and np.all(out["ambient"][:2] > 1e12)
+
+
 def test_attenuation_scales_the_light_ambient_but_not_emission_or_global_ambient():
     ka, light_ambient, global_ambient, ke = 0.5, (0.4, 0.2, 0.8), (0.1, 0.3, 0.2), (0.1, 0, 0.3)
     light = point_light((0.0, 0.0, 1.0), ambient=light_ambient, attenuation=(4.0, 0.0, 0.0))

@@ -12,6 +12,7 @@ from diffshade.io.nerf import read_transforms, transforms_dict
 from diffshade.io.scenefile import (
     SceneFileError,
     camera_to_dict,
+    load_material,
     load_scene,
     load_scenes,
     read_json,
@@ -33,7 +34,7 @@ __all__ = [
     "COLOR_SPACES", "decode", "encode", "linear_to_srgb", "srgb_to_linear",
     "FAST_COMPILE", "LIGHT_COMPILE", "stored_jit",
     "read_image", "write_json", "write_npy", "write_png", "write_text",
-    "SceneFileError", "camera_to_dict", "load_scene", "load_scenes", "read_json", "save_scene",
-    "scene_from_dict", "scene_to_dict", "scenes_from_dict",
+    "SceneFileError", "camera_to_dict", "load_material", "load_scene", "load_scenes",
+    "read_json", "save_scene", "scene_from_dict", "scene_to_dict", "scenes_from_dict",
     "distort_image", "pinhole", "undistort_image", "undistort_mask", "undistort_points",
 ]

@@ -58,7 +58,7 @@ from diffshade.scene.mesh import (
     model_matrix,
     torus,
 )
-from diffshade.scene.objects import object_names, split_mesh, unstack_material
+from diffshade.scene.objects import object_names, split_mesh, stack_materials, unstack_material
 from diffshade.scene.scene import Scene, make_scene, object_count, scene_object
 from diffshade.settings import DATA_FIELDS, RenderSettings
 
@@ -547,6 +547,51 @@ def load_scene(path) -> tuple[Scene, RenderSettings]:
         raise SceneFileError(f"{os.fspath(path)}: {err}") from err
 
 
+def _materials_of_objects(entries, names, count, path):
+    """The entries of {"objects": [...]} or {"objects": {name: ...}} at key path `path`
+    -> one Material stacked in object order, for a scene of `count` objects named
+    `names` (None: unnamed, so a list only)."""
+    where = _join(path, "objects")
+    if isinstance(entries, dict):
+        if names is None or set(entries) != set(names):
+            raise SceneFileError(f"{where}: got the names {sorted(entries)}; expected one "
+                                 "material for each object of the scene, "
+                                 f"{list(names) if names else 'unnamed (give a list)'}")
+        entries = [entries[n] for n in names]
+    if not isinstance(entries, list) or len(entries) != count:
+        raise SceneFileError(f"{where}: got {_show(entries)}; expected a list of {count} "
+                             "materials (one per object) or an object {name: material}")
+    return stack_materials([_material(e, f"{where}[{i}]") for i, e in enumerate(entries)])
+
+
+def _material_for(data, scene):
+    """A parsed material file (load_material) -> the Material for scene."""
+    path = "material" if isinstance(data, dict) and "material" in data else ""
+    data = data["material"] if path else data
+    several = scene.objects is not None
+    if isinstance(data, dict) and "objects" in data:
+        if not several:
+            raise SceneFileError(f"{_join(path, 'objects')}: got materials for several "
+                                 "objects; expected one material, as the scene has one object")
+        return _materials_of_objects(data["objects"], scene.objects.names,
+                                     object_count(scene), path)
+    found = _material(data, path)
+    return stack_materials([found] * object_count(scene)) if several else found
+
+
+def load_material(path, scene: Scene):
+    """The Material in the JSON file at path, shaped for `scene`: a material object
+    (keys ka, kd, ks, shininess, emission, kt, as a scene file's "material"), or any object
+    holding one under "material" (a `diffshade fit` result.json); for a scene of several
+    objects, {"objects": [one per object]} or {"objects": {name: one}} (a single material
+    is given to every object). SceneFileError "<path>: <key path>: ..." for anything else."""
+    data = read_json(path, "material file")
+    try:
+        return _material_for(data, scene)
+    except SceneFileError as err:
+        raise SceneFileError(f"{os.fspath(path)}: {err}") from err
+
+
 # ---- writing ----
 
 
@@ -693,5 +738,10 @@ def _settings_to_dict(settings):
 
 
 def save_scene(path, scene: Scene, settings: RenderSettings, mesh_ref=None) -> str:
-    """Write scene_to_dict(scene, settings, mesh_ref) to path as JSON, atomically."""
+    """Write scene_to_dict(scene, settings, mesh_ref) to path as JSON, atomically. An
+    absolute mesh_ref path is written relative to the scene file's folder, as every mesh
+    path is read, so that the folder keeps working when it is copied or moved with its
+    mesh."""
+    if isinstance(mesh_ref, (str, os.PathLike)) and os.path.isabs(mesh_ref):
+        mesh_ref = os.path.relpath(mesh_ref, os.path.dirname(os.path.abspath(path)))
     return write_json(path, scene_to_dict(scene, settings, mesh_ref))

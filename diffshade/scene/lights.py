@@ -13,7 +13,8 @@ flagged lights get a shadow pass (diffshade.shading.shadows).
 
 Conventions: positions are world-space points; a `direction` is the direction the light
 *travels* (from the light into the scene), as for `GL_SPOT_DIRECTION`; attenuation is
-(constant, linear, quadratic) giving 1 / (a + b d + c d^2); spot cutoff and exponent as
+(constant, linear, quadratic) >= 0, not all 0, giving 1 / (a + b d + c d^2) ((0, 0, 1)
+is a physical point light's inverse square; docs/light-units.md); spot cutoff and exponent as
 `GL_SPOT_CUTOFF` (degrees, in [0, 90], or 180 for no cone) and `GL_SPOT_EXPONENT`.
 """
 
@@ -194,9 +195,10 @@ def _colours(color, ambient, diffuse, specular):
 
 def _attenuation(value):
     att = _array("attenuation", value, (3,), nonneg=True)
-    if float(att[0]) <= 0.0:
-        raise ValueError(f"attenuation: got {value!r}; expected (constant > 0, linear >= 0, "
-                         "quadratic >= 0) so that 1/(a + b d + c d^2) stays finite at d = 0")
+    if not float(jnp.max(att)) > 0.0:
+        raise ValueError(f"attenuation: got {value!r}; expected (constant, linear, quadratic) "
+                         ">= 0, not all 0, so that 1/(a + b d + c d^2) is finite for d > 0 "
+                         "((0, 0, 1): pure inverse square)")
     return att
 
 

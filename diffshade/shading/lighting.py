@@ -21,7 +21,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from diffshade.numerics import dot, safe_div, safe_norm, safe_normalize, safe_pow
+from diffshade.numerics import dot, safe_norm, safe_normalize, safe_pow, tiny
 from diffshade.scene.lights import LightGroups
 from diffshade.scene.materials import Material
 from diffshade.shading import area
@@ -54,8 +54,11 @@ def _unstack(group):
 
 
 def _attenuation(coeffs, dist):
-    """1 / (a + b d + c d^2): coeffs [3], dist [..., 1] -> [..., 1]."""
-    return safe_div(jnp.ones_like(dist), coeffs[0] + coeffs[1] * dist + coeffs[2] * dist * dist)
+    """1 / (a + b d + c d^2): coeffs [3], dist [..., 1] -> [..., 1]. The denominator is
+    floored at tiny(dtype) (continuously, by max): with a = 0 (pure inverse square) it
+    reaches 0 at d = 0, and the light at a surface point must stay finite, gradient too."""
+    den = coeffs[0] + coeffs[1] * dist + coeffs[2] * dist * dist
+    return 1.0 / jnp.maximum(den, tiny(den.dtype))
 
 
 def _spot_factor(light_dir, spot, edge, softness_deg):

@@ -13,13 +13,20 @@
                    object (`object_reports`)
     loss.png       the loss history (matplotlib, Agg canvas, log y)
     view_000.png   per view: target | initial | fitted | ERROR_GAIN x |fitted - target|,
-                   as diffshade.render renders them (`_render_rgb`), separated by grey
+                   as diffshade.render renders them (`render_rgb`), separated by grey
                    bars; computed in linear colour and written sRGB-encoded, as every PNG
                    (docs/color.md)
-    residual_000.npy    per view: fitted - target, linear float32 [H, W, 3] (signed)
+    residual_000.npy    per view: fitted - target, linear float32 [H, W, 3] (signed), every
+                   pixel
     residual_000.png    per view: |fitted - target| / residual_scale, clipped to 1, written
-                   sRGB-encoded; residual_scale (in result.json) is the 99th percentile of
-                   |fitted - target| over the kept pixels of all views (at least 1/255)
+                   sRGB-encoded, on the pixels the fit counted (black elsewhere);
+                   residual_scale (in result.json) is the 99th percentile of
+                   |fitted - target| over the counted pixels of all views (at least 1/255)
+    mask_000.png   per view: white where the fit counted the pixel (covered, inside the
+                   view's mask, unsaturated, edge_margin away from the silhouette)
+
+The files are numbered by `ids` (default 0, 1, ...: the dataset's own view numbers when
+views were held out of the fit, fitting.report.holdout).
 
 `comparison_table(result, truth)` is the true-versus-recovered table (with standard
 errors; "at bound" for a value at a bound, which has none), one row per fitted scalar.
@@ -266,9 +273,14 @@ def result_dict(result, init, truth, extra=None) -> dict:
 
 
 def _std_errors(result):
-    """{name: standard error, or None (at a bound)}; {} without an uncertainty report."""
+    """{name: (standard error, or None at a bound; rounding bound or None)}; {} without an
+    uncertainty report."""
     report = result.uncertainty
-    return {} if report is None else {n: s for n, (_, s) in report.as_dict().items()}
+    if report is None:
+        return {}
+    bounds = report.rounding_bound
+    return {n: (s, None if s is None or bounds is None else float(bounds[i]))
+            for i, (n, (_, s)) in enumerate(report.as_dict().items())}
 
 
 def _material_rows(result, truth, se):
@@ -288,6 +300,9 @@ def _material_rows(result, truth, se):
     yield from _value_rows(result.values, truth, errors, se, result.at_bound)
 
 
+_NONE = (None, None)  # no standard error, no rounding bound
+
+
 def _or_zero(value):
     """An absent optional term (ks, kt: None) is 0."""
     return 0.0 if value is None else value
@@ -300,7 +315,7 @@ def _value_rows(values, truth, errors, se, at_bound, prefix=""):
         fitted = np.atleast_1d(np.asarray(value, np.float64))
         if name in GAIN_NAMES:  # per-view gains: no true value, one row per scalar
             for label, v in zip(value_names({name: value}), fitted.ravel(), strict=True):
-                yield label, None, v, se.get(label), label in at_bound, None
+                yield label, None, v, se.get(label, _NONE), label in at_bound, None
             continue
         true = None if truth is None else np.atleast_1d(np.asarray(
             _or_zero(getattr(truth, name)), np.float64))
@@ -310,46 +325,65 @@ def _value_rows(values, truth, errors, se, at_bound, prefix=""):
             label = prefix + (name if count == 1 else f"{name}[{'rgb'[c]}]")
             key = label if label in se or label in at_bound else prefix + name
             yield (label, None if true is None else true[min(c, true.size - 1)],
-                   fitted[min(c, fitted.size - 1)], se.get(key), key in at_bound,
+                   fitted[min(c, fitted.size - 1)], se.get(key, _NONE), key in at_bound,
                    None if error is None else error[min(c, error.size - 1)])
 
 
 def _rows(result, truth):
-    """(label, true or None, fitted, standard error or None, at a bound, relative error
-    or None): the material's rows (per channel when the truth is known), then the
-    lights' (no truth)."""
+    """(label, true or None, fitted, (standard error or None, rounding bound or None), at a
+    bound, relative error or None): the material's rows (per channel when the truth is
+    known), then the lights' (no truth)."""
     se = _std_errors(result)
     yield from _material_rows(result, truth, se)
     lights = {"lights": result.values["lights"]} if "lights" in result.values else {}
     flat = [float(x) for leaf in jax.tree.leaves(lights) for x in np.ravel(leaf)]
     for label, value in zip(value_names(lights), flat, strict=True):
-        yield label, None, value, se.get(label), label in result.at_bound, None
+        yield label, None, value, se.get(label, _NONE), label in result.at_bound, None
 
 
 def _cell(value, fmt, width):
     return f"{'' if value is None else format(value, fmt):>{width}}"
 
 
+ROBUST_NOTE = ("± is the robust (sandwich) standard error, as the model does not explain "
+               "the images: the residuals are correlated, and the Gauss-Newton one would "
+               "understate the error (docs/fitting.md)")
+
+
+def _spread_columns(result):
+    """(the ± column's title, whether a rounding column follows), from the report."""
+    report = result.uncertainty
+    robust = report is not None and report.kind == "robust"
+    return ("± robust" if robust else "± s.e."), (
+        report is not None and report.rounding_bound is not None)
+
+
 def comparison_table(result, truth=None, status=None) -> str:
     """The true-versus-recovered table: one row per fitted scalar with the true value, the
-    fitted value, its standard error ('at bound' where it has none) and the relative error
-    (true and error columns only when `truth` is known); warnings and notes below.
-    status: the end of the first line (default: result.status in words)."""
+    fitted value, its standard error ('at bound' where it has none; the robust one, titled
+    '± robust', when the model does not explain the images), the worst-case shift the
+    8-bit rounding of the targets can cause (a 'rounding' column, 8-bit targets only) and
+    the relative error (true and error columns only when `truth` is known); warnings and
+    notes below. status: the end of the first line (default: result.status in words)."""
     status = STATUS_LABELS.get(result.status, result.status) if status is None else status
     steps = f"{result.n_steps} step{'' if result.n_steps == 1 else 's'}"
     head = (f"method {result.method}: loss {result.loss:.4g} after {steps}, "
             f"{result.wall_time:.2f} s{', ' + status if status else ''}")
     known = truth is not None
+    title, rounding = _spread_columns(result)
     width = max([12] + [len(row[0]) + 1 for row in _rows(result, truth)])
     lines = [head, f"{'parameter':<{width}}" + (f"{'true':>11}" if known else "")
-             + f"{'fitted':>11}{'± s.e.':>11}" + (f"{'rel. error':>12}" if known else "")]
-    for label, true, fitted, std, bounded, error in _rows(result, truth):
+             + f"{'fitted':>11}{title:>11}" + (f"{'rounding':>11}" if rounding else "")
+             + (f"{'rel. error':>12}" if known else "")]
+    for label, true, fitted, (std, bound), bounded, error in _rows(result, truth):
         spread = f"{'at bound':>11}" if bounded else _cell(std, ".2g", 11)
+        spread += _cell(None if bounded else bound, ".2g", 11) if rounding else ""
         lines.append(f"{label:<{width}}" + (_cell(true, ".5g", 11) if known else "")
                      + _cell(fitted, ".5g", 11) + spread
                      + (_cell(None if error is None else 100 * error, ".3g", 11) + "%"
                         if known and error is not None else ""))
     notes = result.uncertainty.notes if result.uncertainty else ()
+    notes = (*notes, *([ROBUST_NOTE] if title == "± robust" else ()))
     return "\n".join(lines + [f"warning: {w}" for w in result.warnings]
                      + [f"note: {n}" for n in notes])
 
@@ -359,7 +393,7 @@ def comparison_table(result, truth=None, status=None) -> str:
 _render_fragments = stored_jit(render_fragments, compiler_options=FAST_COMPILE)
 
 
-def _render_rgb(dataset, index, material, lights=None):
+def render_rgb(dataset, index, material, lights=None):
     """View `index` rendered with `material` (and `lights`, default the view's): [H, W, 3]
     float64, equal to diffshade.render up to float rounding. The geometry is the fit's,
     fixed: the fragments come from fitting.model.cache.fixed_fragments and the shading runs in
@@ -395,22 +429,33 @@ def residual_scale(residuals, kept) -> float:
     return max(float(np.percentile(values, 99)) if values.size else 0.0, 1.0 / 255.0)
 
 
-def write_result(out_dir, dataset, result, init, extra=None, title="", kept=None) -> list:
+def counted_mask(shape, kept):
+    """[H, W] bool: True at the flat pixel indices `kept` of an image of `shape`."""
+    mask = np.zeros(shape[0] * shape[1], bool)
+    mask[np.asarray(kept, np.int64)] = True
+    return mask.reshape(shape[:2])
+
+
+def write_result(out_dir, dataset, result, init, extra=None, title="", kept=None,
+                 ids=None) -> list:
     """Write the result files (module docstring) into out_dir; returns their paths.
-    kept: per view, the flat indices of the pixels the fit counted (fitting.model.cache; default
-    every pixel), for residual_scale."""
+    kept: per view, the flat indices of the pixels the fit counted (fitting.model.cache;
+    default every pixel), for residual_scale, the residual images and the masks; ids: the
+    number of each view in the file names (default 0, 1, ...)."""
     out_dir = os.fspath(out_dir)
     count = len(dataset.views)
+    ids = list(range(count)) if ids is None else list(ids)
     materials = view_materials(result.material, result.values, count)  # per-view gains
     lights = panel_lights(result.lights)
-    fitted = [_render_rgb(dataset, i, materials[i], lights[i]) for i in range(count)]
+    fitted = [render_rgb(dataset, i, materials[i], lights[i]) for i in range(count)]
     residuals = [f - v.target for f, v in zip(fitted, dataset.views, strict=True)]
     kept = kept or [np.arange(v.target.shape[0] * v.target.shape[1]) for v in dataset.views]
     scale = residual_scale(residuals, kept)
     files = {"material": "material.mtl", "loss_curve": "loss.png",
-             "views": [f"view_{i:03d}.png" for i in range(count)],
-             "residuals": [f"residual_{i:03d}.npy" for i in range(count)],
-             "residual_images": [f"residual_{i:03d}.png" for i in range(count)]}
+             "views": [f"view_{i:03d}.png" for i in ids],
+             "residuals": [f"residual_{i:03d}.npy" for i in ids],
+             "residual_images": [f"residual_{i:03d}.png" for i in ids],
+             "masks": [f"mask_{i:03d}.png" for i in ids]}
     extra = dict(extra or {}) | {"files": files, "error_gain": ERROR_GAIN,
                                  "residual_scale": scale}
     paths = [write_text(os.path.join(out_dir, files["material"]),
@@ -421,12 +466,15 @@ def write_result(out_dir, dataset, result, init, extra=None, title="", kept=None
                        loss_curve(result.loss_history, title))]
     given = panel_lights([v.lights for v in dataset.views])
     for i in range(count):
-        image = panel(dataset.views[i].target, _render_rgb(dataset, i, init, given[i]),
+        image = panel(dataset.views[i].target, render_rgb(dataset, i, init, given[i]),
                       fitted[i])
         paths.append(write_png(os.path.join(out_dir, files["views"][i]), image))
     for i, r in enumerate(residuals):
+        counted = counted_mask(r.shape, kept[i])
         paths.append(write_npy(os.path.join(out_dir, files["residuals"][i]),
                                r.astype(np.float32)))
         paths.append(write_png(os.path.join(out_dir, files["residual_images"][i]),
-                               np.clip(np.abs(r) / scale, 0.0, 1.0)))
+                               np.clip(np.abs(r) / scale, 0.0, 1.0) * counted[..., None]))
+        paths.append(write_png(os.path.join(out_dir, files["masks"][i]),
+                               counted.astype(np.float64), color_space="linear"))
     return paths

@@ -15,6 +15,11 @@ J^T J (condition number of its unit-diagonal scaling above `max_condition`) is r
 with the parameters that move together in its weakest directions; those directions get a
 huge (not infinite) variance.
 
+When the model does not explain the images (fitting.report.misfit) the residuals are not
+independent and these standard errors are too small: the report also holds the
+cluster-robust (sandwich) ones (fitting.report.robust), and `kind` says which of the two
+`std_errors` are ('gauss-newton' here; fitting.report.robust.widened makes them 'robust').
+
 Two warnings look at the data rather than at J, because they hold for any noise level:
 - ka and kd are confounded when (almost) no kept pixel is unlit by every light of its
   view (N.L <= 0): then the ambient term is never seen alone;
@@ -32,6 +37,7 @@ import numpy as np
 from diffshade.io import decode, encode
 from fitting.model.batch import batched, unpadded
 from fitting.model.cache import FitData
+from fitting.report.robust import cluster_scores, sandwich, tile_ids
 from fitting.solve.distribute import ShardedViews, fit_data
 from fitting.solve.gauss_newton import normal_system
 from fitting.solve.linear import fold_parts
@@ -49,7 +55,10 @@ class UncertaintyReport:
     warnings: identifiability messages; rounding_bound: [p] worst-case shift from 8-bit
     rounding of the targets, or None when they are not 8-bit; notes: other caveats;
     at_bound: names of the values at a bound (their std_errors, rounding_bound and
-    covariance entries are NaN)."""
+    covariance entries are NaN); gauss_newton_std_errors, robust_std_errors: [p] the two
+    estimates (module docstring), robust_covariance: [p, p]; kind: which of the two
+    std_errors and covariance are, 'gauss-newton' or 'robust' (then, per parameter, the
+    larger of the two: fitting.report.robust.widened)."""
 
     names: tuple
     values: np.ndarray
@@ -63,6 +72,10 @@ class UncertaintyReport:
     rounding_bound: np.ndarray | None = None
     notes: tuple = ()
     at_bound: tuple = ()
+    gauss_newton_std_errors: np.ndarray | None = None
+    robust_std_errors: np.ndarray | None = None
+    robust_covariance: np.ndarray | None = None
+    kind: str = "gauss-newton"
 
     def as_dict(self) -> dict:
         """{name: (value, standard error, or None at a bound)}."""
@@ -75,17 +88,21 @@ class UncertaintyReport:
         warnings naming none of them are left out."""
         keep = [i for i, n in enumerate(self.names) if n.startswith(prefix)]
         pick = lambda a: None if a is None else np.asarray(a)[keep]
+        block = lambda a: None if a is None else np.asarray(a)[np.ix_(keep, keep)]
         return dataclasses.replace(
             self, names=tuple(self.names[i] for i in keep), values=pick(self.values),
-            std_errors=pick(self.std_errors),
-            covariance=self.covariance[np.ix_(keep, keep)],
+            std_errors=pick(self.std_errors), covariance=block(self.covariance),
+            gauss_newton_std_errors=pick(self.gauss_newton_std_errors),
+            robust_std_errors=pick(self.robust_std_errors),
+            robust_covariance=block(self.robust_covariance),
             warnings=tuple(w for w in self.warnings if prefix in w or "objects[" not in w),
             rounding_bound=pick(self.rounding_bound))
 
     def table(self) -> str:
         """One line per parameter: name, value, standard error (and rounding bound)."""
         bound = self.rounding_bound
-        lines = [f"{'parameter':<12} {'value':>12} {'std. error':>12}"
+        head = "robust s.e." if self.kind == "robust" else "std. error"
+        lines = [f"{'parameter':<12} {'value':>12} {head:>12}"
                  + ("" if bound is None else f" {'rounding':>10}")]
         for i, (n, (v, s)) in enumerate(self.as_dict().items()):
             lines.append(f"{n:<12} {v:>12.6g} {'at bound' if s is None else f'{s:.3g}':>12}"
@@ -207,30 +224,62 @@ def _conditioning_warnings(jtj, names, condition, weak):
     return found
 
 
-def uncertainty(values: dict, data, spec: FitSpec, *, highlight_threshold=0.01,
-                min_pixels=10, max_condition=1e6, warn=True) -> UncertaintyReport:
-    """Standard errors of the physical `values` (the optimum of a fit on `data`, a
-    FitData or its ShardedViews: then J^T J and the rounding bound are summed a chunk of
-    views at a time) and identifiability warnings (see module docstring)."""
-    fold = rows_fold(values, data, spec)
-    names = tuple(value_names(values))
-    free = ~at_bound(values, spec)
+def _tile_meat(rows, weight, view, pixels, widths):
+    """(sum over the block's tiles of g_c g_c^T [p, p], the number of tiles): the robust
+    covariance's middle (fitting.report.robust); a view's kept pixels are its first rows."""
+    r, jac = rows
+    meat, count = 0.0, 0
+    for i, v in enumerate(view):
+        n = int(np.sum(weight[i] > 0))
+        if n:
+            ids = tile_ids(np.asarray(pixels[v])[:n], None if widths is None else widths[v])
+            scores = cluster_scores(r[i, :n], jac[i, :n], ids)
+            meat, count = meat + scores.T @ scores, count + len(scores)
+    return meat, count
+
+
+def _sums(fold, size, pixels, widths):
+    """J^T J, RSS, the number of residuals, the tiles' meat and their number."""
 
     def add(total, rows, weight, view, target):
         r, jac = rows
         keep = _kept(weight, r)
-        r, jac = r.reshape(-1)[keep], np.asarray(jac.reshape(-1, jac.shape[-1])[keep],
-                                                 np.float64)
-        return total[0] + jac.T @ jac, total[1] + float(r @ r), total[2] + r.size
+        flat_r = r.reshape(-1)[keep]
+        flat_jac = np.asarray(jac.reshape(-1, jac.shape[-1])[keep], np.float64)
+        meat, count = _tile_meat(rows, weight, view, pixels, widths)
+        return (total[0] + flat_jac.T @ flat_jac, total[1] + float(flat_r @ flat_r),
+                total[2] + flat_r.size, total[3] + meat, total[4] + count)
 
-    full, rss, n = fold(add, (np.zeros((len(names), len(names))), 0.0, 0))
+    zeros = np.zeros((size, size))
+    return fold(add, (zeros, 0.0, 0, zeros, 0))
+
+
+def _embedded(block, free):
+    """[p_free, p_free] -> [p, p] with NaN in the rows and columns of values at a bound."""
+    out = np.full((free.size, free.size), np.nan)
+    out[np.ix_(free, free)] = block
+    return out
+
+
+def uncertainty(values: dict, data, spec: FitSpec, *, widths=None, highlight_threshold=0.01,
+                min_pixels=10, max_condition=1e6, warn=True) -> UncertaintyReport:
+    """Standard errors of the physical `values` (the optimum of a fit on `data`, a
+    FitData or its ShardedViews: then J^T J and the rounding bound are summed a chunk of
+    views at a time), Gauss-Newton and robust, and identifiability warnings (see module
+    docstring). widths: each view's image width, for the robust estimate's pixel tiles
+    (None: runs of consecutive pixels, fitting.report.robust.tile_ids)."""
+    fold = rows_fold(values, data, spec)
+    names = tuple(value_names(values))
+    free = ~at_bound(values, spec)
+    pixels = [v.pixels for v in fit_data(data).views]
+    full, rss, n, meat, tiles = _sums(fold, len(names), pixels, widths)
     p = int(free.sum())
     dof = max(n - p, 1)
     sigma2 = rss / dof
     jtj = full[np.ix_(free, free)]
     inverse, condition, weak = _scaled_inverse(jtj, max_condition)
-    covariance = np.full((len(names), len(names)), np.nan)
-    covariance[np.ix_(free, free)] = sigma2 * inverse
+    covariance = _embedded(sigma2 * inverse, free)
+    robust = _embedded(sandwich(inverse, meat[np.ix_(free, free)], tiles), free)
     found = _data_warnings(values, data, spec, highlight_threshold, min_pixels)
     found += _conditioning_warnings(jtj, tuple(np.array(names)[free]), condition, weak)
     if warn:
@@ -241,9 +290,11 @@ def uncertainty(values: dict, data, spec: FitSpec, *, highlight_threshold=0.01,
     bound, notes = _rounding(fit_data(data), fold, free, inverse)
     if bound is not None:
         bound = _scatter(bound, free)
-    return UncertaintyReport(names, flat, np.sqrt(np.diag(covariance)), covariance, sigma2,
-                             n, dof, float(condition), tuple(found), bound, notes,
-                             tuple(np.array(names)[~free]))
+    std_errors = np.sqrt(np.diag(covariance))
+    return UncertaintyReport(names, flat, std_errors, covariance, sigma2, n, dof,
+                             float(condition), tuple(found), bound, notes,
+                             tuple(np.array(names)[~free]), std_errors,
+                             np.sqrt(np.diag(robust)), robust)
 
 
 def _scatter(free_values, free):
