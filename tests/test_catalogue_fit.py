@@ -45,6 +45,9 @@ SCENE = {"version": 1, "mesh": {"builtin": {"icosphere": {"subdivisions": 0}}},
 DATASET = {"format": "diffshade-dataset", "version": 1,
            "views": [{"scene": "scene.json", "camera": 0, "image": "v0.png"},
                      {"scene": "scene.json", "camera": 1, "image": "v1.png"}]}
+# OpenCV's form of view 0's camera, and with lens distortion (the photos are undistorted)
+CALIBRATED = {"K": [[8, 0, 3.5], [0, 8, 2.5], [0, 0, 1]],
+              "R": [[1, 0, 0], [0, -1, 0], [0, 0, -1]], "t": [0, 0, 2.2], "width": 8, "height": 6}
 FIT = ["--method", "adam", "--steps", "2", "--quiet"]
 
 
@@ -122,8 +125,8 @@ IMAGES = ["v0.png", "rgba.png", "alpha0.png", "grey.png", "greya.png", "palette.
 ARRAYS = ["t.npy", "t64.npy", "uint8.npy", "bool.npy", "f16.npy", "complex.npy", "grey.npy",
           "two.npy", "five.npy", "transposed.npy", "batch.npy", "scalar.npy", "nan.npy",
           "inf.npy", "negative.npy", "records.npy", "object.npy", "png_as.npy", "missing.npy"]
-SCENES = ["scene.json", "one.json", "other_mesh.json", "bad_scene.json", "missing.json",
-          "v0.png", "sub.png"]
+SCENES = ["scene.json", "one.json", "calibrated.json", "other_mesh.json", "bad_scene.json",
+          "missing.json", "v0.png", "sub.png"]
 
 
 @pytest.fixture(scope="module")
@@ -139,6 +142,8 @@ def dataset(tmp_path_factory):
         {**one, "mesh": {"builtin": {"icosphere": {"subdivisions": 1}}}}))
     (root / "bad_scene.json").write_text(json.dumps({**one, "camera": {**CAMERA,
                                                                         "width": 0}}))
+    (root / "calibrated.json").write_text(json.dumps(
+        {**SCENE, "cameras": [CALIBRATED, {**CALIBRATED, "dist": [0.1, -0.05, 0.001, 0.002]}]}))
     scenes, settings = ds.load_scenes(root / "scene.json")
     for i, scene in enumerate(scenes):
         ds.write_png(root / f"v{i}.png", np.asarray(ds.render(scene, settings))[..., :3])
@@ -159,6 +164,11 @@ def check_result(out):
                 assert (out / str(name)).is_file(), name
         assert (out / result["checkpoint"]).is_file()
     return check
+
+
+# fit's options that depend on the dataset, beside the folder
+FIT_OPTIONS = st.sampled_from([[], [], [], ["--holdout", "1"], ["--holdout", "0,1"],
+                               ["--holdout", "2"], ["--holdout", "1,1"], ["--holdout", "x"]])
 
 
 def run_fit(capsys, data, out, *extra):
@@ -185,12 +195,12 @@ DATASET_ADDED = [("views", 0, "target"), ("views", 1, "target"), ("views", 0, "m
 
 @pytest.mark.cost(20)
 @CATALOGUE_SETTINGS
-@given(text=json_text(DATASET, DATASET_SPECIAL, DATASET_ADDED))
-def test_fit_of_a_mutated_dataset_json(dataset, tmp_path, capsys, monkeypatch, text):
+@given(text=json_text(DATASET, DATASET_SPECIAL, DATASET_ADDED), options=FIT_OPTIONS)
+def test_fit_of_a_mutated_dataset_json(dataset, tmp_path, capsys, monkeypatch, text, options):
     monkeypatch.setenv("DIFFSHADE_MEMORY_LIMIT", MEMORY_LIMIT)
     (dataset / "dataset.json").write_text(text)
     try:
-        event(f"exit status {run_fit(capsys, dataset, tmp_path / 'out')}")
+        event(f"exit status {run_fit(capsys, dataset, tmp_path / 'out', *options)}")
     finally:
         (dataset / "dataset.json").write_text(json.dumps(DATASET))
         clear(tmp_path / "out")

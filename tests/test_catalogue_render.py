@@ -38,6 +38,9 @@ SCENE = {"version": 1, "mesh": {"builtin": {"icosphere": {"subdivisions": 0}}},
                      "radius": 0.3, "samples": 2}],
          "material": {"ka": 0.2, "kd": 0.5, "ks": 0.3, "shininess": 10},
          "global_ambient": 0.3, "settings": {"faces_per_pixel": 2, "shadow_map_size": 8}}
+# OpenCV's form of (about) the same view: x_cam = R x + t, +z forward, y down
+CALIBRATED = {"K": [[8, 0, 4], [0, 8, 3], [0, 0, 1]], "R": [[1, 0, 0], [0, -1, 0], [0, 0, -1]],
+              "t": [0, 0, 3], "width": 8, "height": 6}
 MESH_FILES = ["tiny.obj", "garbage.obj", "empty.obj", "cut.obj", "image.obj", "missing.obj",
               "meshes", "tiny.ply"]
 HUGE = [16384, 16385, 10**6, 10**7, 2**31, 2**63]
@@ -63,14 +66,31 @@ BUILTIN = st.one_of(
          "minor_segments": st.sampled_from([3, 65536, 10**9])})}),
     st.fixed_dictionaries({"box": st.fixed_dictionaries(
         {"size": st.sampled_from([[1, 1, 1], [0, 1, 1], [1e39, 1, 1]])})}))
-SPECIAL |= {"builtin": BUILTIN, "kt": st.sampled_from([0.5, [0.2, 0.3, 2.0], None]),
+SPECIAL |= {
+    "camera": st.sampled_from([CALIBRATED, {**CALIBRATED, "dist": [0.1, -0.05, 0.001, 0.002]}]),
+    "K": st.sampled_from([[[0, 0, 4], [0, 8, 3], [0, 0, 1]], [[8, 1, 4], [0, 8, 3], [0, 0, 1]],
+                          [[1e30, 0, 4], [0, 8, 3], [0, 0, 1]], [[8, 0, 1e30], [0, 8, 3],
+                                                                 [0, 0, 1]],
+                          [[8, 0, 4], [0, 8, 3], [0, 0, 2]], [[-8, 0, 4], [0, 8, 3], [0, 0, 1]]]),
+    "R": st.sampled_from([[[1, 0, 0], [0, 1, 0], [0, 0, 1]], [[1, 0, 0], [0, 1, 0], [0, 0, -1]],
+                          [[2, 0, 0], [0, 1, 0], [0, 0, 1]], [[0, 0, 0], [0, 0, 0], [0, 0, 0]]]),
+    "t": st.sampled_from([[0, 0, -3], [0, 0, 1e30], [0, 0]]),
+    "dist": st.sampled_from([[0, 0, 0, 0], [10, 10, 0, 0], [-1e6, 0, 0, 0],
+                             [0.1, 0, 0, 0, 0.2], [1, 2, 3], [0.1, 0, 0, 0, 0, 0, 0, 0]]),
+    "builtin": BUILTIN, "kt": st.sampled_from([0.5, [0.2, 0.3, 2.0], None]),
             "mesh": st.one_of(BUILTIN.map(lambda b: {"builtin": b}),
                               SPECIAL["path"].map(lambda p: {"path": p})),
             "cameras": st.just([CAMERA, CAMERA])}
 # keys the schema allows where the valid scene leaves them out
 ADDED = [*(("lights", i, "shadows") for i in range(3)), ("lights", 1, "samples"),
          ("settings", "raster"), ("settings", "kernels"), ("settings", "shading"),
-         ("material", "kt"), ("mesh", "path"), ("cameras",)]
+         ("material", "kt"), ("mesh", "path"), ("cameras",), ("camera", "dist"),
+         ("camera", "K")]
+# render's own options, beside the scene file: (arguments, camera index they pick)
+RENDER_OPTIONS = st.sampled_from([
+    [], [], [], ["--camera", "0"], ["--camera", "1"], ["--camera", "-1"], ["--size", "7x5"],
+    ["--size", "16384x16384"], ["--material", "truth.json"], ["--material", "bad_truth.json"],
+    ["--material", "missing.json"], ["--material", "image.obj"]])
 
 
 @pytest.fixture(scope="module")
@@ -87,13 +107,21 @@ def folder(tmp_path_factory):
     (root / "cut.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2")
     ds.write_png(root / "image.obj", np.full((2, 2, 3), 0.5))
     (root / "meshes").mkdir()
+    (root / "truth.json").write_text(json.dumps({"ka": 0.1, "kd": [0.5, 0.4, 0.3],
+                                                 "ks": 0.2, "shininess": 8}))
+    (root / "bad_truth.json").write_text(json.dumps({"ka": 0.1, "kd": "red"}))
     return root
 
 
-def camera_of(text):
-    """(height, width) of the scene file's one camera (a rendered file has one)."""
+def camera_of(text, options):
+    """(height, width) of the image render makes of the scene file: its camera's, the
+    one --camera picks, or --size's."""
+    given = dict(zip(options[::2], options[1::2], strict=True))
+    if "--size" in given:
+        return tuple(int(n) for n in reversed(given["--size"].split("x")))
     data = json.loads(text)
-    camera = data["camera"] if "camera" in data else data["cameras"][0]
+    camera = data["camera"] if "camera" in data else \
+        data["cameras"][int(given.get("--camera", 0))]
     return camera["height"], camera["width"]
 
 
@@ -110,20 +138,24 @@ def check_image(path, shape):
 
 @pytest.mark.cost(25)
 @CATALOGUE_SETTINGS
-@given(text=json_text(SCENE, SPECIAL, ADDED), kind=st.sampled_from([".npy", ".png"]))
+@given(text=json_text(SCENE, SPECIAL, ADDED), kind=st.sampled_from([".npy", ".png"]),
+       options=RENDER_OPTIONS)
 @example(text=json.dumps({**SCENE, "camera": {**CAMERA, "width": 16384, "height": 16384}}),
-         kind=".npy")
-def test_render_of_a_mutated_scene_file(folder, capsys, monkeypatch, text, kind):
+         kind=".npy", options=[])
+def test_render_of_a_mutated_scene_file(folder, capsys, monkeypatch, text, kind, options):
     monkeypatch.setenv("DIFFSHADE_MEMORY_LIMIT", MEMORY_LIMIT)
     scene, out = folder / "scene.json", folder / "out"
     scene.write_text(text)
     output = str(out / f"img{kind}")
+    options = [str(folder / value) if value.endswith((".json", ".obj")) else value
+               for value in options]
 
     def check(stdout):
         assert stdout.splitlines() == [output]
-        check_image(output, camera_of(text))
+        check_image(output, camera_of(text, options))
     try:
-        code = refused_or_valid(capsys, ["render", str(scene), "-o", output], [folder], check)
+        code = refused_or_valid(capsys, ["render", str(scene), "-o", output, *options],
+                                [folder], check)
         event(f"exit status {code}")
     finally:
         clear(out)
@@ -189,10 +221,7 @@ def synth_argv(folder, options):
 
 @pytest.fixture(scope="module")
 def synth_folder(folder):
-    """The render folder plus a material file, a scene file, a foreign folder, a file."""
-    (folder / "truth.json").write_text(json.dumps({"ka": 0.1, "kd": [0.5, 0.4, 0.3],
-                                                   "ks": 0.2, "shininess": 8}))
-    (folder / "bad_truth.json").write_text(json.dumps({"ka": 0.1, "kd": "red"}))
+    """The render folder plus scene files, a foreign folder and a file."""
     (folder / "scene_ok.json").write_text(json.dumps(
         {"mesh": SCENE["mesh"], "camera": CAMERA, "material": SCENE["material"]}))
     (folder / "scene_bad.json").write_text(json.dumps({"mesh": SCENE["mesh"]}))
