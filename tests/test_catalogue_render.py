@@ -88,7 +88,7 @@ ADDED = [*(("lights", i, "shadows") for i in range(3)), ("lights", 1, "samples")
          ("camera", "K")]
 # render's own options, beside the scene file: (arguments, camera index they pick)
 RENDER_OPTIONS = st.sampled_from([
-    [], [], [], ["--camera", "0"], ["--camera", "1"], ["--camera", "-1"], ["--size", "7x5"],
+    [], [], [], [], [], [], [], [], ["--camera", "0"], ["--camera", "1"], ["--camera", "-1"], ["--size", "7x5"],
     ["--size", "16384x16384"], ["--material", "truth.json"], ["--material", "bad_truth.json"],
     ["--material", "missing.json"], ["--material", "image.obj"]])
 
