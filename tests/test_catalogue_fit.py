@@ -8,7 +8,8 @@ result folder nor anything in the dataset folder) or succeeds with a valid resul
 (result.json with finite fitted values, every file it lists present); tests/catalogue.py
 has the property:
 - dataset.json mutated in its values, keys and file names (scene files of another mesh,
-  missing or malformed; camera indices; colour spaces; saturation thresholds);
+  with calibrated cameras, missing or malformed; camera indices; colour spaces;
+  saturation thresholds), with --holdout drawn beside it;
 - a view's image, target or mask replaced by a drawn image file: every Pillow mode a user
   may hand in (L, LA, P with and without transparency, RGBA, I;16, 16-bit RGB, 1-bit,
   CMYK JPEG), content that does not match the extension (a JPEG named .png, a PNG named
@@ -250,6 +251,78 @@ def test_fit_of_a_dataset_with_a_drawn_image_file(dataset, tmp_path, capsys, mon
 def test_the_unmutated_dataset_fits(dataset, tmp_path, capsys):
     """The dataset properties start from a folder that fits (else they test nothing)."""
     assert run_fit(capsys, dataset, tmp_path / "out") == 0
+
+
+# ---- fit's options
+
+# option -> (valid values, bad values); None: the option left out. The valid values
+# leave the fit's programs as the other properties compile them (the same parameters, loss,
+# pixels and views), so that a success costs a run, not a compilation.
+FIT_FLAGS = {
+    "--fit": ([None, "ka,kd,ks,shininess"],
+              ["kd,kd", "albedo", "", "ka,,kd", "light_positions,kt"]),
+    "--grey": ([None], ["shininess", "ka,ka", "x"]),
+    "--init": ([None, "0.2,0.5,0.3,10", "truth.json"],
+               ["1,2", "0.2,0.5,0.3,-1", "0.2,0.5,nan,10", "bad_truth.json", "v0.png",
+                "missing.json", "objects.json"]),
+    "--loss": ([None, "mse"], ["l3", ""]),
+    "--color-space": ([None, "linear", "sRGB"], ["cmyk"]),
+    "--lr": ([None, "0.01"], ["0", "-1", "nan", "inf", "1e999", "x"]),
+    "--tol": ([None, "0"], ["-1", "nan"]),
+    "--patience": ([None, "3"], ["0", "1.5"]),
+    "--edge-margin": ([None, "1"], ["-1", "1000000000000"]),
+    "--shininess-range": ([None], ["500,2", "0,10", "1,inf", "1"]),
+    "--max-bad": ([None, "1"], ["0"]),
+    "--devices": ([None, "all"], ["0", "2", "-1", "gpu"]),
+    "--chunk": ([None], ["0", "-2"]),
+    "--checkpoint-every": ([None, "1"], ["0"]),
+    "--holdout": ([None], ["0,1", "2", "1,1", "-1", "x"]),
+    "-o": (["new", "new", "result"], ["a_file", "a_file/below", "v0.png", ""]),
+}
+
+
+@st.composite
+def fit_flags(draw):
+    """{option: value}: each valid or left out, except 0 to 2 drawn to be bad."""
+    bad = draw(st.sets(st.sampled_from(sorted(FIT_FLAGS)), max_size=2))
+    chosen = {name: draw(st.sampled_from(bad_values if name in bad else valid))
+              for name, (valid, bad_values) in FIT_FLAGS.items()}
+    return {name: value for name, value in chosen.items() if value is not None}
+
+
+@pytest.fixture(scope="module")
+def fit_files(dataset, tmp_path_factory):
+    """A folder beside the dataset: --init files, a file, an existing result folder."""
+    root = tmp_path_factory.mktemp("fit_files")
+    (root / "truth.json").write_text(json.dumps({"ka": 0.1, "kd": [0.5, 0.4, 0.3],
+                                                 "ks": 0.2, "shininess": 8}))
+    (root / "bad_truth.json").write_text(json.dumps({"ka": 0.1, "kd": "red"}))
+    (root / "objects.json").write_text(json.dumps({"objects": {"cup": {"kd": 0.5}}}))
+    (root / "a_file").write_text("not a folder")
+    shutil.copy(dataset / "v0.png", root / "v0.png")
+    (root / "result").mkdir()
+    (root / "result" / "notes.txt").write_text("an earlier run's files")
+    return root
+
+
+@pytest.mark.cost(10)
+@CATALOGUE_SETTINGS
+@given(flags=fit_flags())
+@example(flags={"--edge-margin": "1000000000000", "-o": "new"})
+def test_fit_with_drawn_options(dataset, fit_files, capsys, monkeypatch, flags):
+    monkeypatch.setenv("DIFFSHADE_MEMORY_LIMIT", MEMORY_LIMIT)
+    argv = []
+    for name, value in flags.items():
+        is_file = name in ("--init", "-o") and "," not in value and value != ""
+        argv += [name, str(fit_files / value) if is_file else value]
+    out = fit_files / flags["-o"]
+    try:
+        code = refused_or_valid(capsys, ["fit", str(dataset), *FIT, *argv],
+                                [dataset, fit_files], check_result(out))
+        event(f"exit status {code}")
+    finally:
+        if flags["-o"] == "new":
+            clear(out)
 
 
 # ---- checkpoints

@@ -8,7 +8,8 @@ a valid output (tests/catalogue.py has the property):
   settings) mutated in its values, keys and sizes: huge image sizes, faces_per_pixel,
   shadow_map_size, light samples, shadows switched on, built-in meshes of huge
   resolution, mesh files (missing, a folder, empty, garbage, cut short, an image named
-  .obj); a success is a finite image of the camera's size;
+  .obj), calibrated cameras (K, R, t, dist out of range); with --camera, --size and
+  --material drawn beside it; a success is a finite image of the camera's size;
 - synth: each option drawn among valid, out-of-range, malformed and huge values (size,
   views, lights, seed, noise, shape, material, scene, an output path that is a file or a
   foreign folder); a success is a dataset folder that `load_dataset` reads, with
@@ -86,9 +87,10 @@ ADDED = [*(("lights", i, "shadows") for i in range(3)), ("lights", 1, "samples")
          ("settings", "raster"), ("settings", "kernels"), ("settings", "shading"),
          ("material", "kt"), ("mesh", "path"), ("cameras",), ("camera", "dist"),
          ("camera", "K")]
-# render's own options, beside the scene file: (arguments, camera index they pick)
+# render's own options, beside the scene file (most often none)
 RENDER_OPTIONS = st.sampled_from([
-    [], [], [], [], [], [], [], [], ["--camera", "0"], ["--camera", "1"], ["--camera", "-1"], ["--size", "7x5"],
+    [], [], [], [], [], [], [], [], ["--camera", "0"], ["--camera", "1"], ["--camera", "-1"],
+    ["--size", "7x5"],
     ["--size", "16384x16384"], ["--material", "truth.json"], ["--material", "bad_truth.json"],
     ["--material", "missing.json"], ["--material", "image.obj"]])
 
