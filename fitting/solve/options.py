@@ -50,6 +50,9 @@ def _number(x):
     return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
 
 
+MAX_EDGE_MARGIN = 16384  # diffshade's largest image side (docs/scene-format.md)
+
+
 def _count(low):
     return lambda x: isinstance(x, int) and not isinstance(x, bool) and x >= low
 
@@ -79,7 +82,11 @@ OPTIONS = {
                            lambda x: _number(x) and x > 0, "a positive learning rate"),
     "lr_position": Option("Adam's learning rate for light positions",
                           lambda x: _number(x) and x > 0, "a positive learning rate"),
-    "edge_margin": Option("silhouette pixels left out", _count(0), "an integer >= 0"),
+    # at most the largest image side (any more leaves no pixel): the margin is eroded pixel
+    # by pixel, so 10**12 would run for ever (a catalogue case, tests/test_catalogue_fit.py)
+    "edge_margin": Option("silhouette pixels left out",
+                          lambda x: _count(0)(x) and x <= MAX_EDGE_MARGIN,
+                          f"an integer from 0 to {MAX_EDGE_MARGIN} (the largest image side)"),
     "shininess_range": Option(
         "the 'linear' method's search interval for shininess, LOW,HIGH",
         lambda x: isinstance(x, tuple) and len(x) == 2 and all(map(_number, x))
