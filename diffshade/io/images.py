@@ -221,6 +221,15 @@ def _check_decoded_size(path, found):
                  "channels", pixels * found.channels, host=True)
 
 
+def _decode_failure(err, kind):
+    """The reason a file of format `kind` did not decode, in the user's terms (Pillow's
+    "cannot identify image file <_io.BytesIO ...>" names an object, not the file)."""
+    text = str(err)
+    if "cannot identify image file" in text or not text:
+        text = f"its data does not decode as {kind}"
+    return f"{text}; expected an undamaged {kind} file"
+
+
 def _read(path):
     """(array as stored, declared transfer or None, format) of the image file at path."""
     path = os.fspath(path)
@@ -232,7 +241,8 @@ def _read(path):
         arr, transfer = _load(path, found.kind)
     # numpy, pillow and zlib raise many exception types; all mean "cannot decode".
     except Exception as err:
-        raise ValueError(f"path: cannot read image file {path!r}: {err}") from err
+        raise ValueError(f"path: cannot read image file {path!r}: "
+                         f"{_decode_failure(err, found.kind)}") from err
     if arr.ndim == 2:
         arr = arr[..., None]
     is_real = np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)

@@ -326,13 +326,13 @@ def _check_size(file, label, size, what):
                          f"expected {size[1]}x{size[0]}, the size of its {what}")
 
 
-def _colour_image(image, name, index):
+def _colour_image(image, name):
     """[H, W, 3 or 4]: a grey image (with alpha) repeated into RGB (RGBA)."""
     if image.ndim == 3 and image.shape[-1] in (1, 2):
         grey = np.repeat(image[..., :1], 3, axis=-1)
         return np.concatenate([grey, image[..., 1:]], axis=-1)
     if image.ndim != 3 or image.shape[-1] not in (3, 4):
-        raise ValueError(f"views[{index}]: {name!r} has shape {image.shape}; expected an "
+        raise ValueError(f"{name!r} has shape {image.shape}; expected an "
                          "RGB or RGBA image [H, W, 3 or 4] (or grey, with or without alpha)")
     return image
 
@@ -348,7 +348,7 @@ def _read_target(path, entry, index, color_space, size):
     file = os.path.join(path, name)
     if os.path.isfile(file):
         _check_size(file, repr(name), size, "camera")
-    image = _colour_image(ds.read_image(file, space), name, index)
+    image = _colour_image(ds.read_image(file, space), name)
     problem = _pixel_problem(image[..., :3], name, index)
     if problem:
         raise problem
@@ -438,7 +438,7 @@ def _load_view(path, entry, index, options, cache):
     scenes, settings = _scenes(path, entry["scene"], cache)
     camera = entry.get("camera", 0)
     if camera >= len(scenes):
-        _fail(f"views[{index}].camera", camera,
+        _fail("camera", camera,
               f"an index below {len(scenes)}, the cameras of {entry['scene']!r}")
     space = color_space or entry.get("color_space") or shared_space
     scene = scenes[camera]
