@@ -375,21 +375,31 @@ def losses_and_grads(params, faces, like, weights, plan):
     return [run(*entry) for entry in plan]
 
 
+# leaves that are not lengths: a zero one moves on its own unit's scale (a principal point
+# shift in pixels, lens coefficients), not on the scene's
+NOT_LENGTHS = ("['camera'].shift", "['camera'].dist")
+
+
 def random_direction(params, seed, length, fixed):
     """A random direction in parameter space: each entry scaled by its own magnitude,
     zeros by the smaller of the leaf's smallest non-zero magnitude and `length` (a zero
-    translation must move by a fraction of the scene); `fixed` leaves do not move."""
+    translation must move by a fraction of the scene; 1 for NOT_LENGTHS); `fixed` leaves
+    do not move."""
 
-    def entry_scale(x):
+    def entry_scale(x, unit):
         nonzero = np.abs(x[x != 0])
-        floor = min(nonzero.min(), length) if nonzero.size else length
+        floor = min(nonzero.min(), unit) if nonzero.size else unit
         return np.where(x != 0, np.abs(x), floor)
 
+    def entry(path, x):
+        key = jax.tree_util.keystr(path)
+        if key in fixed:
+            return np.zeros_like(x)
+        scale = entry_scale(x, 1.0 if key in NOT_LENGTHS else length)
+        return (rng.normal(size=np.shape(x)) * scale).astype(x.dtype)
+
     rng = np.random.default_rng(seed)
-    return jax.tree_util.tree_map_with_path(
-        lambda path, x: (np.zeros_like(x) if jax.tree_util.keystr(path) in fixed
-                         else (rng.normal(size=np.shape(x)) * entry_scale(x)).astype(x.dtype)),
-        params)
+    return jax.tree_util.tree_map_with_path(entry, params)
 
 
 def moved(params, direction, step):
