@@ -33,6 +33,7 @@ from catalogue import CATALOGUE_SETTINGS, MEMORY_LIMIT, clear, json_text, refuse
 from hypothesis import event, example, given
 from hypothesis import strategies as st
 from PIL import Image
+from test_bad_input import png_header_only
 
 import diffshade as ds
 
@@ -84,7 +85,7 @@ def write_images(root):
     (root / "cut.png").write_bytes(data[: len(data) // 2])
     save(root / "wide.png", np.concatenate([codes, codes[:, :1]], 1))
     save(root / "transposed.png", codes.transpose(1, 0, 2).copy())
-    (root / "huge.png").write_bytes(huge_png_header(12000, 12000))
+    (root / "huge.png").write_bytes(png_header_only(12000, 12000))
     linear = ds.read_image(root / "v0.png")
     arrays = {"t.npy": linear.astype(np.float32), "t64.npy": linear.astype(np.float64),
               "uint8.npy": codes, "bool.npy": codes > 128, "f16.npy": linear.astype(np.float16),
@@ -103,19 +104,6 @@ def write_images(root):
     save(root / "mask_black.png", np.zeros((6, 8), np.uint8))
     save(root / "mask_wide.png", np.full((6, 9), 255, np.uint8))
     (root / "sub.png").mkdir()
-
-
-def huge_png_header(width, height):
-    """A PNG that claims width x height pixels and holds a few bytes of garbage."""
-    import struct
-    import zlib
-
-    def chunk(kind, payload):
-        return (struct.pack(">I", len(payload)) + kind + payload
-                + struct.pack(">I", zlib.crc32(kind + payload)))
-    ihdr = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", b"garbage")
-            + chunk(b"IEND", b""))
 
 
 IMAGES = ["v0.png", "rgba.png", "alpha0.png", "grey.png", "greya.png", "palette.png",
