@@ -12,6 +12,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 
 from lens import lens_photo, pinhole_frame  # noqa: E402
+from test_peers_benchmark import broken_mitsuba_env  # noqa: E402
 
 K = [[52.0, 0.0, 20.0], [0.0, 47.0, 13.0], [0.0, 0.0, 1.0]]  # fx != fy, off-centre
 
@@ -56,10 +57,7 @@ def test_without_distortion_a_photo_pixel_is_the_mean_over_its_area():
 
 
 def test_without_mitsuba_one_line_and_exit_status_0(tmp_path):
-    fake = tmp_path / "fake" / "mitsuba"
-    fake.mkdir(parents=True)
-    (fake / "__init__.py").write_text("raise ImportError('libLLVM not found (simulated)')\n")
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path / "fake"), ROOT]))
+    env = broken_mitsuba_env(tmp_path)
     out = tmp_path / "capture.json"
     done = subprocess.run([sys.executable, os.path.join(ROOT, "benchmarks", "capture.py"),
                            "--out", str(out)], capture_output=True, text=True, env=env,

@@ -14,13 +14,18 @@ sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 from peers import camera_check  # noqa: E402
 
 
-def test_without_mitsuba_prints_diffshade_figures_and_exits_cleanly(tmp_path):
-    # a `mitsuba` that fails to import as a broken install does (no libLLVM), ahead of any
-    # installed one: the run must not depend on which venv runs the tests
+def broken_mitsuba_env(tmp_path):
+    """The environment of a benchmark run whose `mitsuba` fails to import as a broken
+    install does (no libLLVM), ahead of any installed one: the run must not depend on which
+    venv runs the tests."""
     fake = tmp_path / "fake" / "mitsuba"
     fake.mkdir(parents=True)
     (fake / "__init__.py").write_text("raise ImportError('libLLVM not found (simulated)')\n")
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path / "fake"), ROOT]))
+    return dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path / "fake"), ROOT]))
+
+
+def test_without_mitsuba_prints_diffshade_figures_and_exits_cleanly(tmp_path):
+    env = broken_mitsuba_env(tmp_path)
     out = tmp_path / "peers.json"
     done = subprocess.run([sys.executable, os.path.join(ROOT, "benchmarks", "peers.py"),
                            "--size", "32", "--subdivisions", "1", "--repeats", "1",
