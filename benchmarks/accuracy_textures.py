@@ -155,16 +155,17 @@ def tables(results):
 
 
 def plot(axes, rows):
-    """One panel per image size: the error inside the silhouette against forward time,
-    colour the sampling, marker the texture's side."""
+    """One panel per texture side (the texture is given; the image size and the sampling
+    are chosen): the error inside the silhouette against forward time, colour the
+    sampling, marker the image size."""
     from accuracy_plots import plot_generic
 
-    sizes = sorted({r["size"] for r in rows})
-    for ax, size in zip(axes, sizes, strict=True):
-        # one colour for every prefiltered texture: the marker tells the texture apart
+    sides = sorted({r["texels"] for r in rows})
+    for ax, texels in zip(axes, sides, strict=True):
+        # one colour for every prefiltered texture: the marker tells the image sizes apart
         chosen = [{**r, "sampling": r["sampling"].split(" to ")[0]} for r in rows
-                  if r["size"] == size]
-        plot_generic(ax, chosen, ("sampling", "texels"), f"textured sphere, {size} px",
+                  if r["texels"] == texels]
+        plot_generic(ax, chosen, ("sampling", "size"), f"a {texels}² texture",
                      "inside_rmse_255", legend=ax is axes[-1])
         ax.set_ylabel("RMSE inside the silhouette (1/255 units)")
 
@@ -172,7 +173,7 @@ def plot(axes, rows):
 def plots(results, folder):
     from accuracy_plots import _draw
 
-    count = len({r["size"] for r in results["rows"]})
+    count = len({r["texels"] for r in results["rows"]})
     return [_draw(folder, "textures", count,
                   lambda axes: plot(axes if count > 1 else [axes], results["rows"]),
                   width=5.0 * count + 2.0)]

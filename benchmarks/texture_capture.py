@@ -6,7 +6,8 @@
 
 The capture: the unit sphere with longitude / latitude UVs (icosphere(4, uv=True): 5,120
 faces, the seam's vertices split) whose diffuse albedo is data_synth's procedural kd
-texture (data_synth.materials.procedural_kd: RES x RES texels, linear), lit by EMITTERS
+(data_synth.materials.procedural_kd_at, shifted by V_SHIFT in v) at the texel centres of
+a RES x RES map (linear), lit by EMITTERS
 (point lights of known radiant intensity all around it), seen by eight cameras around it
 with benchmarks/capture.py's calibration (fx != fy, the principal point off the centre,
 barrel distortion). Mitsuba (as capture.py: `direct` integrator, one render per emitter
@@ -19,7 +20,8 @@ The texture conventions agree: Mitsuba's bitmap puts v = 0 on the image's top ro
 diffshade (OBJ, OpenGL) on its bottom row, so the mesh goes to Mitsuba with (u, 1 - v)
 (peers.mitsuba_mesh); both put texel centres at (i + 0.5) / RES and interpolate
 bilinearly, neither mip-maps. The forward check tests that before any fit: diffshade's
-render of each view with the true map against Mitsuba's photo.
+render of each view with the true map against Mitsuba's photo; and again with the map
+upside down, which a wrong v convention would read.
 
 The dataset is what a user with this capture writes (scene.json: the cameras in OpenCV
 form, the emitters as point lights of colour I / pi and attenuation (0, 0, 1), the
@@ -32,8 +34,10 @@ View HOLDOUT stays out of the folder that is fitted. `diffshade fit --texture kd
 Printed: the forward check (PSNR of diffshade's render with the true map against the
 photos, per view, and what 8-bit rounding allows); the coverage (texels seen by 0, 1 and
 >= 2 fitted views); the recovered map's PSNR against the truth over the texels >= 2 views
-see (linear, peak 1), beside the same fit on diffshade's own renders of the fitted views
-rounded to 8-bit sRGB (what the rounding and the prior allow); the held-out view rendered
+see, and over those of them at least two pixels wide (wide_texels: near the poles a
+texel is narrower, a photo pixel averages several texels and the fit's model reads one
+point) (linear, peak 1), beside the same fit on diffshade's own renders of the fitted
+views rounded to 8-bit sRGB (what the rounding and the prior allow); the held-out view rendered
 with the recovered map, PSNR linear and sRGB over the pixels that count
 (fitting.report.holdout.evaluate's) and read no texel the fitted views leave unseen (the
 map has no value there; how many are left out is printed), beside what 8-bit rounding
@@ -69,6 +73,10 @@ HOLDOUT, EDGE_MARGIN = 7, 2
 EMITTERS = [((2.5, 3.0, 3.5), (50.0, 50.0, 50.0)), ((-3.5, 1.0, 2.5), (30.0, 34.0, 40.0)),
             ((-2.5, 2.5, -3.5), (50.0, 48.0, 44.0)), ((3.5, -1.5, -2.5), (34.0, 34.0, 34.0)),
             ((0.5, -4.0, 1.0), (30.0, 30.0, 30.0))]
+#: data_synth's pattern, cos(2 pi 2 v) in v, is symmetric about the equator and varies
+#: with u at the poles; shifted by an eighth of its period it is neither: a flipped v shows
+#: in the forward check, and the poles (where a texel is narrower than a pixel) are uniform
+V_SHIFT = 0.125
 MATERIAL = (0.0, 0.5, 0.0, 10.0)  # --init ka, kd, ks, shininess: kd is the map's
 
 
@@ -83,10 +91,13 @@ def eyes():
 
 
 def truth(res):
-    """The true kd map [res, res, 3] (linear, row 0 = v = 1)."""
-    from data_synth.materials import procedural_kd
+    """The true kd map [res, res, 3] (linear, row 0 = v = 1): data_synth's procedural kd
+    at the texel centres, shifted by V_SHIFT in v."""
+    from data_synth.materials import procedural_kd_at
 
-    return procedural_kd(res)
+    centres = (np.arange(res) + 0.5) / res
+    return procedural_kd_at(centres[None, :], 1.0 - centres[:, None] + V_SHIFT).astype(
+        np.float32)
 
 
 def scene_file():
@@ -179,13 +190,15 @@ def textured(texels):
                        shininess=shininess)
 
 
-def forward_check(dataset, res):
+def forward_check(dataset, res, flip=False):
     """Per view of `dataset`, holdout.evaluate's scores of diffshade's render with the true
-    map against the photo: the conventions' check."""
+    map against the photo: the conventions' check (flip: with the map upside down, as a
+    renderer that took v = 0 for the top row would read it)."""
     from fitting.report.holdout import evaluate
 
-    material = textured(truth(res))
-    return [evaluate(dataset, i, material, EDGE_MARGIN)[2] for i in range(len(dataset.views))]
+    texels = truth(res)[::-1] if flip else truth(res)
+    return [evaluate(dataset, i, textured(texels), EDGE_MARGIN)[2]
+            for i in range(len(dataset.views))]
 
 
 def reads_unseen(dataset, index, coverage):
@@ -240,14 +253,14 @@ def own_renders_fit(dataset, res):
 
 
 def wide_texels(res):
-    """[res, res] bool: the texels at least a pixel wide from every camera: on the
-    longitude / latitude map a texel at latitude phi is 2 pi cos(phi) / res wide, a pixel
-    at the sphere's nearest point (DISTANCE - 1 away) is (DISTANCE - 1) / fy (the larger
-    of its sides). Near the poles a texel is narrower, and a photo pixel averages
-    several."""
+    """[res, res] bool: the texels at least two pixels wide at the sphere's nearest point.
+    On the longitude / latitude map a texel at latitude phi is 2 pi cos(phi) / res wide, a
+    pixel there (DISTANCE - 1 away) (DISTANCE - 1) / fy (the larger of its sides), and two
+    pixels the width of one seen 60 degrees off the surface's normal. Nearer the poles a
+    texel is narrower, and a photo pixel averages several."""
     latitude = np.pi * (0.5 - (np.arange(res) + 0.5) / res)  # row 0 = v = 1: the north
     pixel = (DISTANCE - 1.0) / min(K[0][0], K[1][1])
-    return np.repeat((2 * np.pi * np.cos(latitude) / res >= pixel)[:, None], res, 1)
+    return np.repeat((2 * np.pi * np.cos(latitude) / res >= 2 * pixel)[:, None], res, 1)
 
 
 def map_psnr(texels, res, chosen):
@@ -259,7 +272,7 @@ def map_psnr(texels, res, chosen):
 
 def map_scores(texels, coverage, res):
     """{"twice", "twice_wide"}: map_psnr over the texels >= 2 views see, and over those of
-    them at least a pixel wide (wide_texels)."""
+    them at least two pixels wide (wide_texels)."""
     twice = coverage >= 2
     return {"twice": map_psnr(texels, res, twice),
             "twice_wide": map_psnr(texels, res, twice & wide_texels(res))}
@@ -273,7 +286,8 @@ def measure(folder, res):
     coverage = np.load(os.path.join(folder, "result", "kd_coverage.npy"))
     data = load_dataset(os.path.join(folder, "data"))
     train = load_dataset(os.path.join(folder, "train"))
-    return {"forward_check": forward_check(data, res),
+    flipped = [s["psnr_linear"] for s in forward_check(data, res, flip=True)]
+    return {"forward_check": forward_check(data, res), "forward_check_v_flipped": flipped,
             "coverage": {"unseen": int(np.sum(coverage == 0)), "once": int(np.sum(coverage == 1)),
                          "twice_or_more": int(np.sum(coverage >= 2)),
                          "twice_wide": int(np.sum((coverage >= 2) & wide_texels(res)))},
@@ -288,13 +302,16 @@ def report(figures, res):
     for i, s in enumerate(figures["forward_check"]):
         print(f"  view {i}: {s['psnr_linear']:.2f} / {s['psnr_srgb']:.2f} dB "
               f"(8-bit allows {s['psnr_linear_8bit']:.2f} / {s['psnr_srgb_8bit']:.2f} dB)")
+    flipped = figures["forward_check_v_flipped"]
+    print(f"  with the map upside down (v = 0 read as the top row): {min(flipped):.2f}–"
+          f"{max(flipped):.2f} dB linear")
     c, fit = figures["coverage"], figures["fit"]
     print(f"\nkd map {res}x{res} from the {len(VIEWS) - 1} fitted views: {c['twice_or_more']} "
           f"texels seen by >= 2 views, {c['once']} by 1, {c['unseen']} unseen; "
           f"{fit['iterations']} CG iterations")
     ours, own = figures["map_psnr"], figures["map_psnr_own_8bit"]
     print(f"  PSNR (linear) over the texels seen by >= 2 views: {ours['twice']:.2f} dB; over "
-          f"the {c['twice_wide']} of them at least a pixel wide: {ours['twice_wide']:.2f} dB")
+          f"the {c['twice_wide']} of them at least two pixels wide: {ours['twice_wide']:.2f} dB")
     print(f"  the same fit on diffshade's own renders of the views, 8-bit: {own['twice']:.2f} "
           f"/ {own['twice_wide']:.2f} dB")
     h = figures["holdout"]
