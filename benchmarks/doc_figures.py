@@ -109,7 +109,7 @@ def readme_rows(data):
          "`python benchmarks/memory_views.py` (`--method linear`), "
          + cite("memory_views.json") + ", " + cite("memory_views_linear.json")),
         (f"a {texture['res']}² kd texture recovered (`fit --texture`) from Mitsuba 3's 8-bit "
-         f"photos of a textured sphere, {len(texture['views']) - 1} views, one held out",
+         f"photos of a textured sphere, {len(texture['views'])} views, one held out",
          f"map PSNR {texture['map_psnr']['twice_wide']:.1f} dB over the texels seen twice and "
          f"two pixels wide; held-out view {texture['holdout']['psnr_linear']:.1f} dB "
          f"(8-bit allows {texture['holdout']['psnr_linear_8bit']:.1f} dB)",
@@ -261,6 +261,8 @@ def texture_capture(data):
         f"| forward check: diffshade's render with the true map against each photo, PSNR "
         f"linear (what 8-bit rounding allows) | {span('psnr_linear')} "
         f"({span('psnr_linear_8bit')}) |",
+        f"| the same with the map upside down (the other v convention) | "
+        f"{min(run['forward_check_v_flipped']):.1f}–{max(run['forward_check_v_flipped']):.1f} dB |",
         f"| texels of the {run['res']}² map seen by ≥ 2 / 1 / 0 fitted views | "
         f"{c['twice_or_more']:,} / {c['once']:,} / {c['unseen']:,} |",
         f"| recovered map against the truth, PSNR linear: texels seen by ≥ 2 views / those "

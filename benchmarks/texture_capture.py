@@ -74,7 +74,7 @@ EMITTERS = [((2.5, 3.0, 3.5), (50.0, 50.0, 50.0)), ((-3.5, 1.0, 2.5), (30.0, 34.
             ((-2.5, 2.5, -3.5), (50.0, 48.0, 44.0)), ((3.5, -1.5, -2.5), (34.0, 34.0, 34.0)),
             ((0.5, -4.0, 1.0), (30.0, 30.0, 30.0))]
 #: data_synth's pattern, cos(2 pi 2 v) in v, is symmetric about the equator and varies
-#: with u at the poles; shifted by an eighth of its period it is neither: a flipped v shows
+#: with u at the poles; shifted by a quarter of its period it is neither: a flipped v shows
 #: in the forward check, and the poles (where a texel is narrower than a pixel) are uniform
 V_SHIFT = 0.125
 MATERIAL = (0.0, 0.5, 0.0, 10.0)  # --init ka, kd, ks, shininess: kd is the map's
