@@ -248,6 +248,8 @@ def map_fit_result(run, dataset, **options) -> FitResult:
     last round's uniform fit (options: fit_result's keywords), with the maps and the
     rounds; status 'converged' when a round changed less than the tolerance, else
     'budget' (the rounds ran out)."""
+    if not run.state.spec.fits_material:  # only maps: no uniform value to report on
+        options["with_uncertainty"] = False
     result = fit_result(run.state, dataset, run.data,
                         status="converged" if run.converged else "budget", **options)
     return dataclasses.replace(result, textures=run.maps, rounds=run.rounds)

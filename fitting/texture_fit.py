@@ -3,8 +3,9 @@
 The command fits the maps and the uniform quantities together (fitting.texture_run,
 through `fitting.fit(..., textures=...)`'s path): the maps by the method (--method:
 'linear' solves them in closed form; 'adam', 'lbfgs' descend), the rest (ka, ks,
-shininess, less the mapped ones; --fit and --grey choose among ka, kd, ks, shininess)
-by the usual fit from --init (default DEFAULT_INIT; the dataset's truth is never read).
+shininess, less the mapped ones; --fit and --grey choose among ka, kd, ks, shininess:
+`--fit kd` with `--texture kd=RES` fits the map alone) by the usual fit from --init
+(default DEFAULT_INIT, which also holds what is not fitted; the truth is never read).
 OUT then holds the standard result files (fitting.report.result: result.json with
 "format": "diffshade-fit-result", material.mtl, the panels) and, per map FIELD:
 FIELD.npy (linear float [R, R, 3], row 0 = v = 1, NaN where no view sees the texel),
@@ -134,10 +135,11 @@ def _check_args(args):
 
 
 def _names_option(option, text, maps, allowed):
-    """--fit or --grey with --texture: names among `allowed`, none of them a map."""
+    """--fit or --grey with --texture: names among `allowed`; --grey names no map (a map
+    named in --fit is fitted as the map)."""
     names = [n.strip() for n in text.split(",")]
     mapped = [n for n in names if n in maps]
-    if mapped:
+    if mapped and option == "--grey":
         raise ValueError(f"{option}: got {text!r}; {mapped[0]} is recovered as a map "
                          f"(--texture {mapped[0]}={maps[mapped[0]]}); expected names among "
                          f"{', '.join(n for n in allowed if n not in maps)}")
@@ -149,16 +151,13 @@ def _names_option(option, text, maps, allowed):
 
 def texture_fit_spec(args) -> FitSpec:
     """The uniform quantities of `fit --texture`: --fit/--grey (default ka, kd, ks,
-    shininess), less the maps."""
+    shininess), less the maps (--fit kd with --texture kd=RES: none, the rest held at
+    --init)."""
     maps = args.texture
     for option, text in (("--fit", args.fit), ("--grey", args.grey)):
         if text is not None:
             _names_option(option, text, maps, MATERIAL_NAMES)
-    spec = uniform_spec(fit_spec(args.fit, args.grey), maps)
-    if not spec.fits_material:
-        raise ValueError(f"--fit: got {args.fit!r}; with --texture expected at least one of "
-                         f"{', '.join(n for n in MATERIAL_NAMES if n not in maps)}")
-    return spec
+    return uniform_spec(fit_spec(args.fit, args.grey), maps)
 
 
 def truth_maps(dataset_dir, truth) -> dict:

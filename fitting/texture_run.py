@@ -20,7 +20,9 @@ The rule (docs/textures.md, "Recovering a texture"):
    previous value (to 0.01 at least, so a value near 0 is not divided by 0), and each
    map's RMS change over its seen texels relative to the RMS of those texels. The fit
    stops after the first round whose change is at most `round_tol` (default ROUND_TOL),
-   or after `rounds` rounds (default MAX_ROUNDS).
+   or after `rounds` rounds (default MAX_ROUNDS). A spec that fits nothing beside one
+   map (--fit kd with --texture kd=RES) holds the rest at `init`: one round, the map's
+   closed form.
 
 Each step lowers the same least-squares objective, so the rounds only go down hill. The
 maps' pixels are those the uniform fit counts (covered, inside the view's mask, edge_margin
@@ -45,7 +47,9 @@ import numpy as np
 from diffshade.budget import check, render_bytes
 from diffshade.scene import Mesh, Texture
 from fitting.data.views import view_scene
+from fitting.model.batch import batched
 from fitting.model.cache import build_cache
+from fitting.model.loss import make_loss
 from fitting.run import advance, finish, start_run
 from fitting.solve.texture import TEXTURE_FIELDS
 from fitting.solve.texture_joint import solve_texture_jointly
@@ -119,8 +123,9 @@ def check_maps(dataset, maps, key="textures"):
 
 def check_map_fit(dataset, spec: FitSpec, maps, options, callback=None, key="textures"):
     """ValueError unless a fit of `maps` with `spec`'s uniform quantities can run: the
-    maps (check_maps), a spec of material quantities (no lights, gains or kt) that fits
-    something besides the maps, one device, no chunks, no callback."""
+    maps (check_maps), a spec of material quantities (no lights, gains or kt), one
+    device, no chunks, no callback. A spec that fits nothing beside the maps holds the
+    rest at the start."""
     check_maps(dataset, maps, key)
     unsupported = [name for name in ("light_colors", "light_positions", "exposure",
                                      "white_balance") if getattr(spec, name)]
@@ -129,10 +134,6 @@ def check_map_fit(dataset, spec: FitSpec, maps, options, callback=None, key="tex
     if unsupported:
         raise ValueError(f"spec: fits {', '.join(unsupported)} with {key}; expected only "
                          "material quantities (ka, kd, ks, shininess) beside maps")
-    if not uniform_spec(spec, maps).fits_material:
-        raise ValueError(f"spec: fits nothing beside the maps {key}={maps!r}; expected some "
-                         "of ka, kd, ks, shininess (hold them all fixed with "
-                         "fitting.texture_fit.fit_texture)")
     if options.chunk is not None or options.devices not in ("all", 1):
         raise ValueError(f"devices/chunk: got {options.devices!r}/{options.chunk!r} with "
                          f"{key}; expected one device and no chunks (a map fit is not "
@@ -164,9 +165,15 @@ def _counted_masks(dataset, data):
 
 def _uniform_fit(data, spec, material, options):
     """The usual fit of `spec` on the cached data with `material` as the base and start
-    (Adam and L-BFGS continue from its values). Returns (RunState, the FitData)."""
+    (Adam and L-BFGS continue from its values); a spec that fits nothing (only maps)
+    only takes the loss. Returns (RunState, the FitData)."""
     data = dataclasses.replace(data, material=material)
     state = start_run(data, spec, material, options)
+    if not spec.fits_material:
+        loss = float(make_loss(spec, options.loss)({}, batched(data)))
+        state.history.append(loss)
+        state.best_loss, state.best_params, state.converged = loss, {}, True
+        return state, data
     advance(state, data)
     finish(state, data)
     return state, data
@@ -267,7 +274,8 @@ def fit_maps(dataset, spec: FitSpec, init, maps: dict, options, *, smoothness,
         log.append({"round": number, "change": change, "loss": state.best_loss,
                     "steps": state.step,
                     "map_iterations": {f: s.iterations for f, s in solved.items()}})
-        converged = change <= round_tol
+        # one map and nothing else fitted: the map's closed form is the answer
+        converged = change <= round_tol or (len(maps) == 1 and not uniform.fits_material)
         if converged:
             break
     state.wall_time = time.perf_counter() - start  # the whole alternation's

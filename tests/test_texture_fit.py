@@ -62,6 +62,22 @@ def test_the_kd_map_and_the_uniform_values_come_back_without_the_truth(kd_datase
 
 
 @pytest.mark.cost(15)
+@pytest.mark.cost(10)
+def test_a_map_alone_holds_the_rest_at_the_start(kd_dataset):
+    truth = kd_dataset.truth
+    start = ds.material(ka=truth.ka, kd=0.5, ks=truth.ks, shininess=truth.shininess)
+    nothing = fitting.FitSpec(ka=None, kd=None, ks=None, shininess=False)
+    result = fitting.fit(dataclasses.replace(kd_dataset, truth=None), nothing, start,
+                         textures={"kd": 8})
+    assert result.values == {} and len(result.rounds) == 1 and result.status == "converged"
+    for name in ("ka", "ks", "shininess"):
+        np.testing.assert_array_equal(getattr(result.material, name), getattr(start, name))
+    solution = result.textures["kd"]
+    well_seen = np.asarray(solution.coverage) >= 2
+    error = np.asarray(solution.texels)[well_seen] - np.asarray(truth.kd.texels)[well_seen]
+    assert np.sqrt(np.mean((error / np.asarray(solution.std_error)[well_seen]) ** 2)) < 3
+
+
 def test_the_cache_reads_a_held_map_as_render_does_and_the_closed_form_holds_it():
     from fitting.model.cache import build_cache, predict
     from fitting.solve.linear import solve_linear
@@ -219,8 +235,8 @@ def test_fit_with_maps_refuses_bad_input_with_one_line(kd_folder, tmp_path, caps
         ([str(kd_folder), "--texture", "xs=4"], "--texture: got 'xs=4'"),
         ([str(kd_folder), "--texture", "kd=4,kd=8"], "--texture: got 'kd=4,kd=8'"),
         ([str(plain), "--texture", "ks=4"], "--texture: ks=4: the dataset's mesh has no UVs"),
-        ([str(kd_folder), "--texture", "kd=4", "--fit", "kd,shininess"],
-         "--fit: got 'kd,shininess'; kd is recovered as a map"),
+        ([str(kd_folder), "--texture", "kd=4", "--grey", "kd"],
+         "--grey: got 'kd'; kd is recovered as a map"),
         ([str(kd_folder), "--texture", "kd=4", "--fit", "ka,light_colors"],
          "--fit: got 'ka,light_colors'; with --texture expected names among"),
         ([str(kd_folder), "--texture", "kd=4", "--resume"], "--resume: given with --texture"),

@@ -85,6 +85,9 @@ def solve_texture_jointly(scenes, targets, masks, res, settings, *, field, coeff
     everything but the map and `coefficients` (names among ka, kd, ks; not `field`) at
     their values; options: solve_texture's keywords (method, smoothness, ...)."""
     settings = replace(settings, clamp=False)
+    if not coefficients:
+        return solve_texture(scenes, targets, masks, res, settings, field=field,
+                             **options), {}
     blank = replace(getattr(scenes[0].material, field),
                     texels=jnp.zeros((res, res, 3), targets[0].dtype))
     zeros = {name: jnp.zeros(3) for name in coefficients}
