@@ -29,7 +29,8 @@ built-in icosphere with "uv": true; 8-bit sRGB photos; masks). `fit --texture` c
 every pixel its mask allows (it has no --edge-margin), so each mask is the photo's
 coverage eroded by EDGE_MARGIN pixels: the outline's pixels mix object and background.
 View HOLDOUT stays out of the folder that is fitted. `diffshade fit --texture kd=RES
---init 0,0.5,0,10` (ka = ks = 0: no ambient light, no specular lobe) recovers the map.
+--fit kd --init 0,0.5,0,10` (the map alone; ka = ks = 0: no ambient light, no specular
+lobe) recovers the map.
 
 Printed: the forward check (PSNR of diffshade's render with the true map against the
 photos, per view, and what 8-bit rounding allows); the coverage (texels seen by 0, 1 and
@@ -170,7 +171,7 @@ def fit(folder, result_dir, res):
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(
         [str(ROOT)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]))
     cmd = [sys.executable, "-m", "diffshade", "fit", folder, "-o", result_dir, "--texture",
-           f"kd={res}", "--init", ",".join(map(str, MATERIAL))]
+           f"kd={res}", "--fit", "kd", "--init", ",".join(map(str, MATERIAL))]
     start = time.perf_counter()
     done = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT)
     seconds = time.perf_counter() - start
