@@ -294,8 +294,21 @@ def _fragment_key(depth, signed_d2, bound, depth_bits, sigma):
     return depth - _coverage_logit(signed_d2, sigma)
 
 
-#: 2^-k for k = 0..52 (_softplus_neg's range reduction)
-_TWO_POW_NEG = np.array([2.0 ** -k for k in range(53)])
+@intrinsic
+def _two_pow_neg(typingctx, k):
+    """2^-k for an int64 k in 0..52 (_softplus_neg's range reduction), exactly: the float64
+    of biased exponent 1023 - k, made from its bits (no table lookup: LLVM keeps the
+    vectorized loop free of gathers)."""
+    if k != types.int64:
+        return None
+
+    def codegen(context, builder, signature, args):
+        bits = builder.shl(builder.sub(ir.Constant(ir.IntType(64), 1023), args[0]),
+                           ir.Constant(ir.IntType(64), 52))
+        return builder.bitcast(bits, ir.DoubleType())
+    return types.float64(k), codegen
+
+
 #: bracket half-width of _key_bracket: _softplus_neg is within ~6e-16 of log1p(exp(-a))
 #: (a dozen roundings of ~1.1e-16 relative, on values <= ln 2 < 1; truncation < 1e-17)
 #: and libm's exp then log1p within ~3.3e-16 (one ulp each); 2^-49 = 1.8e-15 is twice
@@ -330,7 +343,7 @@ def _softplus_neg(a):
     p = p * m + 0.5
     p = p * m + 1.0
     p = p * m + 1.0
-    z = 1.0 + p * _TWO_POW_NEG[int(k)]
+    z = 1.0 + p * _two_pow_neg(int(k))
     big = z > 1.4142135623730951
     z = z * 0.5 if big else z
     t = (z - 1.0) / (z + 1.0)
