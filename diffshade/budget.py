@@ -25,10 +25,8 @@ large ones, compilation included (benchmarks/memory_budget.py):
   has 6 maps (a cube), an area or sphere light 6 per sample, kept all at once while the
   maps are rasterized one sample's cube at a time;
 - an image file or a dataset's images: pixels x channels x 8 bytes (decoded in float64);
-- a texture in a render: texels x channels x TEXEL_BYTES (the texels, the four-texel
-  cells that bilinear sampling reads and, differentiated, their gradients);
-- a texture fit's normal system (fitting.solve.texture): RES^2 x 3 values x 8 bytes for
-  each of SYSTEM_VECTORS arrays and one more per view, besides the views' renders.
+- a texture in a render: texels x channels x TEXEL_BYTES (the texels, the cells that
+  bilinear sampling reads and, differentiated, their gradients).
 """
 
 import os
@@ -36,9 +34,8 @@ import re
 
 import jax
 
-__all__ = ["BASE_BYTES", "MAX_ELEMENTS", "SizeError", "available_bytes", "check", "image_bytes",
-           "mesh_bytes", "render_bytes", "shadow_bytes", "texture_bytes",
-           "texture_system_bytes"]
+__all__ = ["MAX_ELEMENTS", "SizeError", "available_bytes", "check", "image_bytes",
+           "mesh_bytes", "render_bytes", "shadow_bytes", "texture_bytes"]
 
 MAX_ELEMENTS = 2**31 - 1
 BASE_BYTES = 512 * 2**20
@@ -48,13 +45,9 @@ FACE_BYTES = 1024
 DEPTH_BYTES = 8  # a stored shadow-map depth (float64 under jax_enable_x64)
 DECODED_BYTES = 8  # a decoded image value (float64)
 CUBE = 6
-#: a texture's value in a render (float64): itself, the 4 corners of its cell, and both
-#: again as gradients, with room for XLA's temporaries
+#: a texture's value in a render (float64): itself, the 6 values of its cell's columns
+#: that sampling reads, and both again as gradients, with room for XLA's temporaries
 TEXEL_BYTES = 96
-#: the texture fit's texel-sized arrays, besides one per view: the conjugate-gradient
-#: state of both solves, the probed stencil (raw and symmetric), the probes, the
-#: right-hand side, the weights, the preconditioner and the standard errors
-SYSTEM_VECTORS = 48
 LIMIT_VARIABLE = "DIFFSHADE_MEMORY_LIMIT"
 _SUFFIXES = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
 
@@ -162,8 +155,3 @@ def texture_bytes(texels, channels):
     """Bytes of a texture of `texels` texels in a render (module docstring)."""
     return texels * channels * TEXEL_BYTES
 
-
-def texture_system_bytes(res, views):
-    """Bytes of a RES x RES texture fit's normal system from `views` views (module
-    docstring), its renders apart."""
-    return res * res * 3 * DECODED_BYTES * (SYSTEM_VECTORS + views)

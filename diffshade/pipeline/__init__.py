@@ -5,7 +5,7 @@ by full module path). `render` here is the function (the module is
 diffshade.pipeline.rendering).
 """
 
-from diffshade.pipeline.cost import check_render, render_cost
+from diffshade.pipeline.cost import check_render
 from diffshade.pipeline.rendering import (
     blend,
     rasterize_scene,
@@ -25,7 +25,7 @@ from diffshade.pipeline.shading_cache import (
 )
 
 __all__ = [
-    "check_render", "render_cost",
+    "check_render",
     "blend", "rasterize_scene", "render", "render_fragments", "render_parts",
     "render_supersampled", "render_views", "stack_cameras", "view_dirs",
     "ShadingCache", "cache_shading", "render_cached", "slot_samples",

@@ -1,8 +1,9 @@
-"""A kd texture in closed form: the texels that best explain the views, by least squares.
+"""A kd or ks texture in closed form: the texels that best explain the views, by least
+squares.
 
 With geometry, cameras, lights and every other material parameter fixed (the shininess
-included), an unclamped render is affine in the kd texels t: image_v = A_v t + b_v, b_v
-the render with kd = 0. `solve_kd_texture` minimizes
+included), an unclamped render is affine in the kd texels t (and in the ks texels):
+image_v = A_v t + b_v, b_v the render with the map at 0. `solve_texture` minimizes
 
     sum_v || m_v * (A_v t + b_v - y_v) ||^2 + lam * t' L t
 
@@ -32,6 +33,10 @@ on any scene, resolution or exposure. A texel is *seen* when its data weight is 
 that do. The texels no view sees are reported as unseen (NaN), never invented: the prior
 fills them only inside the solve, so that the system is well posed.
 
+method 'adam' or 'lbfgs' minimizes the same objective by descent instead of conjugate
+gradients (fitting.solve.texture_descent), on the same operator, prior and ridge: one
+matvec per step, the gradient of the objective being the normal equations' residual.
+
 The standard error of a seen texel is sigma / sqrt((A'MA)_ii), sigma^2 the residual
 variance (residual sum of squares over the counted values less the seen unknowns): the
 texel's error were its neighbours known, without the prior (the unregularized solve's
@@ -53,15 +58,21 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffshade import RenderSettings, render, replace
-from diffshade.budget import BASE_BYTES, texture_system_bytes
-from diffshade.budget import check as check_memory
-from diffshade.pipeline import render_cost
 from diffshade.scene import Texture
+from fitting.solve.texture_descent import (
+    DEFAULT_MAXITER,
+    DEFAULT_TEXEL_LR,
+    DESCENT_METHODS,
+    descend,
+)
 
-__all__ = ["DEFAULT_SMOOTHNESS", "TextureSolution", "solve_kd_texture"]
+__all__ = ["DEFAULT_SMOOTHNESS", "TEXTURE_FIELDS", "TextureSolution", "solve_kd_texture",
+           "solve_texture"]
 
 DEFAULT_SMOOTHNESS = 1e-3
 PROBE_STRIDE = 4
+#: the material fields a map may be solved for (the image is linear in their texels)
+TEXTURE_FIELDS = ("kd", "ks")
 
 
 class TextureSolution(NamedTuple):
@@ -82,15 +93,15 @@ class TextureSolution(NamedTuple):
     stencil_iterations: int = 0
 
 
-def _view_scene(scene, texels):
-    """The view's scene with `texels` as its kd texture's texels."""
-    kd = replace(scene.material.kd, texels=texels)
-    return replace(scene, material=replace(scene.material, kd=kd))
+def _view_scene(scene, texels, field="kd"):
+    """The view's scene with `texels` as its `field` texture's texels."""
+    texture = replace(getattr(scene.material, field), texels=texels)
+    return replace(scene, material=replace(scene.material, **{field: texture}))
 
 
-def _view_map(scene, settings):
-    """t [R, R, 3] -> the view's [H, W, 3] render with t as its kd texels."""
-    return lambda texels: render(_view_scene(scene, texels), settings)[..., :3]
+def _view_map(scene, settings, field="kd"):
+    """t [R, R, 3] -> the view's [H, W, 3] render with t as its `field` texels."""
+    return lambda texels: render(_view_scene(scene, texels, field), settings)[..., :3]
 
 
 def _laplacian(t):
@@ -128,12 +139,12 @@ def _pcg(operator, rhs, inverse_diagonal, tol, maxiter, start=None):
     return x, k, jnp.sqrt(jnp.vdot(r, r)) / jnp.maximum(norm_rhs, jnp.finfo(rhs.dtype).tiny)
 
 
-def _linear_parts(scenes, settings, masks, res, dtype):
+def _linear_parts(scenes, settings, masks, res, dtype, field="kd"):
     """Per view (b_v [H, W, 3], A_v, A_v') of the affine render in the texels."""
     zero = jnp.zeros((res, res, 3), dtype)
     parts = []
     for scene, mask in zip(scenes, masks, strict=True):
-        b, apply = jax.linearize(_view_map(scene, settings), zero)
+        b, apply = jax.linearize(_view_map(scene, settings, field), zero)
         weight = mask[..., None].astype(dtype)
         masked = lambda t, apply=apply, weight=weight: weight * apply(t)  # noqa: E731
         parts.append((b, masked, jax.linear_transpose(masked, zero)))
@@ -213,61 +224,73 @@ def _std_error(parts, targets, masks, texels, seen, diagonal):
     return jnp.where(seen[..., None] & (diagonal > 0), sigma / jnp.sqrt(safe), jnp.nan)
 
 
-def _fit_cost(scenes, settings, res):
-    """(bytes, key, value) of a fit: every view's linearized render at once (with a
-    RES x RES texture) and the normal system (texture_system_bytes); the key and
-    value of the costlier."""
-    costs = [render_cost(_view_scene(scene, jax.ShapeDtypeStruct((res, res, 3), jnp.float64)),
-                         settings) for scene in scenes]
-    renders = sum(cost.bytes - BASE_BYTES for cost in costs)
-    system = texture_system_bytes(res, len(scenes))
-    key, value = ("res", res) if system >= renders or not costs else costs[0][2:4]
-    return BASE_BYTES + renders + system, key, value
-
-
-def _check_size(scenes, settings, res):
-    """ValueError unless res is a texture side in [1, 8192] and each scene's kd a Texture;
-    budget.SizeError when the fit needs more memory than is available (_fit_cost)."""
+def _check_arguments(scenes, res, field):
+    """ValueError unless res is a texture side in [1, 8192] and each scene's `field` a
+    Texture (the memory a fit needs is fitting.texture_run.check_maps')."""
     if not isinstance(res, int) or isinstance(res, bool) or not 1 <= res <= 8192:
         raise ValueError(f"res: got {res!r}; expected a texture resolution in [1, 8192]")
     for i, scene in enumerate(scenes):
-        if not isinstance(scene.material.kd, Texture):
-            raise ValueError(f"scenes[{i}].material.kd: got {type(scene.material.kd).__name__}"
-                             "; expected a Texture (diffshade.texture), whose texels are solved")
-    needed, key, value = _fit_cost(scenes, settings, res)
-    views = f"{len(scenes)} view{'s' if len(scenes) != 1 else ''}"
-    check_memory(key, value, needed, f"a {res}x{res} kd texture fit from {views}")
+        value = getattr(scene.material, field)
+        if not isinstance(value, Texture):
+            raise ValueError(f"scenes[{i}].material.{field}: got {type(value).__name__}; "
+                             "expected a Texture (diffshade.texture), whose texels are solved")
 
 
-def solve_kd_texture(scenes, targets, masks, res, settings=None, *,
-                     smoothness=DEFAULT_SMOOTHNESS, tol=1e-6, maxiter=1000) -> TextureSolution:
-    """The kd texture (RES x RES) that explains `targets` (module docstring).
+def solve_texture(scenes, targets, masks, res, settings=None, *, field="kd",
+                  method="linear", smoothness=DEFAULT_SMOOTHNESS, tol=1e-6, maxiter=None,
+                  lr=DEFAULT_TEXEL_LR) -> TextureSolution:
+    """The `field` texture (RES x RES; field 'kd' or 'ks') that explains `targets`
+    (module docstring).
 
-    scenes: one Scene per view, of one object whose mesh has UVs and whose material's kd
-    is a Texture (its texels are ignored; its wrap is kept); targets: [H, W, 3] linear
-    images; masks: [H, W] bool (the pixels that count); settings: RenderSettings (clamp
-    is turned off: the model must stay linear, so saturated pixels belong out of the
-    masks). smoothness >= 0: the prior's unitless weight. Raises ValueError for a bad res
-    or smoothness, budget.SizeError when the fit would not fit the memory available."""
+    scenes: one Scene per view, of one object whose mesh has UVs and whose material's
+    `field` is a Texture (its texels are ignored; its wrap is kept); targets: [H, W, 3]
+    linear images; masks: [H, W] bool (the pixels that count); settings: RenderSettings
+    (clamp is turned off: the model must stay linear, so saturated pixels belong out of
+    the masks). method: 'linear' (conjugate gradients), 'adam' or 'lbfgs' (descent on the
+    same objective; lr: Adam's learning rate, in texel units); maxiter: the most
+    iterations (default 1000; fitting.solve.texture_descent.DEFAULT_MAXITER for descent).
+    smoothness >= 0: the prior's unitless weight. Raises ValueError for a bad argument."""
     settings = RenderSettings() if settings is None else settings
     settings = replace(settings, clamp=False)
+    if field not in TEXTURE_FIELDS:
+        raise ValueError(f"field: got {field!r}; expected one of {TEXTURE_FIELDS}")
+    if method not in ("linear", *DESCENT_METHODS):
+        raise ValueError(f"method: got {method!r}; expected one of "
+                         f"{('linear', *DESCENT_METHODS)}")
     if not (isinstance(smoothness, (int, float)) and smoothness >= 0):
         raise ValueError(f"smoothness: got {smoothness!r}; expected a number >= 0")
     scenes = list(scenes)
-    _check_size(scenes, settings, res)
+    _check_arguments(scenes, res, field)
+    maxiter = DEFAULT_MAXITER.get(method, 1000) if maxiter is None else maxiter
     targets = [jnp.asarray(y) for y in targets]
     masks = [jnp.asarray(m, bool) for m in masks]
     texels, coverage, iterations, lam, residual, std_error, warm = _solve(
-        scenes, targets, masks, smoothness, tol, maxiter, res=res, settings=settings)
+        scenes, targets, masks, smoothness, tol, maxiter, lr, res=res,
+        settings=settings, field=field, method=method)
     return TextureSolution(texels, coverage, int(iterations), float(smoothness), float(lam),
                            float(residual), std_error, int(warm))
 
 
-@partial(jax.jit, static_argnames=("res", "settings"))
-def _solve(scenes, targets, masks, smoothness, tol, maxiter, *, res, settings):
-    """solve_kd_texture's arrays, as one compiled program (the views unrolled)."""
+def solve_kd_texture(scenes, targets, masks, res, settings=None, **options) -> TextureSolution:
+    """solve_texture of the kd map (options: solve_texture's keywords)."""
+    return solve_texture(scenes, targets, masks, res, settings, field="kd", **options)
+
+
+def _minimize(method, operator, probed, rhs, inverse, tol, maxiter, lr):
+    """(texels, iterations, relative residual, stencil iterations) of operator(t) = rhs by
+    `method`; 'linear' starts from the solution of probed(t) = rhs (module docstring)."""
+    if method == "linear":
+        start, warm, _ = _pcg(probed, rhs, inverse, tol, maxiter)
+        return (*_pcg(operator, rhs, inverse, tol, maxiter, start), warm)
+    return (*descend(method, operator, rhs, inverse, tol, maxiter, lr), 0)
+
+
+@partial(jax.jit, static_argnames=("res", "settings", "field", "method"))
+def _solve(scenes, targets, masks, smoothness, tol, maxiter, lr, *, res, settings, field,
+           method):
+    """solve_texture's arrays, as one compiled program (the views unrolled)."""
     dtype = targets[0].dtype
-    parts = _linear_parts(scenes, settings, masks, res, dtype)
+    parts = _linear_parts(scenes, settings, masks, res, dtype, field)
 
     def data(t):
         return sum(transpose(forward(t))[0] for _, forward, transpose in parts)
@@ -286,10 +309,9 @@ def _solve(scenes, targets, masks, smoothness, tol, maxiter, *, res, settings):
     diagonal = stencil[(0, 0)]
     inverse = 1.0 / jnp.maximum(diagonal + 4.0 * lam + ridge, 1e-12 * mean_weight)
     probed = _stencil_operator(stencil)
-    start, warm, _ = _pcg(lambda t: probed(t) + lam * _laplacian(t) + ridge * t, rhs, inverse,
-                          tol, maxiter)
-    texels, iterations, residual = _pcg(lambda t: data(t) + lam * _laplacian(t) + ridge * t,
-                                        rhs, inverse, tol, maxiter, start)
+    texels, iterations, residual, warm = _minimize(
+        method, lambda t: data(t) + lam * _laplacian(t) + ridge * t,
+        lambda t: probed(t) + lam * _laplacian(t) + ridge * t, rhs, inverse, tol, maxiter, lr)
     coverage = sum((w.max(-1) > 1e-9 * mean_weight).astype(jnp.int32) for w in per_view)
     std_error = _std_error(parts, targets, masks, texels, seen, diagonal)
     return (jnp.where(seen[..., None], texels, jnp.nan), coverage, iterations, lam, residual,
