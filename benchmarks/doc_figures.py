@@ -280,6 +280,25 @@ def texture_capture(data):
         f"{run['times']['photos_s']:.1f} s; {run['times']['fit_s']:.1f} s |"])
 
 
+def texture_speed(data):
+    record = data["textures.json"]
+    fit, render = record["fit"], record["render"]
+    lines = ["| | time | the issue's target |", "|---|---|---|",
+             f"| a {fit['texels']}² kd map ({fit['unknowns']:,} unknowns) from {fit['views']} "
+             f"views at {fit['size']}², warm | {fit['warm_s']:.1f} s (CPU {fit['warm_cpu_s']:.1f}"
+             f" s): {fit['stencil_iterations']} CG iterations on the stencil, "
+             f"{fit['iterations']} on the renders | ≤ 10 s |"]
+    for row in render["rows"]:
+        lines.append(f"| judged scene ({render['faces']:,} faces, {render['size']}², soft, K = "
+                     f"{render['faces_per_pixel']}), {row['pass']}: with a {render['texels']}² kd "
+                     f"texture / without | {row['textured_ms']:.1f} / {row['untextured_ms']:.1f}"
+                     f" ms = {row['ratio']:.2f} (CPU {row['cpu_ratio']:.2f}) | ≤ 1.2 |")
+    lines += ["", f"Load average {fit['load_before']:.1f} (fit) and {render['load_before']:.1f} "
+              "(renders) at the start ([`textures.json`](../benchmarks/results/textures.json); "
+              "`python benchmarks/textures.py`)."]
+    return "\n".join(lines)
+
+
 #: name: (page, function, the JSON files it reads)
 BLOCKS = {
     "readme": ("README.md", readme, ("peers.json", "fit_recovery.json",
@@ -297,6 +316,7 @@ BLOCKS = {
     "batched-views": ("docs/transforms.md", batched_views, ("transforms.json",)),
     "search-batched": ("docs/transforms.md", search_batched, ("transforms.json",)),
     "texture-capture": ("docs/textures.md", texture_capture, ("texture_capture.json",)),
+    "textures": ("docs/textures.md", texture_speed, ("textures.json",)),
 }
 
 

@@ -61,9 +61,11 @@ __all__ = ["MAX_ROUNDS", "ROUND_TOL", "MapRun", "check_map_fit", "check_maps", "
 MAX_ROUNDS = 10
 ROUND_TOL = 1e-3
 MAX_RES = 8192
-#: copies of the texels a solve holds at once (the iterate, residual, direction,
-#: preconditioner, diagonal, prior, right-hand side, the probes' and the sampling's)
-TEXEL_COPIES = 24
+#: copies of the texels a solve holds at once: the 16 probes and their responses, the
+#: 3 x 3 stencil (as probed and made symmetric), the iterate, residual, direction,
+#: preconditioner, prior, right-hand side of both conjugate-gradient passes and the
+#: sampling's (fitting.solve.texture)
+TEXEL_COPIES = 64
 RELATIVE_FLOOR = 0.01
 SATURATION_EPS = 1e-6
 MATERIAL_VALUES = ("ka", "kd", "ks", "shininess")
