@@ -275,8 +275,10 @@ def texture_capture(data):
         f"{held['psnr_srgb']:.1f} dB |",
         f"| what 8-bit rounding allows on those pixels: linear / sRGB | "
         f"{held['psnr_linear_8bit']:.1f} / {held['psnr_srgb_8bit']:.1f} dB |",
-        f"| Mitsuba's {len(run['views'])} photos; `diffshade fit --texture kd={run['res']}` "
-        f"(start to files written, {run['fit']['iterations']} CG iterations) | "
+        f"| Mitsuba's {len(run['views'])} photos; "
+        f"`diffshade fit --texture kd={run['res']} --fit kd` "
+        f"(start to files written, {run['fit'].get('stencil_iterations', 0)} CG iterations "
+        f"on the stencil, {run['fit']['iterations']} on the renders) | "
         f"{run['times']['photos_s']:.1f} s; {run['times']['fit_s']:.1f} s |"])
 
 

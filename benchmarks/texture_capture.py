@@ -309,7 +309,8 @@ def report(figures, res):
     c, fit = figures["coverage"], figures["fit"]
     print(f"\nkd map {res}x{res} from the {len(VIEWS) - 1} fitted views: {c['twice_or_more']} "
           f"texels seen by >= 2 views, {c['once']} by 1, {c['unseen']} unseen; "
-          f"{fit['iterations']} CG iterations")
+          f"{fit.get('stencil_iterations', 0)} CG iterations on the stencil, "
+          f"{fit['iterations']} on the renders")
     ours, own = figures["map_psnr"], figures["map_psnr_own_8bit"]
     print(f"  PSNR (linear) over the texels seen by >= 2 views: {ours['twice']:.2f} dB; over "
           f"the {c['twice_wide']} of them at least two pixels wide: {ours['twice_wide']:.2f} dB")

@@ -81,7 +81,9 @@ def write_maps(out_dir, maps) -> dict:
                   coverage[..., None] / max(int(coverage.max()), 1), color_space="linear")
         entries[field] = names | {
             "resolution": int(texels.shape[0]), "unseen_texels": int(np.sum(coverage == 0)),
-            "iterations": solution.iterations, "smoothness": solution.smoothness,
+            "iterations": solution.iterations,
+            "stencil_iterations": solution.stencil_iterations,
+            "smoothness": solution.smoothness,
             "prior_weight": solution.lam, "relative_residual": solution.residual}
     return entries
 
@@ -207,7 +209,8 @@ def run_texture(args) -> int:
         res = entry["resolution"]
         print(f"{field} map {res}x{res}: {res * res - entry['unseen_texels']} texels seen, "
               f"{entry['unseen_texels']} unseen; {len(run.rounds)} rounds, "
-              f"{entry['iterations']} solver iterations in the last")
+              f"{entry['stencil_iterations']} CG iterations on the probed stencil and "
+              f"{entry['iterations']} on the renders in the last")
     for path in [os.path.join(args.output, e[k]) for e in entries.values() for k in MAP_FILES]:
         print(path)
     for path in paths:
