@@ -11,16 +11,21 @@ pixel-for-pixel claim of fitting.model.cache), and a fit of kd and kt there agai
 known truth.
 """
 
+import dataclasses
 import functools
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import diffshade as ds
 from diffshade.host.candidates import DEPTH_TIE
 from diffshade.raster.search import search_faces
+from diffshade.scene.objects import unstack_material
+from fitting import FitSpec, fit
 from fitting.data.views import view_scene
+from fitting.model import build_cache, predict
 
 #: (z, box x0, x1, y0, y1) of the stacked quads, in the scene's order. The corners lie on
 #: pixel centres (pixels are 0.25 wide): their edges and diagonals pass through centres.
@@ -101,6 +106,12 @@ def searched_layers(scene, kernels, k=LAYERS):
     return ids, np.where(ids >= 0, objects, -1)
 
 
+def test_the_documented_tie_width_is_the_searches_and_the_references():
+    """docs/rendering.md states 2^-18; tests/reference.py's naive z-buffer uses it too."""
+    import reference
+    assert DEPTH_TIE == reference.DEPTH_TIE == 2.0 ** -18
+
+
 def test_the_reference_scene_has_ties_that_depth_alone_would_order_otherwise():
     """"film" is nearer than "label" and "table" by 2^-30 (in NDC about 2e-10, a tie), and
     is listed after them; the reference places it behind them, a sort by depth would not."""
@@ -133,6 +144,14 @@ def test_float32_paths_give_the_float64_layers(size):
 # ------------------------------------------------- a glass box resting on a table (perspective)
 
 
+@pytest.fixture(scope="module")
+def resting():
+    """{"glass": ..., "opaque": ...}: tests/test_fit_effects' box resting on the table,
+    64 x 64, float32 (the default dtype, whose rounding made the paths disagree)."""
+    from test_fit_effects import box_on_table
+    return {name: box_on_table(64, glass=name == "glass") for name in ("glass", "opaque")}
+
+
 def contact_faces(scene):
     """[F] bool: the faces in the plane y = 0, where the box (object 0) rests on the table
     (object 1): the box's bottom and the table's top."""
@@ -162,3 +181,47 @@ def test_host_and_jax_searches_give_the_same_layers_where_the_box_rests(size, dt
             assert both.sum() >= 20
             tied = objects[both][contact[both]].reshape(-1, 2)
             np.testing.assert_array_equal(tied, np.tile([0, 1], (len(tied), 1)))
+
+
+@pytest.mark.cost(15)
+@pytest.mark.parametrize("name", ["glass", "opaque"])
+def test_cached_pixels_equal_render_on_a_box_resting_on_a_table(resting, name):
+    """The fitting cache rasterizes with its own programs, which round the projection
+    otherwise than render's: at the truth, every kept pixel (edge_margin 0) equals render's
+    to float32 rounding, the pixels whose layers hold the box's bottom on the table's top
+    (dozens in each glass view) included."""
+    from test_fit_effects import SETTINGS
+
+    dataset = resting[name]
+    data = build_cache(dataset, dataset.truth, edge_margin=0)
+    for i, samples in enumerate(data.views):
+        scene = view_scene(dataset, i, dataset.truth)
+        image = np.asarray(ds.render(scene, SETTINGS))[..., :3].reshape(-1, 3)
+        got = predict(dataset.truth, data.lights[i], data.global_ambient, samples,
+                      data.settings)
+        np.testing.assert_allclose(got, image[np.asarray(samples.pixels)], atol=1e-6,
+                                   err_msg=f"view {i}")
+        if name == "glass":
+            faces = np.asarray(ds.rasterize_scene(scene, SETTINGS).face_ids)
+            kept = faces.reshape(-1, faces.shape[-1])[np.asarray(samples.pixels)]
+            on_contact = contact_faces(scene)[np.maximum(kept, 0)] & (kept >= 0)
+            assert (on_contact.sum(-1) == 2).sum() >= 20
+
+
+@pytest.mark.cost(20)
+def test_fit_recovers_kt_of_a_glass_box_resting_on_a_table(resting):
+    """kd and kt fitted from 0.5 (the table's kt from 0.05; ka, ks and shininess held at
+    the truth) at 64 x 64 in float32: the known truth, to the tolerance of
+    tests/test_fit_effects' transparency fit."""
+    dataset = resting["glass"]
+    truth = dataset.truth
+    kt = jnp.asarray([[0.5] * 3, [0.05] * 3], truth.kd.dtype)
+    init = dataclasses.replace(truth, kd=jnp.full_like(truth.kd, 0.5), kt=kt)
+    result = fit(dataset, FitSpec.from_names(["kd", "kt"]), init, method="linear",
+                 with_uncertainty=False)
+    fitted = [unstack_material(result.material, i) for i in range(2)]
+    np.testing.assert_allclose(fitted[0].kt, unstack_material(truth, 0).kt, atol=1e-5)
+    np.testing.assert_allclose(fitted[1].kt, 0.0, atol=1e-4)
+    for i in range(2):
+        np.testing.assert_allclose(fitted[i].kd, unstack_material(truth, i).kd, atol=1e-5,
+                                   err_msg=f"object {i}")
