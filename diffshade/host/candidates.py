@@ -114,12 +114,13 @@ def _insert(ids, keys, filled, pixel, face, key):
 
 #: the depth test's tie width, in NDC depth: hard raster orders covering fragments nearest
 #: first, and two whose NDC depths differ by at most DEPTH_TIE are equally near, the lower
-#: face index first (docs/rendering.md#rasterization). Coplanar faces of two objects (a box
-#: resting on a table) differ in depth by the rounding of their projections, which is not
-#: the same on every path (the fitting cache's programs, render's, float32 or float64, the
-#: host or the JAX search): the tie width makes their order the same on all of them. 2^-18
-#: is 32 float32 ulps at 1 and some 30 steps of a 24-bit depth buffer; for a perspective
-#: camera it is an eye-space gap of about DEPTH_TIE * depth^2 / (2 near).
+#: face index first (docs/rendering.md#coplanar-faces). Coplanar faces of two objects (a
+#: box resting on a table) differ in depth by the rounding of their projections, a few
+#: float32 ulps, which is not the same on every path (the fitting cache's programs,
+#: render's, float32 or float64, the host or the JAX search): the tie width makes their
+#: order the same on all of them. 2^-18 is 64 float32 ulps just below 1 and 32 steps of a
+#: 24-bit depth buffer; for a perspective camera it is an eye-space gap of about
+#: DEPTH_TIE * depth^2 / (2 near).
 DEPTH_TIE = 2.0 ** -18
 
 
