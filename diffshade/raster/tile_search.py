@@ -15,7 +15,7 @@ Two steps, both with static shapes, repeated in passes:
    pixels x faces) and merges the keys with the best k of the earlier passes. Soft mode
    merges by `lax.top_k`, which puts equal keys in list order: lower face id first
    (earlier passes hold lower ids), as the host's stable insertion does. Hard mode inserts
-   the faces one at a time in ascending id order (a `lax.scan`), as the host does: its
+   the faces one at a time in ascending id order (a loop), as the host does: its
    depth test's ties (depths within candidates.DEPTH_TIE) are not a sort by key.
 There are as many passes as the most crowded tile needs (a `lax.while_loop`; one where
 no tile holds more than `capacity` faces), so no face is ever left untested: a dense mesh
@@ -272,15 +272,15 @@ def _depth_after(depth, face, other_depth, other_face):
 
 def _insert_nearest(best, fragment):
     """candidates._insert_nearest for every pixel at once: the fragment (depth [P], +inf
-    where it does not cover the pixel; face []) inserted into the lists best = (depths, ids)
-    [P, k] (entries first, +inf after), each in hard raster's order."""
+    where it does not cover the pixel; face [P]) inserted into the lists best = (depths,
+    ids) [P, k] (entries first, +inf after), each in hard raster's order."""
     depths, ids = best
-    depth, face = fragment
+    depth, face = fragment[0], fragment[1][:, None]
     k = depths.shape[-1]
     slots = jnp.arange(k)
     full = depths[:, -1] < jnp.inf
     start = jnp.where(full, k - 1, jnp.sum(depths < jnp.inf, -1))  # where the host starts
-    rejected = (depth == jnp.inf) | (full & _depth_after(depth, face, depths[:, -1],
+    rejected = (depth == jnp.inf) | (full & _depth_after(depth, face[:, 0], depths[:, -1],
                                                           ids[:, -1]))
     # the host moves the fragment forward past every entry after it, from `start` on
     stays = (slots < start[:, None]) & ~_depth_after(depths, ids, depth[:, None], face)
@@ -289,7 +289,7 @@ def _insert_nearest(best, fragment):
     shift = lambda a: jnp.concatenate([a[:, :1], a[:, :-1]], -1)  # entry j - 1 at j
     new = [jnp.where(slots == slot, value, jnp.where(moved, shift(a), a))
            for a, value in ((depths, depth[:, None]), (ids, face))]
-    return tuple(jnp.where(rejected[:, None], a, b) for a, b in zip(best, new, strict=True)), None
+    return tuple(jnp.where(rejected[:, None], a, b) for a, b in zip(best, new, strict=True))
 
 
 def _insert_pass(keys, ids, best_keys, best_ids):
@@ -297,8 +297,16 @@ def _insert_pass(keys, ids, best_keys, best_ids):
     the earlier passes' lists (best_keys, best_ids [P, k]), as the host inserts them: (keys,
     ids) [P, k]. Hard raster's order has ties within DEPTH_TIE, which no sort by key
     (top_k) can express, and inserting in the host's order gives the host's lists even
-    where ties chain."""
-    return lax.scan(_insert_nearest, (best_keys, best_ids), (keys.T, ids))[0]
+    where ties chain. Each pixel's covering faces are first packed to the front, in id
+    order, so the loop runs as many steps as the most covered pixel has faces, not C."""
+    covers = keys < jnp.inf
+    rank = jnp.where(covers, jnp.cumsum(covers, -1) - 1, keys.shape[-1])  # out: dropped
+    rows = jnp.arange(keys.shape[0])[:, None]
+    packed_keys = jnp.full_like(keys, jnp.inf).at[rows, rank].set(keys, mode="drop")
+    packed_ids = jnp.full(keys.shape, -1, ids.dtype).at[rows, rank].set(
+        jnp.broadcast_to(ids, keys.shape), mode="drop")
+    step = lambda i, best: _insert_nearest(best, (packed_keys[:, i], packed_ids[:, i]))
+    return lax.fori_loop(0, covers.sum(-1).max(), step, (best_keys, best_ids))
 
 
 def _tile_pixels(origin, tile, width, height, dtype):
