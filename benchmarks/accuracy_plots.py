@@ -21,7 +21,8 @@ AXIS_LABELS = {"fwd_ms": "time per render, forward (ms)",
 # how one value of a setting reads in a legend
 VALUE_LABELS = {"size": "{} px image", "factor": "{}×{} samples per pixel",
                 "sigma": "σ = {} px²", "gamma": "γ = {}", "K": "K = {} faces per pixel",
-                "shading": "{} shading", "dtype": "{}"}
+                "shading": "{} shading", "dtype": "{}", "sampling": "{}",
+                "texels": "{}² texture", "lens": "{}"}
 COLOURS = ["C0", "C1", "C2", "C3", "C4", "C5"]
 MARKERS = ["o", "s", "^", "D", "v", "P"]
 FILLS = [True, False]

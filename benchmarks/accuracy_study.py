@@ -31,7 +31,7 @@ ROOT = HERE.parent
 DOC = ROOT / "docs" / "accuracy-vs-time.md"
 RESULTS = ROOT / "benchmarks" / "results"
 MODULES = ("accuracy_vs_time", "accuracy_shadows", "accuracy_area_lights",
-           "accuracy_penumbrae", "accuracy_choices")
+           "accuracy_penumbrae", "accuracy_choices", "accuracy_textures", "accuracy_lens")
 CHOOSE = "choose"
 BLOCK = re.compile(r"<!-- study:(\w+):begin -->\n(.*?)\n?<!-- study:\1:end -->", re.S)
 

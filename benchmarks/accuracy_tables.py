@@ -108,11 +108,16 @@ def _forward_time(row):
 
 
 def render_candidates(studies):
-    """Every hard, supersampled and soft render of the study's sphere scene."""
+    """Every hard, supersampled and soft render of the study's sphere scene, the
+    supersampling rows of "More choices" (subdivisions 3 and 4) included."""
     results = studies.get("vs_time", {})
-    return [{**row, "setting": _render_setting(row), "from": RENDER_TABLES[study],
-             "time_ms": row["fwd_ms"], "time": _forward_time(row)}
+    rows = [{**row, "from": RENDER_TABLES[study]}
             for study in RENDER_TABLES for row in results.get(study, [])]
+    rows += [{**row, "study": "supersample", "from": "Supersampling at subdivisions 3 and 4",
+              "fwd_q1_ms": row["fwd_iqr_ms"][0], "fwd_q3_ms": row["fwd_iqr_ms"][1]}
+             for row in studies.get("choices", {}).get("supersample_levels", [])]
+    return [{**row, "setting": _render_setting(row), "time_ms": row["fwd_ms"],
+             "time": _forward_time(row)} for row in rows]
 
 
 def fit_8bit_candidates(studies):

@@ -88,16 +88,13 @@ def mitsuba_to_world(R, t):
     return to_world @ np.diag([-1.0, -1.0, 1.0, 1.0])
 
 
-def mitsuba_mesh(mi, mesh):
-    """The capture's mesh (positions, faces, normals) as a Mitsuba shape of albedo ALBEDO."""
-    return peers.mitsuba_mesh(mi, mesh, ALBEDO)
-
-
-def mitsuba_pinhole(mi, mesh, R, t, frame, spp):
-    """Mitsuba's RGBA pinhole image [H, W, 4] (linear radiance) of the capture from pose
-    (R, t) in the square-pixel frame (focal, width, height) of pinhole_frame. One render
-    per emitter, summed: with several lights Mitsuba samples one of them per path, which
-    is noise; a single point light seen directly is exact (only the pixel filter samples)."""
+def mitsuba_pinhole(mi, shape, R, t, frame, spp, emitters=EMITTERS):
+    """Mitsuba's RGBA pinhole image [H, W, 4] (linear radiance) of the shape made by
+    `shape()` (a fresh Mitsuba shape per render) from pose (R, t) in the square-pixel frame
+    (focal, width, height) of pinhole_frame, lit by `emitters` ((position, radiant
+    intensity)). One render per emitter, summed: with several lights Mitsuba samples one
+    of them per path, which is noise; a single point light seen directly is exact (only
+    the pixel filter samples)."""
     focal, big_w, big_h = frame
     film = {"type": "hdrfilm", "width": big_w, "height": big_h, "rfilter": {"type": "box"},
             "pixel_format": "rgba"}
@@ -107,13 +104,13 @@ def mitsuba_pinhole(mi, mesh, R, t, frame, spp):
               "to_world": mi.ScalarTransform4f(mitsuba_to_world(R, t).tolist()),
               "sampler": {"type": "independent", "sample_count": spp}}
     renders = []
-    for position, intensity in EMITTERS:
+    for position, intensity in emitters:
         light = {"type": "point", "position": list(position),
                  "intensity": {"type": "rgb", "value": list(intensity)}}
         scene = mi.load_dict({"type": "scene", "sensor": sensor, "light": light,
                               "integrator": {"type": "direct", "emitter_samples": 1,
                                              "bsdf_samples": 0},
-                              "sphere": mitsuba_mesh(mi, mesh)})
+                              "object": shape()})
         renders.append(np.asarray(mi.render(scene, spp=spp), np.float64))
     # the colours add; the coverage (alpha) is the same in every render
     return np.concatenate([sum(r[..., :3] for r in renders), renders[0][..., 3:]], -1)
@@ -173,7 +170,8 @@ def photograph(args):
     frame = pinhole_frame(K, DIST, WIDTH, HEIGHT, args.lens_samples, args.oversample)
     shots = []
     for eye in EYES:
-        image = mitsuba_pinhole(mi, mesh, *opencv_pose(eye), frame, args.spp)
+        image = mitsuba_pinhole(mi, lambda: peers.mitsuba_mesh(mi, mesh, ALBEDO),
+                                *opencv_pose(eye), frame, args.spp)
         photo = lens_photo(image, frame[0], K, DIST, WIDTH, HEIGHT, args.lens_samples)
         shots.append((photo[..., :3], photo[..., 3]))
     return shots

@@ -66,6 +66,7 @@ def readme_rows(data):
     adam, linear = data["memory_views.json"]["rows"], data["memory_views_linear.json"]["rows"]
     views = " / ".join(str(r["views"]) for r in adam)
     peer_cmd = "`python benchmarks/peers.py --rounds 3` (needs `pip install '.[peers]'`), "
+    texture = data["texture_capture.json"]
     return [
         ("hard render of the judged scene (256², 5,120 faces, one directional light) "
          "against Mitsuba 3 (`llvm_ad_rgb`, 4 spp)",
@@ -107,6 +108,13 @@ def readme_rows(data):
          + " / ".join(gib(max(r["peak_start"], r["peak_report"])) for r in linear) + " GiB",
          "`python benchmarks/memory_views.py` (`--method linear`), "
          + cite("memory_views.json") + ", " + cite("memory_views_linear.json")),
+        (f"a {texture['res']}² kd texture recovered (`fit --texture`) from Mitsuba 3's 8-bit "
+         f"photos of a textured sphere, {len(texture['views'])} views, one held out",
+         f"map PSNR {texture['map_psnr']['twice_wide']:.1f} dB over the texels seen twice and "
+         f"two pixels wide; held-out view {texture['holdout']['psnr_linear']:.1f} dB "
+         f"(8-bit allows {texture['holdout']['psnr_linear_8bit']:.1f} dB)",
+         "`python benchmarks/texture_capture.py` (needs `pip install '.[peers]'`), "
+         + cite("texture_capture.json")),
     ]
 
 
@@ -236,12 +244,68 @@ def search_batched(data):
             f"`OMP_WAIT_POLICY=passive`.")
 
 
+# --- docs/textures.md ------------------------------------------------------------------
+
+def texture_capture(data):
+    """texture_capture.py's figures: the forward check, coverage, the map, the held-out
+    view, times."""
+    run = data["texture_capture.json"]
+    check, c, held = run["forward_check"], run["coverage"], run["holdout"]
+    ours, own = run["map_psnr"], run["map_psnr_own_8bit"]
+
+    def span(key):
+        values = [v[key] for v in check]
+        return f"{min(values):.1f}–{max(values):.1f} dB"
+    return "\n".join([
+        "| figure | value |", "|---|---|",
+        f"| forward check: diffshade's render with the true map against each photo, PSNR "
+        f"linear (what 8-bit rounding allows) | {span('psnr_linear')} "
+        f"({span('psnr_linear_8bit')}) |",
+        f"| the same with the map upside down (the other v convention) | "
+        f"{min(run['forward_check_v_flipped']):.1f}–{max(run['forward_check_v_flipped']):.1f} dB |",
+        f"| texels of the {run['res']}² map seen by ≥ 2 / 1 / 0 fitted views | "
+        f"{c['twice_or_more']:,} / {c['once']:,} / {c['unseen']:,} |",
+        f"| recovered map against the truth, PSNR linear: texels seen by ≥ 2 views / those "
+        f"of them at least two pixels wide ({c['twice_wide']:,}) | {ours['twice']:.1f} / "
+        f"{ours['twice_wide']:.1f} dB |",
+        f"| the same fit on diffshade's own 8-bit renders of the views | {own['twice']:.1f} / "
+        f"{own['twice_wide']:.1f} dB |",
+        f"| held-out view {held['view']} ({held['pixels']:,} pixels; {held['unseen_pixels']:,} "
+        f"reading an unseen texel left out): PSNR linear / sRGB | {held['psnr_linear']:.1f} / "
+        f"{held['psnr_srgb']:.1f} dB |",
+        f"| what 8-bit rounding allows on those pixels: linear / sRGB | "
+        f"{held['psnr_linear_8bit']:.1f} / {held['psnr_srgb_8bit']:.1f} dB |",
+        f"| Mitsuba's {len(run['views'])} photos; `diffshade fit --texture kd={run['res']}` "
+        f"(start to files written, {run['fit']['iterations']} CG iterations) | "
+        f"{run['times']['photos_s']:.1f} s; {run['times']['fit_s']:.1f} s |"])
+
+
+def texture_speed(data):
+    record = data["textures.json"]
+    fit, render = record["fit"], record["render"]
+    lines = ["| | time | the issue's target |", "|---|---|---|",
+             f"| a {fit['texels']}² kd map ({fit['unknowns']:,} unknowns) from {fit['views']} "
+             f"views at {fit['size']}², warm | {fit['warm_s']:.1f} s (CPU {fit['warm_cpu_s']:.1f}"
+             f" s): {fit['stencil_iterations']} CG iterations on the stencil, "
+             f"{fit['iterations']} on the renders | ≤ 10 s |"]
+    for row in render["rows"]:
+        lines.append(f"| judged scene ({render['faces']:,} faces, {render['size']}², soft, K = "
+                     f"{render['faces_per_pixel']}), {row['pass']}: with a {render['texels']}² kd "
+                     f"texture / without | {row['textured_ms']:.1f} / {row['untextured_ms']:.1f}"
+                     f" ms = {row['ratio']:.2f} (CPU {row['cpu_ratio']:.2f}) | ≤ 1.2 |")
+    lines += ["", f"Load average {fit['load_before']:.1f} (fit) and {render['load_before']:.1f} "
+              "(renders) at the start ([`textures.json`](../benchmarks/results/textures.json); "
+              "`python benchmarks/textures.py`)."]
+    return "\n".join(lines)
+
+
 #: name: (page, function, the JSON files it reads)
 BLOCKS = {
     "readme": ("README.md", readme, ("peers.json", "fit_recovery.json",
                                      "time_to_first_result.json",
                                      "time_to_first_result_fresh_install.json",
-                                     "memory_views.json", "memory_views_linear.json")),
+                                     "memory_views.json", "memory_views_linear.json",
+                                     "texture_capture.json")),
     "peers": ("docs/performance.md", peers_table, ("peers.json",)),
     "scaling": ("docs/performance.md", scaling_table, ("scaling.json",)),
     "first-result": ("docs/performance.md", first_result,
@@ -251,6 +315,8 @@ BLOCKS = {
     "kernel-paths": ("docs/transforms.md", kernel_paths, ("transforms.json",)),
     "batched-views": ("docs/transforms.md", batched_views, ("transforms.json",)),
     "search-batched": ("docs/transforms.md", search_batched, ("transforms.json",)),
+    "texture-capture": ("docs/textures.md", texture_capture, ("texture_capture.json",)),
+    "textures": ("docs/textures.md", texture_speed, ("textures.json",)),
 }
 
 

@@ -152,18 +152,36 @@ def diffshade_worker(args):
             for key, r in out.items()}
 
 
+def mitsuba_reflectance(albedo):
+    """A Mitsuba reflectance: an RGB triple as is; a texture (texels [H, W, 3], linear,
+    row 0 = v = 1) as a bitmap read as stored ("raw": no sRGB decoding), bilinear and
+    repeating as diffshade's default texture (docs/textures.md)."""
+    texels = np.asarray(albedo, np.float32)
+    if texels.ndim == 1:
+        return {"type": "rgb", "value": texels.tolist()}
+    import mitsuba as mi
+    return {"type": "bitmap", "bitmap": mi.Bitmap(texels), "raw": True,
+            "filter_type": "bilinear", "wrap_mode": "repeat"}
+
+
 def mitsuba_mesh(mi, mesh, albedo):
-    """A mesh (positions, faces, normals: NumPy arrays) as a Mitsuba shape with a diffuse
-    BSDF of reflectance `albedo`."""
+    """A mesh (positions, faces, normals and, where a texture is given, "uv": NumPy
+    arrays) as a Mitsuba shape with a diffuse BSDF of reflectance `albedo` (an RGB triple
+    or a texture: mitsuba_reflectance). Mitsuba reads a texture with v = 0 at the image's
+    top row, diffshade (OBJ, OpenGL) at its bottom: the UVs go in as (u, 1 - v)."""
     props = mi.Properties()
     props["bsdf"] = mi.load_dict({"type": "diffuse",
-                                  "reflectance": {"type": "rgb", "value": list(albedo)}})
+                                  "reflectance": mitsuba_reflectance(albedo)})
+    uv = mesh["uv"] if "uv" in mesh else None
     shape = mi.Mesh("sphere", len(mesh["vertices"]), len(mesh["faces"]), props=props,
-                    has_vertex_normals=True)
+                    has_vertex_normals=True, has_vertex_texcoords=uv is not None)
     params = mi.traverse(shape)
     params["vertex_positions"] = mi.Float(mesh["vertices"].ravel())
     params["vertex_normals"] = mi.Float(mesh["normals"].ravel())
     params["faces"] = mi.UInt32(mesh["faces"].ravel())
+    if uv is not None:
+        flipped = np.stack([uv[:, 0], 1.0 - uv[:, 1]], -1).astype(np.float32)
+        params["vertex_texcoords"] = mi.Float(flipped.ravel())
     params.update()
     return shape
 

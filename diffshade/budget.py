@@ -24,7 +24,9 @@ large ones, compilation included (benchmarks/memory_budget.py):
   raster's pixel does, PIXEL_BYTES + SLOT_BYTES) and kept as M x M depths; a point light
   has 6 maps (a cube), an area or sphere light 6 per sample, kept all at once while the
   maps are rasterized one sample's cube at a time;
-- an image file or a dataset's images: pixels x channels x 8 bytes (decoded in float64).
+- an image file or a dataset's images: pixels x channels x 8 bytes (decoded in float64);
+- a texture in a render: texels x channels x TEXEL_BYTES (the texels, the cells that
+  bilinear sampling reads and, differentiated, their gradients).
 """
 
 import os
@@ -33,7 +35,7 @@ import re
 import jax
 
 __all__ = ["MAX_ELEMENTS", "SizeError", "available_bytes", "check", "image_bytes",
-           "mesh_bytes", "render_bytes", "shadow_bytes"]
+           "mesh_bytes", "render_bytes", "shadow_bytes", "texture_bytes"]
 
 MAX_ELEMENTS = 2**31 - 1
 BASE_BYTES = 512 * 2**20
@@ -43,6 +45,9 @@ FACE_BYTES = 1024
 DEPTH_BYTES = 8  # a stored shadow-map depth (float64 under jax_enable_x64)
 DECODED_BYTES = 8  # a decoded image value (float64)
 CUBE = 6
+#: a texture's value in a render (float64): itself, the 6 values of its cell's columns
+#: that sampling reads, and both again as gradients, with room for XLA's temporaries
+TEXEL_BYTES = 96
 LIMIT_VARIABLE = "DIFFSHADE_MEMORY_LIMIT"
 _SUFFIXES = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
 
@@ -144,3 +149,9 @@ def shadow_bytes(side, cubes, flat_maps=0):
 def image_bytes(width, height, channels):
     """Bytes of an image decoded to floats."""
     return width * height * channels * DECODED_BYTES
+
+
+def texture_bytes(texels, channels):
+    """Bytes of a texture of `texels` texels in a render (module docstring)."""
+    return texels * channels * TEXEL_BYTES
+

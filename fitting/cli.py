@@ -56,14 +56,13 @@ from fitting.model.loss import LOSSES
 from fitting.plan import CHECKPOINT, flag, prepare
 from fitting.refine import pose_records, refined_poses
 from fitting.report.holdout import holdout_results, holdout_table, write_panels
-from fitting.report.result import STATUS_LABELS, comparison_table, write_result
+from fitting.report.result import RESULT_FORMAT, STATUS_LABELS, comparison_table, write_result
 from fitting.run import advance, finish, start_run
 from fitting.solve.distribute import fit_data, for_options
 from fitting.solve.options import FIT_METHODS, OPTIONS, FitOptions
 from fitting.spec.params import to_values
 from fitting.texture_fit import add_texture_options, run_texture
 
-RESULT_FORMAT = "diffshade-fit-result"
 EXIT_NON_FINITE = 3
 SIGNALS = {signal.SIGINT: "SIGINT", signal.SIGTERM: "SIGTERM"}
 

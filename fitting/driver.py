@@ -16,6 +16,10 @@ Adam and L-BFGS stop when the relative loss change stays below `tol` for `patien
 steps, the loss reaches `atol` or the gradient norm falls below `gtol`; they are local and
 can stall on the ks-shininess ridge from a poor start (see docs/fitting.md).
 
+With `textures={"kd": RES}` (and/or "ks") the mapped coefficients are recovered as RES x
+RES maps over the mesh's UVs, alternating with the uniform quantities
+(fitting.texture_run); the result then holds the maps (`textures`) and the rounds.
+
 `fit_result` reports a run at its best params: the values, the relative error of every
 fitted value when the truth is known (per channel), standard errors, the values that
 ended at a bound (no standard error), and whether the model explains the images
@@ -29,7 +33,7 @@ import time
 import jax
 import numpy as np
 
-from diffshade.scene import Material
+from diffshade.scene import Material, Texture
 from fitting.data.rounding import carried_rounding
 from fitting.data.views import Dataset, material_for
 from fitting.model.cache import build_cache
@@ -40,6 +44,7 @@ from fitting.report.uncertainty import UncertaintyReport, uncertainty
 from fitting.run import advance, finish, start_run
 from fitting.solve.distribute import device_list, fit_data, for_options
 from fitting.solve.options import FitOptions
+from fitting.solve.texture import DEFAULT_SMOOTHNESS
 from fitting.spec.params import (
     DEFAULT_INIT,
     MODED,
@@ -52,6 +57,7 @@ from fitting.spec.params import (
     values_to_lights,
     values_to_material,
 )
+from fitting.texture_run import MAX_ROUNDS, ROUND_TOL, check_map_fit, fit_maps
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,7 +71,10 @@ class FitResult:
     'budget', 'stopped' or 'non-finite' (fitting.run); stop_message: why it stopped on
     non-finite values; at_bound: names of the values at a bound; misfit: fitting.report.misfit
     .Misfit or None; object_names: the names of the dataset's objects when they are named
-    (scene files' "name", diffshade.scene_object's name), else None."""
+    (scene files' "name", diffshade.scene_object's name), else None; textures: {field:
+    fitting.solve.TextureSolution} of a fit with maps (the map, NaN where unseen, its
+    coverage and standard error; `material` holds them with 0 where unseen), else None;
+    rounds: the alternation's rounds (fitting.texture_run), () without maps."""
 
     material: object
     lights: tuple
@@ -86,6 +95,8 @@ class FitResult:
     at_bound: tuple = ()
     misfit: Misfit | None = None
     object_names: tuple | None = None
+    textures: dict | None = None
+    rounds: tuple = ()
 
     def summary(self, truth=None) -> str:
         """A table: parameter, true value (when `truth` or self.truth is known), fitted
@@ -104,7 +115,7 @@ class FitResult:
         values (lights included when fitted), errors, std_errors (the ones the table
         shows), std_error_kind (which: 'gauss-newton' or 'robust'), std_errors_gauss_newton
         and std_errors_robust (both estimates) and rounding_bound (None for a value at a
-        bound), at_bound, misfit, warnings, notes."""
+        bound), at_bound, misfit, warnings, notes; rounds (a fit with maps)."""
         plain = lambda tree: jax.tree.map(lambda x: np.asarray(x).tolist(), tree)
         report = self.uncertainty
         number = lambda name, x: None if name in self.at_bound else float(x)
@@ -127,15 +138,17 @@ class FitResult:
                 "at_bound": list(self.at_bound),
                 "misfit": None if self.misfit is None else self.misfit.as_dict(),
                 "warnings": list(self.warnings),
-                "notes": [] if report is None else list(report.notes)}
+                "notes": [] if report is None else list(report.notes),
+                **({"rounds": list(self.rounds)} if self.rounds else {})}
 
 
 def relative_errors(values: dict, truth, spec: FitSpec) -> dict:
     """|fitted - true| / |true| per fitted material quantity and channel (the absolute
     error where the truth is 0): {'ka': [3], ..., 'shininess': []} as numpy; with several
     objects (a stacked truth), {'objects': (one such dict per object)}."""
-    rgb_spec = FitSpec(**{n: "rgb" if getattr(spec, n) else None for n in MODED},
-                       shininess=spec.shininess)
+    # a value fitted uniform where the truth has a map has no true value to compare with
+    rgb_spec = FitSpec(**{n: "rgb" if getattr(spec, n) and not isinstance(
+        getattr(truth, n, None), Texture) else None for n in MODED}, shininess=spec.shininess)
     true = material_values(truth, rgb_spec)
     if "objects" in true:
         return {"objects": tuple(_relative_errors(v, t) for v, t in
@@ -230,8 +243,31 @@ def _notifier(callback, spec, data):
     return on_step, lambda: stop[0]
 
 
+def map_fit_result(run, dataset, **options) -> FitResult:
+    """The FitResult of a fit with maps (a fitting.texture_run.MapRun): fit_result at the
+    last round's uniform fit (options: fit_result's keywords), with the maps and the
+    rounds; status 'converged' when a round changed less than the tolerance, else
+    'budget' (the rounds ran out)."""
+    if not run.state.spec.fits_material:  # only maps: no uniform value to report on
+        options["with_uncertainty"] = False
+    result = fit_result(run.state, dataset, run.data,
+                        status="converged" if run.converged else "budget", **options)
+    return dataclasses.replace(result, textures=run.maps, rounds=run.rounds)
+
+
+def _fit_with_maps(dataset, spec, init, options, truth, with_uncertainty, maps):
+    """fit(...) with textures: the maps and the uniform quantities (fitting.texture_run)."""
+    textures, smoothness, rounds, round_tol = maps
+    smoothness = DEFAULT_SMOOTHNESS if smoothness is None else smoothness
+    run = fit_maps(dataset, spec, init, textures, options, smoothness=smoothness,
+                   rounds=rounds, round_tol=round_tol)
+    return map_fit_result(run, dataset, with_uncertainty=with_uncertainty, warn=True,
+                          truth=truth)
+
+
 def fit(dataset: Dataset, spec: FitSpec | None = None, init=None, *, options=None,
-        truth=None, with_uncertainty=True, callback=None, **settings) -> FitResult:
+        truth=None, with_uncertainty=True, callback=None, textures=None, smoothness=None,
+        rounds=MAX_ROUNDS, round_tol=ROUND_TOL, **settings) -> FitResult:
     """Fit `spec`'s quantities (default FitSpec(): ka, kd, ks in RGB and shininess) to
     `dataset`, starting from (and holding fixed the rest of) `init` (a Material; default
     DEFAULT_INIT; kt, when fitted and `init` has none, starts at KT_START; with several
@@ -245,11 +281,27 @@ def fit(dataset: Dataset, spec: FitSpec | None = None, init=None, *, options=Non
     those of `options`. truth: the true Material for the errors and the summary (default
     dataset.truth). with_uncertainty: standard errors, identifiability warnings (also
     raised as IdentifiabilityWarning) and the misfit check. callback(step, loss, material)
-    after every step; returning True stops the fit (status 'stopped')."""
+    after every step; returning True stops the fit (status 'stopped').
+
+    textures: {"kd": RES} and/or {"ks": RES}: recover those coefficients as RES x RES
+    maps over the mesh's UVs, with the rest of `spec` fitted uniform, by alternation
+    (fitting.texture_run: at most `rounds` rounds, until a round changes the values by at
+    most `round_tol`); smoothness: the maps' prior weight (default DEFAULT_SMOOTHNESS,
+    fitting.solve.texture). The method runs the maps too ('linear': conjugate gradients;
+    'adam', 'lbfgs': descent). The result's `textures` holds the maps; not with
+    `callback`, lights, gains or kt fitted, or several devices or chunks."""
     spec = FitSpec() if spec is None else spec
     _check_fit_args(dataset, spec, init, truth, options, settings)
     options = dataclasses.replace(options or FitOptions(), **settings)
     device_list(options.devices)  # more devices than there are: an error before any work
+    if textures is not None:
+        check_map_fit(dataset, spec, textures, options, callback, "textures")
+        init = material_for(dataset, DEFAULT_INIT if init is None else init, "init")
+        return _fit_with_maps(dataset, spec, init, options, truth, with_uncertainty,
+                              (textures, smoothness, rounds, round_tol))
+    if smoothness is not None:
+        raise ValueError(f"smoothness: got {smoothness!r} without textures; expected it "
+                         "with textures={...}")
     init = start_material(material_for(dataset, DEFAULT_INIT if init is None else init,
                                        "init"), spec)
     start = time.perf_counter()

@@ -39,7 +39,9 @@ def _given_options(args):
             if getattr(args, f.name) is not None}
 
 
-def _new_options(args):
+def options_of(args):
+    """FitOptions of the options on a new run's command line (ValueError naming the
+    flag)."""
     try:
         return FitOptions(**_given_options(args))
     except ValueError as err:  # "name: got ..." -> "--name: got ..."
@@ -131,7 +133,7 @@ def prepare(args):
         if args.color_space is None:
             args.color_space = meta.get("color_space")
     else:
-        spec, options = fit_spec(args.fit, args.grey), _new_options(args)
+        spec, options = fit_spec(args.fit, args.grey), options_of(args)
         init = DEFAULT_INIT if args.init is None else parse_material(args.init, "--init")
     try:
         device_list(options.devices)

@@ -100,9 +100,9 @@ def test_a_figure_the_data_does_not_have_is_reported():
     page = PAGE.read_text()
     values = data_values(page)
     # 0.43/255 is a row of the supersampling table; 0.4321 and 7.77e-5 are not data
-    text = "128 px with 4x supersampling (0.43/255); 0.4321/255; an error of 7.77e-5; 55.5 %"
+    text = "128 px with 4x supersampling (0.43/255); 0.4321/255; an error of 7.77e-5; 55.57 %"
     assert unsupported(guidance("## Which settings should I use\n" + text), values) == [
-        "0.4321", "7.77e-5", "55.5%"]
+        "0.4321", "7.77e-5", "55.57%"]
 
 
 def test_numbers_are_read_as_printed():

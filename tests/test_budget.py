@@ -4,6 +4,7 @@ documented constants), stay above what XLA's own memory analysis reports for the
 render, and are compared with DIFFSHADE_MEMORY_LIMIT or the memory the machine has free.
 """
 
+import numpy as np
 import pytest
 
 import diffshade as ds
@@ -127,3 +128,37 @@ def test_a_batch_of_views_is_costed_as_all_of_them(monkeypatch):
     with pytest.raises(budget.SizeError, match=r"^camera width x height: got 16x8; a 16x8 "
                        r"render of 100 views with"):
         ds.render_views(scene, [scene.camera] * 100)
+
+
+def textured_scene(width, height, texels):
+    """small_scene on a sphere with UVs, its kd a texels x texels RGB texture."""
+    scene = small_scene(width, height)
+    kd = ds.texture(np.full((texels, texels, 3), 0.5, np.float32))
+    return ds.replace(scene, mesh=ds.icosphere(0, uv=True),
+                      material=ds.replace(scene.material, kd=kd))
+
+
+def test_a_texture_costs_its_texels_once_whatever_the_views():
+    """texels · channels · 96 bytes, beside the untextured render's terms (the UV mesh's
+    faces are the same 20)."""
+    settings = ds.RenderSettings()
+    plain, textured = small_scene(), textured_scene(16, 8, 64)
+    for views in (1, 3):
+        assert (render_cost(textured, settings, views=views).bytes
+                - render_cost(plain, settings, views=views).bytes) == 64 * 64 * 3 * 96
+
+
+def test_a_texture_beyond_the_limit_is_named(monkeypatch):
+    monkeypatch.setenv(budget.LIMIT_VARIABLE, "600M")
+    scene = textured_scene(16, 8, 1024)  # 1024^2 · 3 · 96 bytes = 288 MiB, beside 512 MiB
+    with pytest.raises(budget.SizeError, match=r"^material\.kd: got 1024x1024 texels; a 16x8 "
+                       r"render with 1 fragment slot a pixel and 20 faces needs .* of memory; "
+                       r"expected at most 629 MB \(629145600 bytes\)"):
+        ds.render(scene, ds.RenderSettings())
+
+
+def test_the_texture_estimate_bounds_what_xla_allocates(x64):
+    """A texture much larger than the image, so that its term is what counts."""
+    settings = ds.RenderSettings(kernels="jax", clamp=False)
+    scene = textured_scene(8, 8, 96)
+    assert render_cost(scene, settings).bytes - budget.BASE_BYTES >= xla_bytes(scene, settings)

@@ -1,12 +1,13 @@
-"""benchmarks/capture.py without Mitsuba: its lens (benchmarks/lens.py, a pinhole image
-resampled through OpenCV's model) against the forward model written out here, and the one
-line and exit status 0 when Mitsuba cannot run."""
+"""benchmarks/capture.py and texture_capture.py without Mitsuba: their lens
+(benchmarks/lens.py, a pinhole image resampled through OpenCV's model) against the forward
+model written out here, and the one line and exit status 0 when Mitsuba cannot run."""
 
 import os
 import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
@@ -56,10 +57,11 @@ def test_without_distortion_a_photo_pixel_is_the_mean_over_its_area():
     np.testing.assert_allclose(photo[..., 1], (v - K[1][2]) / K[1][1], atol=1e-12)
 
 
-def test_without_mitsuba_one_line_and_exit_status_0(tmp_path):
+@pytest.mark.parametrize("script", ["capture.py", "texture_capture.py"])
+def test_without_mitsuba_one_line_and_exit_status_0(tmp_path, script):
     env = broken_mitsuba_env(tmp_path)
     out = tmp_path / "capture.json"
-    done = subprocess.run([sys.executable, os.path.join(ROOT, "benchmarks", "capture.py"),
+    done = subprocess.run([sys.executable, os.path.join(ROOT, "benchmarks", script),
                            "--out", str(out)], capture_output=True, text=True, env=env,
                           timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]

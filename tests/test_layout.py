@@ -48,7 +48,7 @@ FLOORS = {
         ("report", ["fitting.report"]),
         ("driver", ["fitting", "fitting.checkpoint", "fitting.cli", "fitting.driver",
                     "fitting.import_cli", "fitting.inputs", "fitting.plan", "fitting.refine",
-                    "fitting.run", "fitting.texture_fit"]),
+                    "fitting.run", "fitting.texture_fit", "fitting.texture_run"]),
     ],
     "data_synth": [("data_synth", ["data_synth", "data_synth.cli", "data_synth.materials",
                                    "data_synth.scenes"])],

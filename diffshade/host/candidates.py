@@ -33,6 +33,7 @@ not decide its bits.
 
 import numba
 import numpy as np
+from llvmlite import ir
 from numba import prange, types
 from numba.extending import intrinsic
 
@@ -339,8 +340,21 @@ def _fragment_key(depth, signed_d2, bound, depth_bits, sigma):
     return depth - _coverage_logit(signed_d2, sigma)
 
 
-#: 2^-k for k = 0..52 (_softplus_neg's range reduction)
-_TWO_POW_NEG = np.array([2.0 ** -k for k in range(53)])
+@intrinsic
+def _two_pow_neg(typingctx, k):
+    """2^-k for an int64 k in 0..52 (_softplus_neg's range reduction), exactly: the float64
+    of biased exponent 1023 - k, made from its bits (no table lookup: LLVM keeps the
+    vectorized loop free of gathers)."""
+    if k != types.int64:
+        return None
+
+    def codegen(context, builder, signature, args):
+        bits = builder.shl(builder.sub(ir.Constant(ir.IntType(64), 1023), args[0]),
+                           ir.Constant(ir.IntType(64), 52))
+        return builder.bitcast(bits, ir.DoubleType())
+    return types.float64(k), codegen
+
+
 #: bracket half-width of _key_bracket: _softplus_neg is within ~6e-16 of log1p(exp(-a))
 #: (a dozen roundings of ~1.1e-16 relative, on values <= ln 2 < 1; truncation < 1e-17)
 #: and libm's exp then log1p within ~3.3e-16 (one ulp each); 2^-49 = 1.8e-15 is twice
@@ -375,7 +389,7 @@ def _softplus_neg(a):
     p = p * m + 0.5
     p = p * m + 1.0
     p = p * m + 1.0
-    z = 1.0 + p * _TWO_POW_NEG[int(k)]
+    z = 1.0 + p * _two_pow_neg(int(k))
     big = z > 1.4142135623730951
     z = z * 0.5 if big else z
     t = (z - 1.0) / (z + 1.0)
@@ -656,6 +670,24 @@ GROUP = 1024
 
 
 @numba.njit(cache=True, nogil=True)
+def _insert_group8(ids, keys, fragments, depth, signed_d2, bound, key_lo, key_hi, count,
+                   sigma):
+    """_insert_group for lists of 8 (the soft search's default), without branches but for
+    libm's key: every fragment goes through _insert8, whose lists are always sorted (so
+    neither the counts of filled entries nor a sort at the end are needed); returns how
+    many fragments were dropped."""
+    dropped = 0
+    depth_bits = depth.view(np.int64)
+    for i in range(count):
+        pixel, f = fragments[i] % (TILE_H * TILE_W), fragments[i] // (TILE_H * TILE_W)
+        key = key_lo[i]
+        if key != key_hi[i]:  # the bracket straddles a rounding boundary: libm
+            key = _fragment_key(depth[i], signed_d2[i], bound[i], depth_bits[i], sigma)
+        dropped += _insert8(keys, ids, pixel, key, f)
+    return dropped
+
+
+@numba.njit(cache=True, nogil=True)
 def _insert_group(ids, keys, filled, worst_key, worst_id, fragments, depth, signed_d2,
                   bound, key_lo, key_hi, count, sigma, scratch_ids,
                   scratch_keys):
@@ -668,6 +700,9 @@ def _insert_group(ids, keys, filled, worst_key, worst_id, fragments, depth, sign
     appended to unsorted until full, then sorted once (_sort_full) and kept sorted by
     _insert; the others are sorted at the end of the tile."""
     k = ids.shape[1]
+    if k == 8:
+        return _insert_group8(ids, keys, fragments, depth, signed_d2, bound, key_lo, key_hi,
+                              count, sigma)
     dropped = 0
     depth_bits = depth.view(np.int64)
     for i in range(count):
@@ -701,6 +736,64 @@ def _select(typingctx, condition, if_true, if_false):
     def codegen(context, builder, signature, args):
         return builder.select(args[0], args[1], args[2])
     return if_true(condition, if_true, if_false), codegen
+
+
+def _vector_list(context, builder, array_type, array, pixel, element):
+    """A pointer to pixel's row of a C-contiguous [P, 8] array as one <8 x element>."""
+    data = context.make_array(array_type)(context, builder, array).data
+    row = builder.gep(data, [builder.mul(pixel, ir.Constant(pixel.type, 8))])
+    return builder.bitcast(row, ir.PointerType(ir.VectorType(element, 8)))
+
+
+@intrinsic
+def _insert8(typingctx, keys, ids, pixel, key, face):
+    """Insert (key, face) into pixel's list of 8 (keys [P, 8] float64 and ids [P, 8] int32,
+    C-contiguous, sorted by (key, face), empty entries (+inf, -1) last) as vector
+    operations, without branches: each entry that ranks after the new one moves down one
+    slot, the last falling off. Returns 1 when the list was full (one fragment, the new or
+    the last, fell off), else 0. The lists hold distinct faces and finite keys."""
+    if not (isinstance(keys, types.Array) and keys.dtype == types.float64 and keys.ndim == 2
+            and keys.layout == "C" and isinstance(ids, types.Array)
+            and ids.dtype == types.int32 and ids.ndim == 2 and ids.layout == "C"):
+        return None
+
+    def codegen(context, builder, signature, args):
+        keys_type, ids_type = signature.args[:2]
+        keys, ids, pixel, key, face = args
+        pixel = context.cast(builder, pixel, signature.args[2], types.int64)
+        key = context.cast(builder, key, signature.args[3], types.float64)
+        face = context.cast(builder, face, signature.args[4], types.int32)
+        key_ptr = _vector_list(context, builder, keys_type, keys, pixel, ir.DoubleType())
+        id_ptr = _vector_list(context, builder, ids_type, ids, pixel, ir.IntType(32))
+        listed_keys, listed_ids = builder.load(key_ptr, align=8), builder.load(id_ptr, align=4)
+        splat = ir.Constant(ir.VectorType(ir.IntType(32), 8), [0] * 8)
+        new_key = builder.shuffle_vector(
+            builder.insert_element(ir.Constant(listed_keys.type, None), key,
+                                   ir.Constant(ir.IntType(32), 0)),
+            ir.Constant(listed_keys.type, None), splat)
+        new_id = builder.shuffle_vector(
+            builder.insert_element(ir.Constant(listed_ids.type, None), face,
+                                   ir.Constant(ir.IntType(32), 0)),
+            ir.Constant(listed_ids.type, None), splat)
+        # before[j]: the new entry ranks before entry j (not _ranks_after(entry j, new))
+        before = builder.or_(
+            builder.fcmp_ordered("<", new_key, listed_keys),
+            builder.and_(builder.fcmp_ordered("==", new_key, listed_keys),
+                         builder.icmp_signed("<", new_id, listed_ids)))
+        down = ir.Constant(ir.VectorType(ir.IntType(32), 8), [8, 0, 1, 2, 3, 4, 5, 6])
+        before_previous = builder.shuffle_vector(
+            before, ir.Constant(before.type, [0] * 8), down)
+        shift = ir.Constant(ir.VectorType(ir.IntType(32), 8), [0, 0, 1, 2, 3, 4, 5, 6])
+        builder.store(builder.select(
+            before_previous, builder.shuffle_vector(listed_keys, listed_keys, shift),
+            builder.select(before, new_key, listed_keys)), key_ptr, align=8)
+        builder.store(builder.select(
+            before_previous, builder.shuffle_vector(listed_ids, listed_ids, shift),
+            builder.select(before, new_id, listed_ids)), id_ptr, align=4)
+        last = builder.extract_element(listed_ids, ir.Constant(ir.IntType(32), 7))
+        full = builder.icmp_signed(">=", last, ir.Constant(ir.IntType(32), 0))
+        return builder.zext(full, ir.IntType(64))
+    return types.int64(keys, ids, pixel, key, face), codegen
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -819,7 +912,7 @@ def _search_soft_into(clips, faces, width, height, k, cull_backfaces, radii, par
                                          depth, signed_d2, bound, key_lo, key_hi, count,
                                          soft[0], scratch_ids, scratch_keys)
                 count = 0
-        for pixel in range(ids.shape[0]):
+        for pixel in range(ids.shape[0] if k != 8 else 0):  # lists of 8 stay sorted
             if filled[pixel] < k:
                 _sort_list(ids, keys, pixel, filled[pixel], scratch_ids, scratch_keys)
         for row in range(tile_r0, tile_r1 + 1):

@@ -1,10 +1,10 @@
 """What a render of a scene costs in memory, checked before anything is compiled or allocated.
 
 `check_render(scene, settings, views, factor)` gathers the sizes a render of `scene`
-implies (its image, fragment slots, mesh, shadow maps and light samples), adds up their
-bytes by diffshade.budget's formulas and raises budget.SizeError naming the setting that
-costs the most when the total is beyond the memory available, or when one array would
-hold more than budget.MAX_ELEMENTS values. The render entry points call it (through
+implies (its image, fragment slots, mesh, textures, shadow maps and light samples), adds
+up their bytes by diffshade.budget's formulas and raises budget.SizeError naming the
+setting that costs the most when the total is beyond the memory available, or when one
+array would hold more than budget.MAX_ELEMENTS values. The render entry points call it (through
 rendering.check_arguments), so no size reaches an allocation inside XLA.
 """
 
@@ -15,6 +15,8 @@ import jax
 from diffshade import budget
 from diffshade.composite.transparency import layers_needed
 from diffshade.scene.lights import shadow_flags
+from diffshade.scene.materials import TEXTURED_FIELDS
+from diffshade.scene.textures import is_texture
 from diffshade.shading.area import KINDS as AREA_KINDS
 
 __all__ = ["RenderCost", "check_render", "render_cost"]
@@ -42,6 +44,21 @@ def _shadow_counts(lights):
     return cubes, flat, sample_cubes, most
 
 
+def _texture_terms(scene):
+    """{('material.kd', 'HxW texels'): bytes} of each texture of the scene's materials:
+    one copy whatever the views (a batch of views shares it)."""
+    terms = {}
+    for owner in ("material", "back_material"):
+        material = getattr(scene, owner)
+        for name in TEXTURED_FIELDS if material is not None else ():
+            value = getattr(material, name)
+            if is_texture(value):
+                height, width, channels = value.texels.shape
+                terms[(f"{owner}.{name}", f"{height}x{width} texels")] = budget.texture_bytes(
+                    height * width, channels)
+    return terms
+
+
 def _terms(scene, settings, views, pixels, slots, shadows):
     """{(key, value shown): bytes} of each setting's share of the render (its fixed
     budget.BASE_BYTES aside); shadows: the scene's _shadow_counts."""
@@ -59,7 +76,7 @@ def _terms(scene, settings, views, pixels, slots, shadows):
         terms[("shadow_map_size", side)] = views * (maps - samples)
         if sample_cubes:  # the area lights' sample maps, kept all at once
             terms[("samples", most)] = views * samples
-    return terms
+    return terms | _texture_terms(scene)
 
 
 def _largest_array(views, pixels, slots, side, shadows):

@@ -54,37 +54,38 @@ def _next(texels, axis, wrap):
     return jnp.concatenate([rest, last], axis)
 
 
-def _cell_corners(texture):
-    """The four texels of the cell whose top-left texel is (row, col), [H * W, 4, C]:
-    (row, col), (row, col + 1), (row + 1, col), (row + 1, col + 1), neighbours by wrap."""
+def _cell_columns(texture):
+    """Each cell's two columns as the interpolation op's corners, [H * W, 3, 2C]: corner 0
+    is the cell's left column (row, col) | (row + 1, col), corner 1 its right column
+    (row, col + 1) | (row + 1, col + 1), neighbours by wrap; corner 2 is unused (zeros)."""
     texels, wrap = texture.texels, texture.wrap
-    right = _next(texels, 1, wrap)
-    below, below_right = _next(texels, 0, wrap), _next(right, 0, wrap)
-    corners = jnp.stack([texels, right, below, below_right], 2)
-    return corners.reshape((-1, 4) + texels.shape[2:])
+    left = jnp.concatenate([texels, _next(texels, 0, wrap)], -1)
+    right = _next(left, 1, wrap)
+    corners = jnp.stack([left, right, jnp.zeros_like(left)], 2)
+    return corners.reshape((-1, 3, corners.shape[-1]))
 
 
 def sample_texture(texture: Texture, uv, host=None):
     """Bilinear value [..., C] of texture at uv [..., 2] (module docstring).
 
-    The cells' corner texels are arranged once (shifts of the texture), and each sample
-    reads its cell's four with the fragment interpolation op (diffshade.raster.interpolation;
-    host: its compiled kernels, default on the CPU backend): the texels' gradient is that
-    op's compiled scatter-add plus shifts, not an XLA scatter over the samples."""
+    The cells' columns are arranged once (shifts of the texture), and each sample reads
+    its cell's two columns blended across (1 - fx, fx) in one pass of the fragment
+    interpolation op (diffshade.raster.interpolation; host: its compiled kernels, default
+    on the CPU backend), then blends the top and bottom rows (1 - fy, fy): the texels'
+    gradient is that op's compiled scatter-add plus shifts, not an XLA scatter over the
+    samples."""
     host = jax.default_backend() == "cpu" if host is None else host
-    height, width, _ = texture.texels.shape
+    height, width, channels = texture.texels.shape
     x0, fx = _axis(uv[..., 0] * width - 0.5, width, texture.wrap)
     y0, fy = _axis((1.0 - uv[..., 1]) * height - 0.5, height, texture.wrap)
-    corners = _cell_corners(texture)
-    fx, fy = fx.astype(corners.dtype), fy.astype(corners.dtype)
-    weights = jnp.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], -1)
-    # as the op's [1, M, 1] fragments, three corners and then the fourth
+    corners = _cell_columns(texture)
+    fx, fy = fx.astype(corners.dtype)[..., None], fy.astype(corners.dtype)[..., None]
+    # as the op's [1, M, 1] fragments
     cells = (y0 * width + x0).reshape(1, -1, 1)
-    weights = weights.reshape(1, -1, 1, 4)
-    fourth = jnp.concatenate([weights[..., 3:], jnp.zeros_like(weights[..., :2])], -1)
-    near = interpolate_corners(cells, weights[..., :3], corners[:, :3], host=host)[0]
-    far = interpolate_corners(cells, fourth, jnp.repeat(corners[:, 3:], 3, 1), host=host)[0]
-    return (near + far).reshape(uv.shape[:-1] + corners.shape[-1:])
+    weights = jnp.concatenate([1 - fx, fx, jnp.zeros_like(fx)], -1).reshape(1, -1, 1, 3)
+    rows = interpolate_corners(cells, weights, corners, host=host)[0].reshape(
+        uv.shape[:-1] + (2 * channels,))
+    return (1 - fy) * rows[..., :channels] + fy * rows[..., channels:]
 
 
 def textured_material(material, uv):

@@ -32,6 +32,11 @@ through its last layer is the background, black in a dataset's scenes
 pixels, equal to `diffshade.render` at those pixels (tested). Silhouette pixels are left
 out (`edge_margin`) because a pixel cut by the outline is where two rasterizers, or a
 rendered target and a photograph, disagree most.
+
+Textures: with a base material that has a texture (a kd or ks map held fixed while the
+uniform quantities are fitted, fitting.texture_run), each sample keeps its UV and `shade`
+reads the material's textures there (diffshade.shading.textured_material), as render
+reads them.
 """
 
 import dataclasses
@@ -46,7 +51,7 @@ from diffshade.io import FAST_COMPILE, stored_jit
 from diffshade.numerics import clamp01, float_dtype
 from diffshade.pipeline import slot_samples, view_dirs
 from diffshade.raster import fragments_from_ids, project, search_depth, search_faces
-from diffshade.scene import LightGroups, Material, shadow_flags, take_material
+from diffshade.scene import LightGroups, Material, Texture, shadow_flags, take_material
 from diffshade.scene import material as make_material
 from diffshade.shading import (
     Reader,
@@ -56,6 +61,7 @@ from diffshade.shading import (
     shade,
     shading_samples,
     shadow_maps,
+    textured_material,
 )
 from fitting.data.views import Dataset, view_scene
 
@@ -63,6 +69,14 @@ from fitting.data.views import Dataset, view_scene
 # (and one with a kt: a transparent material needs every fragment layer).
 _GEOMETRY_MATERIAL = make_material()
 _LAYERED_MATERIAL = make_material(kt=0.0)
+# A one-texel map makes the samples carry their UVs (its texel plays no part).
+_UV_MAP = Texture(np.ones((1, 1, 3), np.float32))
+TEXTURED_FIELDS = ("kd", "ks", "shininess")
+
+
+def has_texture(material) -> bool:
+    """Whether `material` has a texture (a kd, ks or shininess map)."""
+    return any(isinstance(getattr(material, name), Texture) for name in TEXTURED_FIELDS)
 
 
 @jax.tree_util.register_dataclass
@@ -79,7 +93,8 @@ class ViewSamples:
     index): [S, 1]} the samples' visibility from each light with shadows, or None;
     layers: [N, K] bool, the kept pixels' fragment layers that hold a face (nearest
     first), or None for one opaque layer (K = 1); layer_objects: [N, K] int32 object of
-    each layer (several objects and layers), or None."""
+    each layer (several objects and layers), or None; uv: [S, 2] the samples' texture
+    coordinates (for a textured base material), or None."""
 
     points: jax.Array
     normals: jax.Array
@@ -91,6 +106,7 @@ class ViewSamples:
     shadows: dict | None = None
     layers: jax.Array | None = None
     layer_objects: jax.Array | None = None
+    uv: jax.Array | None = None
 
 
 @partial(jax.tree_util.register_dataclass,
@@ -133,11 +149,14 @@ def _fragments(proj, faces, camera, settings, found, depth):
     return fragments_from_ids(proj, faces, *found, soft=soft, host=False)
 
 
-def geometry_scene(dataset: Dataset, index: int, layered=False):
+def geometry_scene(dataset: Dataset, index: int, layered=False, textured=False):
     """View `index`'s Scene with a fixed material (with a kt when `layered`: every
-    fragment layer is kept) and no lights: what rasterizing needs, one pytree structure
-    for every view (so they share the compilations)."""
+    fragment layer is kept; with a kd map when `textured`: the samples carry UVs) and no
+    lights: what rasterizing needs, one pytree structure for every view (so they share
+    the compilations)."""
     material = _LAYERED_MATERIAL if layered else _GEOMETRY_MATERIAL
+    if textured:
+        material = dataclasses.replace(material, kd=_UV_MAP)
     return view_scene(dataset, index, material, LightGroups())
 
 
@@ -226,12 +245,12 @@ def _layer_fields(dataset, geo, pixels):
     return jnp.asarray(face_ids >= 0), objects
 
 
-def view_samples(dataset: Dataset, index: int, edge_margin=1,
-                 layered=False) -> ViewSamples:
+def view_samples(dataset: Dataset, index: int, edge_margin=1, layered=False,
+                 textured=False) -> ViewSamples:
     """Rasterize view `index` once and return its ViewSamples (with every fragment layer
-    when `layered`: for a transparent material), the visibility of its samples from its
-    lights with shadows included."""
-    scene = geometry_scene(dataset, index, layered)
+    when `layered`: for a transparent material; with the samples' UVs when `textured`),
+    the visibility of its samples from its lights with shadows included."""
+    scene = geometry_scene(dataset, index, layered, textured)
     geo = view_geometry(scene, dataset.settings)
     view = dataset.views[index]
     pixels = kept_pixels(geo["valid"], view.mask, edge_margin)
@@ -239,6 +258,8 @@ def view_samples(dataset: Dataset, index: int, edge_margin=1,
     arrays = [samples.points, samples.normals, geo["view_dirs"]]
     if samples.objects is not None:
         arrays.append(samples.objects[..., None])
+    if textured:
+        arrays.append(samples.uv)
     shadows = {}
     if casts_shadows(view.lights):
         lit = view_scene(dataset, index, scene.material)
@@ -249,27 +270,32 @@ def view_samples(dataset: Dataset, index: int, edge_margin=1,
     points, normals, view_dirs = kept[:3]
     objects = (jnp.asarray(kept[3][:, 0], jnp.int32) if samples.objects is not None
                else None)
+    uv = floats(kept[len(arrays) - 1]) if textured else None
     visible = dict(zip(shadows, (floats(a) for a in kept[len(arrays):]), strict=True))
     layers, layer_objects = _layer_fields(dataset, geo, pixels) if layered else (None, None)
     return ViewSamples(floats(points), floats(normals), floats(view_dirs),
                        floats(view.target.reshape(-1, 3)[pixels]), jnp.asarray(pixels), reader,
-                       objects, visible or None, layers, layer_objects)
+                       objects, visible or None, layers, layer_objects, uv)
 
 
-def build_cache(dataset: Dataset, material: Material, *, edge_margin: int = 1) -> FitData:
+def build_cache(dataset: Dataset, material: Material, *, edge_margin: int = 1,
+                uv: bool | None = None) -> FitData:
     """FitData for `dataset`, with `material` as the base (held-fixed) material.
 
     edge_margin: pixels dropped inside the silhouette (0 keeps every covered pixel).
-    A `material` with a kt (fitting kt needs one) keeps every pixel's fragment layers.
-    Raises ValueError when the settings rasterize softly (only hard coverage is cached) or
-    when no pixel is kept."""
+    A `material` with a kt (fitting kt needs one) keeps every pixel's fragment layers;
+    the samples keep their UVs when `uv` says so (default: when `material` has a
+    texture, has_texture; a mesh without UVs has none to keep). Raises ValueError when
+    the settings rasterize softly (only hard coverage is cached) or when no pixel is
+    kept."""
     if dataset.settings.raster != "hard":
         raise ValueError(f"settings.raster: got {dataset.settings.raster!r}; the cache "
                          "needs 'hard' (fit soft-rasterized data with the full-render loss)")
     if isinstance(edge_margin, bool) or not isinstance(edge_margin, int) or edge_margin < 0:
         raise ValueError(f"edge_margin: got {edge_margin!r}; expected an integer >= 0")
     layered = material.kt is not None
-    views = tuple(view_samples(dataset, i, edge_margin, layered)
+    textured = (has_texture(material) if uv is None else uv) and dataset.mesh.uv is not None
+    views = tuple(view_samples(dataset, i, edge_margin, layered, textured)
                   for i in range(len(dataset.views)))
     if sum(v.pixels.shape[0] for v in views) == 0:
         raise ValueError("dataset: no covered pixel is left in any view (check the cameras, "
@@ -305,6 +331,8 @@ def _to_pixels(values, samples: ViewSamples, material):
 def _shade_samples(material, lights: LightGroups, global_ambient, samples, settings):
     if samples.objects is not None:
         material = take_material(material, samples.objects)
+    if samples.uv is not None:
+        material = textured_material(material, samples.uv)
     return shade(material, lights, global_ambient, samples.points, samples.normals,
                  samples.view_dirs, settings, samples.shadows)
 

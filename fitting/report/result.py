@@ -3,8 +3,8 @@
 `write_result(out_dir, dataset, result, init, extra)` writes, each file atomically
 (diffshade.io.images), in this order so that the parameters are on disk first:
 
-    material.mtl   the fitted material as a Wavefront MTL (Ka, Kd, Ks, Ns, Ke); one
-                   `newmtl` per object for several objects
+    material.mtl   the fitted material as a Wavefront MTL (Ka, Kd, Ks, Ns, Ke; map_Kd,
+                   map_Ks for maps); one `newmtl` per object for several objects
     result.json    `result_dict`: the FitResult's values, standard errors, warnings and
                    loss history, the full fitted and initial materials, the truth and the
                    relative errors when the dataset has a truth (absent otherwise), and
@@ -50,7 +50,7 @@ from diffshade.io import (
     write_text,
 )
 from diffshade.pipeline import render_fragments
-from diffshade.scene import unstack_material
+from diffshade.scene import Texture, unstack_material
 from diffshade.shading import shadow_maps
 from fitting.data.folder import material_dict
 from fitting.data.views import view_scene
@@ -59,6 +59,7 @@ from fitting.model.cache import fixed_fragments, geometry_scene
 from fitting.spec.gains import GAIN_NAMES, view_materials
 from fitting.spec.params import object_count, value_names
 
+RESULT_FORMAT = "diffshade-fit-result"  # result.json's "format"
 ERROR_GAIN = 10.0
 STATUS_LABELS = {"converged": "converged", "budget": "step budget reached",
                  "stopped": "stopped", "non-finite": "stopped on non-finite values"}
@@ -174,11 +175,19 @@ def _rgb_line(key, value):
     return f"{key} " + " ".join(f"{float(x):.6f}" for x in np.broadcast_to(value, (3,)))
 
 
-def _newmtl(material, name):
-    """The lines of one `newmtl` entry."""
+def _coefficient_lines(key, value, maps):
+    """`Kd r g b`, or for a map `Kd 1 1 1` and `map_Kd FILE` (the map is the colour)."""
+    if isinstance(value, Texture):
+        return [_rgb_line(key, 1.0), f"map_{key} {(maps or {})[key.lower()]}"]
+    return [_rgb_line(key, value)]
+
+
+def _newmtl(material, name, maps=None):
+    """The lines of one `newmtl` entry (maps: {field: file} of its textures)."""
     specular = material.ks is not None
-    lines = [f"newmtl {name}", _rgb_line("Ka", material.ka), _rgb_line("Kd", material.kd),
-             _rgb_line("Ks", material.ks if specular else 0.0),
+    lines = [f"newmtl {name}", _rgb_line("Ka", material.ka),
+             *_coefficient_lines("Kd", material.kd, maps),
+             *_coefficient_lines("Ks", material.ks if specular else 0.0, maps),
              f"Ns {float(material.shininess):.6f}"]
     if material.emission is not None:
         lines.append(_rgb_line("Ke", material.emission))
@@ -188,10 +197,11 @@ def _newmtl(material, name):
     return lines + [f"illum {2 if specular else 1}"]
 
 
-def mtl_text(material, name="diffshade_fit", comment="", names=None):
+def mtl_text(material, name="diffshade_fit", comment="", names=None, maps=None):
     """Wavefront MTL text of a Material: Ka, Kd, Ks (0 without specular), Ns (the Blinn-
     Phong exponent, written as fitted), Ke when it emits, Tr (the mean of kt) and Tf (kt
-    per channel) when it is transparent, illum 2 (1 without specular). A stacked Material
+    per channel) when it is transparent, illum 2 (1 without specular); a kd or ks map
+    (maps: {field: its image file}) as `Kd 1 1 1` and `map_Kd FILE`. A stacked Material
     (several objects, [O, 3] leaves) gives one `newmtl` per object, in object order,
     named by `names` (the objects' names) or else `{name}_0`, `{name}_1`, ..."""
     count = object_count(material)
@@ -210,7 +220,7 @@ def mtl_text(material, name="diffshade_fit", comment="", names=None):
                          "viewer that clamps it shows a broader highlight than the fit")
     lines += [f"# {comment}"] if comment else []
     for one, label in zip(materials, names, strict=True):
-        lines += _newmtl(one, label)
+        lines += _newmtl(one, label, maps)
     return "\n".join(lines) + "\n"
 
 
@@ -251,17 +261,24 @@ def object_reports(result, truth) -> list:
     return reports
 
 
-def result_dict(result, init, truth, extra=None) -> dict:
+def _map_refs(material, refs):
+    """{field: file} for each texture of `material`: refs' (None where not given)."""
+    return {name: (refs or {}).get(name) for name in ("kd", "ks", "shininess")
+            if isinstance(getattr(material, name, None), Texture)}
+
+
+def result_dict(result, init, truth, extra=None, maps=None, truth_maps=None) -> dict:
     """result.json's content: FitResult.as_dict() (without 'errors' when there is no truth),
-    'material' (the full fitted material), 'initial', 'truth' (when known) and `extra`.
-    Non-finite numbers become null and are listed in 'notes'."""
+    'material' (the full fitted material; its maps as {"texture": FILE}, maps: {field:
+    FILE}), 'initial', 'truth' (when known; its maps' files from truth_maps, else null)
+    and `extra`. Non-finite numbers become null and are listed in 'notes'."""
     out = dict(extra or {})
     out |= {k: v for k, v in result.as_dict().items() if not (k == "errors" and v is None)}
     names = result.object_names
-    out["material"] = material_dict(result.material, names)
+    out["material"] = material_dict(result.material, names, _map_refs(result.material, maps))
     out["initial"] = material_dict(init, names)
     if truth is not None:
-        out["truth"] = material_dict(truth, names)
+        out["truth"] = material_dict(truth, names, _map_refs(truth, truth_maps))
     if "objects" in result.values:
         out["objects"] = object_reports(result, truth)
     replaced = []
@@ -317,7 +334,8 @@ def _value_rows(values, truth, errors, se, at_bound, prefix=""):
             for label, v in zip(value_names({name: value}), fitted.ravel(), strict=True):
                 yield label, None, v, se.get(label, _NONE), label in at_bound, None
             continue
-        true = None if truth is None else np.atleast_1d(np.asarray(
+        mapped = truth is not None and isinstance(getattr(truth, name), Texture)
+        true = None if truth is None or mapped else np.atleast_1d(np.asarray(
             _or_zero(getattr(truth, name)), np.float64))
         error = np.atleast_1d(errors[name]) if name in errors else None
         count = max(fitted.size, 1 if true is None else true.size)
@@ -437,11 +455,13 @@ def counted_mask(shape, kept):
 
 
 def write_result(out_dir, dataset, result, init, extra=None, title="", kept=None,
-                 ids=None) -> list:
+                 ids=None, maps=None, truth_maps=None) -> list:
     """Write the result files (module docstring) into out_dir; returns their paths.
     kept: per view, the flat indices of the pixels the fit counted (fitting.model.cache;
     default every pixel), for residual_scale, the residual images and the masks; ids: the
-    number of each view in the file names (default 0, 1, ...)."""
+    number of each view in the file names (default 0, 1, ...); maps: {field: image file,
+    relative to out_dir} of the fitted material's maps (written by the caller), for
+    material.mtl and result.json; truth_maps: {field: file} of the truth's maps."""
     out_dir = os.fspath(out_dir)
     count = len(dataset.views)
     ids = list(range(count)) if ids is None else list(ids)
@@ -459,9 +479,10 @@ def write_result(out_dir, dataset, result, init, extra=None, title="", kept=None
     extra = dict(extra or {}) | {"files": files, "error_gain": ERROR_GAIN,
                                  "residual_scale": scale}
     paths = [write_text(os.path.join(out_dir, files["material"]),
-                        mtl_text(result.material, comment=title, names=result.object_names)),
+                        mtl_text(result.material, comment=title, names=result.object_names,
+                                 maps=maps)),
              write_json(os.path.join(out_dir, "result.json"),
-                        result_dict(result, init, dataset.truth, extra)),
+                        result_dict(result, init, dataset.truth, extra, maps, truth_maps)),
              write_png(os.path.join(out_dir, files["loss_curve"]),
                        loss_curve(result.loss_history, title))]
     given = panel_lights([v.lights for v in dataset.views])

@@ -34,6 +34,7 @@ import warnings
 import jax
 import numpy as np
 
+from diffshade.scene import Texture
 from fitting.data.rounding import dataset_rounding
 from fitting.model.batch import batched, unpadded
 from fitting.model.cache import FitData
@@ -167,8 +168,9 @@ def _pixel_counts(values, data, spec: FitSpec, highlight_threshold):
     program (fitting.solve.linear.view_parts, a chunk at a time for sharded views)."""
     base = fit_data(data)
     material = values_to_material(values, spec, base.material)
-    unit_kd = dataclasses.replace(material, kd=np.ones(np.shape(material.kd),
-                                                       np.asarray(material.kd).dtype))
+    # a kd map counts as a uniform kd here: the question is where light falls
+    kd = material.kd.texels[0, 0] if isinstance(material.kd, Texture) else material.kd
+    unit_kd = dataclasses.replace(material, kd=np.ones(np.shape(kd), np.asarray(kd).dtype))
     lights = values_to_lights(values, spec, base.lights) if "lights" in values else None
 
     def add(total, parts, weight, view, target):

@@ -10,10 +10,15 @@ from fitting.solve.linear import solve_linear
 from fitting.solve.options import FIT_METHODS, METHODS, FitOptions
 from fitting.solve.pose import PoseRefinement, refine_poses
 from fitting.solve.step import make_optimizer, make_step
-from fitting.solve.texture import DEFAULT_SMOOTHNESS, TextureSolution, solve_kd_texture
+from fitting.solve.texture import (
+    DEFAULT_SMOOTHNESS,
+    TextureSolution,
+    solve_kd_texture,
+    solve_texture,
+)
 
 __all__ = [
     "levenberg_marquardt", "solve_linear", "FIT_METHODS", "METHODS", "FitOptions",
     "make_optimizer", "make_step", "PoseRefinement", "refine_poses",
-    "DEFAULT_SMOOTHNESS", "TextureSolution", "solve_kd_texture",
+    "DEFAULT_SMOOTHNESS", "TextureSolution", "solve_kd_texture", "solve_texture",
 ]

@@ -28,6 +28,10 @@ slows plain gradient descent. Only the specular part changes with shininess: whe
 specular coefficient is fitted, the search takes the other parts' sums once and reads only
 the specular part at each shininess (`_fixed_profile`).
 
+A held coefficient may be a texture (a kd or ks map, fitting.texture_run): the parts are
+then computed with the map in place of the unit coefficient (the cache reads it at each
+sample's UV), so its part enters the offset as it is.
+
 Per-view gains (fitting.spec.gains) multiply a view's parts, so with the gains fixed the
 coefficients are still a linear problem, and with the coefficients fixed each view's gain
 per channel is a 1-D least-squares ratio. When the spec fits gains, the two alternate
@@ -43,6 +47,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from diffshade.io import LIGHT_COMPILE, stored_jit
+from diffshade.scene import Texture
 from fitting.model.batch import batched, view_map
 from fitting.model.cache import FitData, pixel_parts
 from fitting.solve.distribute import ShardedViews, fit_data
@@ -56,14 +61,21 @@ GAIN_ROUNDS = 6
 def _unit_material(base, spec, log_shininess):
     """The base material with unit coefficients (shininess exp(log_shininess) when
     fitted), built on the host: its leaves keep the base's dtype, so every call shares
-    view_parts' one compilation."""
+    view_parts' one compilation. A held texture stays: its part is the map's."""
     dtype = base.ka.dtype
     ones = np.ones(3, dtype)
     has_specular = spec.ks is not None or base.ks is not None
     shininess = (np.asarray(np.exp(log_shininess), dtype) if spec.shininess
                  else base.shininess)
-    return dataclasses.replace(base, ka=ones, kd=ones, ks=ones if has_specular else None,
+    kd, ks = (getattr(base, name) if _held_map(base, spec, name) else ones
+              for name in ("kd", "ks"))
+    return dataclasses.replace(base, ka=ones, kd=kd, ks=ks if has_specular else None,
                                shininess=shininess, emission=base.emission)
+
+
+def _held_map(base, spec, name):
+    """Whether coefficient `name` is held fixed as a texture (its part is then the map's)."""
+    return getattr(spec, name) is None and isinstance(getattr(base, name), Texture)
 
 
 def _selection(spec: FitSpec):
@@ -84,7 +96,9 @@ def _offset(parts, spec, base):
     """[V, N, 3]: emission plus the parts of the coefficients held fixed."""
     offset = parts.emission
     for name, part in (("ka", parts.ambient), ("kd", parts.diffuse), ("ks", parts.specular)):
-        if getattr(spec, name) is None and getattr(base, name) is not None:
+        if _held_map(base, spec, name):
+            offset = offset + part
+        elif getattr(spec, name) is None and getattr(base, name) is not None:
             offset = offset + np.asarray(getattr(base, name), np.float64) * part
     return offset
 
