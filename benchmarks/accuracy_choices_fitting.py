@@ -121,8 +121,9 @@ FLOOR_CASES = [
 ]
 
 
-# tests/test_fit_effects' box on a table, the box lifted off the table top: faces that
-# coincide in depth (the box's bottom on the table) leave their order to float rounding
+# tests/test_fit_effects' box on a table, the box lifted off the table top (resting on it,
+# its bottom and the table's top are ordered by the depth test's tie rule,
+# docs/rendering.md#coplanar-faces; tests/test_depth_ties.py fits that case)
 BOX = dict(ka=(0.25, 0.2, 0.15), kd=(0.6, 0.3, 0.2), ks=(0.4, 0.35, 0.3), shininess=30.0)
 TABLE = dict(ka=(0.2, 0.25, 0.3), kd=(0.3, 0.45, 0.7), ks=0.1, shininess=8.0)
 KT = (0.35, 0.5, 0.65)

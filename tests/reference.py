@@ -23,6 +23,9 @@ import math
 
 import numpy as np
 
+#: the depth test's tie width in NDC depth, as documented (docs/rendering.md)
+DEPTH_TIE = 2.0 ** -18
+
 #: light type -> fields it has (the stacked arrays of one light group)
 LIGHT_FIELDS = {
     "ambient": ("ambient",),
@@ -298,7 +301,8 @@ def _in_box(face, px, py):
 
 def rasterize(cam, world, faces, cull_backfaces=False):
     """Naive z-buffer: cam: RefCamera; world: [V, 3] world positions; faces: [F, 3] int.
-    The nearest (smallest NDC z; first face on ties) covering face wins."""
+    The nearest (smallest NDC z) covering face wins; NDC depths within DEPTH_TIE of each
+    other are a tie, which the first face wins (docs/rendering.md#coplanar-faces)."""
     h, w = cam.height, cam.width
     frags = RefFragments(np.full((h, w), -1), np.zeros((h, w, 3)), np.zeros((h, w)),
                          np.zeros((h, w), bool), np.full((h, w), math.inf))
@@ -320,7 +324,7 @@ def rasterize(cam, world, faces, cull_backfaces=False):
                     continue
                 covered, bary, depth, ndc_z, dist = hit
                 frags.edge_dist[row, col] = min(frags.edge_dist[row, col], dist)
-                if covered and ndc_z < best:
+                if covered and ndc_z < best - DEPTH_TIE:  # faces come in index order
                     best = ndc_z
                     frags.face_ids[row, col] = f
                     frags.bary[row, col] = bary

@@ -23,8 +23,9 @@ the projected triangle is a candidate when its squared distance to the triangle 
 radius_px^2, with the depth taken at the clamped barycentrics. Faces that cross the near
 plane are culled in soft mode (their screen-space triangle is not defined).
 
-Each pixel keeps its k best faces (hard: by NDC depth; soft: by blend weight) in a small
-list sorted by (key, face id); every candidate fragment that does not fit is counted in
+Each pixel keeps its k best faces in a small list: hard mode nearest first by NDC depth,
+depths within DEPTH_TIE tied and ordered by face id (_depth_after); soft mode sorted by
+(blend weight key, face id). Every candidate fragment that does not fit is counted in
 `dropped`. The soft key is a float64 sum with libm's log1p and exp; the soft search
 brackets it first without libm (_key_bracket) and calls libm only where the bracket does
 not decide its bits.
@@ -109,6 +110,50 @@ def _insert(ids, keys, filled, pixel, face, key):
         slot -= 1
     ids[pixel, slot] = face
     keys[pixel, slot] = key
+    return fell
+
+
+#: the depth test's tie width, in NDC depth: hard raster orders covering fragments nearest
+#: first, and two whose NDC depths differ by at most DEPTH_TIE are equally near, the lower
+#: face index first (docs/rendering.md#coplanar-faces). Coplanar faces of two objects (a
+#: box resting on a table) differ in depth by the rounding of their projections, a few
+#: float32 ulps, which is not the same on every path (the fitting cache's programs,
+#: render's, float32 or float64, the host or the JAX search): the tie width makes their
+#: order the same on all of them. 2^-18 is 64 float32 ulps just below 1 and 32 steps of a
+#: 24-bit depth buffer; for a perspective camera it is an eye-space gap of about
+#: DEPTH_TIE * depth^2 / (2 near).
+DEPTH_TIE = 2.0 ** -18
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _depth_after(depth, face, other_depth, other_face):
+    """Whether the fragment (depth, face) comes after (other_depth, other_face) in hard
+    raster's order: farther by more than DEPTH_TIE, or a tie (within DEPTH_TIE) and a
+    higher face index. Exactly one of two fragments of distinct faces comes after the
+    other."""
+    return depth > other_depth + DEPTH_TIE or (depth >= other_depth - DEPTH_TIE
+                                               and face > other_face)
+
+
+@numba.njit(cache=True, nogil=True)
+def _insert_nearest(ids, keys, filled, pixel, face, depth):
+    """_insert by hard raster's order (_depth_after) instead of (key, face): the faces come
+    in ascending index order (_search_hard), and search_tiles repeats these steps."""
+    k = ids.shape[1]
+    slot = filled[pixel]
+    if slot == k:
+        if _depth_after(depth, face, keys[pixel, k - 1], ids[pixel, k - 1]):
+            return 1
+        slot, fell = k - 1, 1
+    else:
+        filled[pixel] = slot + 1
+        fell = 0
+    while slot > 0 and _depth_after(keys[pixel, slot - 1], ids[pixel, slot - 1], depth, face):
+        ids[pixel, slot] = ids[pixel, slot - 1]
+        keys[pixel, slot] = keys[pixel, slot - 1]
+        slot -= 1
+    ids[pixel, slot] = face
+    keys[pixel, slot] = depth
     return fell
 
 
@@ -223,7 +268,8 @@ def _search_hard(clips, faces, width, height, k, cull_backfaces, bands):
                     z = _covered_depth(view_coeffs, view_tri, f,
                                        (2.0 * col + 1.0) / width - 1.0, y)
                     if z < np.inf:
-                        dropped[band] += _insert(ids, keys, filled, row * width + col, f, z)
+                        pixel = row * width + col
+                        dropped[band] += _insert_nearest(ids, keys, filled, pixel, f, z)
     return all_ids, all_dropped.sum(1)
 
 

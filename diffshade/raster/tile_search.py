@@ -12,9 +12,11 @@ Two steps, both with static shapes, repeated in passes:
    memory stays bounded. Pass p gives each tile the faces ranked p * capacity to
    (p + 1) * capacity - 1 among those that touch it, lowest face ids first.
 2. Evaluation. Each pixel tests only its tile's list (cost pixels x capacity, never
-   pixels x faces) and merges the keys with the best k of the earlier passes by
-   `lax.top_k`, which puts equal keys in list order: lower face id first (earlier passes
-   hold lower ids), as the host's stable insertion does.
+   pixels x faces) and merges the keys with the best k of the earlier passes. Soft mode
+   merges by `lax.top_k`, which puts equal keys in list order: lower face id first
+   (earlier passes hold lower ids), as the host's stable insertion does. Hard mode inserts
+   the faces one at a time in ascending id order (a loop), as the host does: its
+   depth test's ties (depths within candidates.DEPTH_TIE) are not a sort by key.
 There are as many passes as the most crowded tile needs (a `lax.while_loop`; one where
 no tile holds more than `capacity` faces), so no face is ever left untested: a dense mesh
 in a small image costs more passes, not wrong pixels.
@@ -33,6 +35,8 @@ always computes in float64), so there pixels on edges and near-tied faces may di
 import jax
 import jax.numpy as jnp
 from jax import lax
+
+from diffshade.host.candidates import DEPTH_TIE
 
 NEXT = (1, 2, 0)   # vertex i's edge runs to NEXT[i]
 PREV = (2, 0, 1)
@@ -258,6 +262,53 @@ def _merge(keys, ids, best_keys, best_ids):
     return jnp.take_along_axis(keys, slot, -1), jnp.take_along_axis(ids, slot, -1)
 
 
+def _depth_after(depth, face, other_depth, other_face):
+    """candidates._depth_after elementwise: (depth, face) comes after (other_depth,
+    other_face) in hard raster's order (farther by more than DEPTH_TIE, or tied and of a
+    higher face index)."""
+    return ((depth > other_depth + DEPTH_TIE)
+            | ((depth >= other_depth - DEPTH_TIE) & (face > other_face)))
+
+
+def _insert_nearest(best, fragment):
+    """candidates._insert_nearest for every pixel at once: the fragment (depth [P], +inf
+    where it does not cover the pixel; face [P]) inserted into the lists best = (depths,
+    ids) [P, k] (entries first, +inf after), each in hard raster's order."""
+    depths, ids = best
+    depth, face = fragment[0], fragment[1][:, None]
+    k = depths.shape[-1]
+    slots = jnp.arange(k)
+    full = depths[:, -1] < jnp.inf
+    start = jnp.where(full, k - 1, jnp.sum(depths < jnp.inf, -1))  # where the host starts
+    rejected = (depth == jnp.inf) | (full & _depth_after(depth, face[:, 0], depths[:, -1],
+                                                          ids[:, -1]))
+    # the host moves the fragment forward past every entry after it, from `start` on
+    stays = (slots < start[:, None]) & ~_depth_after(depths, ids, depth[:, None], face)
+    slot = jnp.max(jnp.where(stays, slots + 1, 0), -1)[:, None]
+    moved = (slots > slot) & (slots <= start[:, None])
+    shift = lambda a: jnp.concatenate([a[:, :1], a[:, :-1]], -1)  # entry j - 1 at j
+    new = [jnp.where(slots == slot, value, jnp.where(moved, shift(a), a))
+           for a, value in ((depths, depth[:, None]), (ids, face))]
+    return tuple(jnp.where(rejected[:, None], a, b) for a, b in zip(best, new, strict=True))
+
+
+def _insert_pass(keys, ids, best_keys, best_ids):
+    """A pass's depths [P, C] (faces ids [C], ascending) inserted one face at a time into
+    the earlier passes' lists (best_keys, best_ids [P, k]), as the host inserts them: (keys,
+    ids) [P, k]. Hard raster's order has ties within DEPTH_TIE, which no sort by key
+    (top_k) can express, and inserting in the host's order gives the host's lists even
+    where ties chain. Each pixel's covering faces are first packed to the front, in id
+    order, so the loop runs as many steps as the most covered pixel has faces, not C."""
+    covers = keys < jnp.inf
+    rank = jnp.where(covers, jnp.cumsum(covers, -1) - 1, keys.shape[-1])  # out: dropped
+    rows = jnp.arange(keys.shape[0])[:, None]
+    packed_keys = jnp.full_like(keys, jnp.inf).at[rows, rank].set(keys, mode="drop")
+    packed_ids = jnp.full(keys.shape, -1, ids.dtype).at[rows, rank].set(
+        jnp.broadcast_to(ids, keys.shape), mode="drop")
+    step = lambda i, best: _insert_nearest(best, (packed_keys[:, i], packed_ids[:, i]))
+    return lax.fori_loop(0, covers.sum(-1).max(), step, (best_keys, best_ids))
+
+
 def _tile_pixels(origin, tile, width, height, dtype):
     """Pixel (row, col) [P, 1] int32 of a tile at origin (row0, col0), P = tile^2, with
     the host's NDC centres (x, y) and pixel centres (px, py) [P, 1] in dtype."""
@@ -316,7 +367,8 @@ def search_tiles(clip, faces, near, far, radius_px, sigma, gamma, *, width, heig
         tested = _in_box(box[jnp.maximum(ids, 0)], row, col) & (ids >= 0)
         keys = jnp.where(tested, keys, jnp.inf)
         reached = reached + (keys < jnp.inf).sum(-1, dtype=jnp.int32)
-        return (*_merge(keys, ids, best_keys, best_ids), reached)
+        merge = _merge if soft else _insert_pass
+        return (*merge(keys, ids, best_keys, best_ids), reached)
 
     def search_pass(p, state):
         tile_faces, _ = _bin_faces(box, tiles_x, tiles_y, tile, capacity, p * capacity)
