@@ -17,18 +17,25 @@ Layout (chosen so that the data separate every parameter):
 Targets are float renders, optionally scaled by a per-image camera gain (exposure and
 white balance, applied to the unclamped render before the [0, 1] clip, as a sensor
 would), with Gaussian noise and 8-bit quantization.
+
+Each target is `diffshade.render`'s image, computed by its two public halves: every view's
+fragments by `rasterize_scene` of the view without its lights, then `render_fragments`
+with the lights. The images are the same bit for bit (tests/test_data_synth.py), and the
+rasterization, the larger part of a render's compilation, compiles once for all views
+instead of once per light layout (a directional and a point light: two programs).
 """
 
 import dataclasses
 import os
 
+import jax
 import numpy as np
 
 import diffshade as ds
 from data_synth.materials import procedural_kd, random_material
 from diffshade.budget import check, image_bytes
 from diffshade.numerics import float_dtype
-from diffshade.scene import MAX_IMAGE_SIZE, transform_points
+from diffshade.scene import MAX_IMAGE_SIZE, LightGroups, transform_points
 from fitting.data.views import Dataset, View, view_scene
 
 SHAPES = ("icosphere", "torus", "box")
@@ -156,13 +163,22 @@ def _check_gains(gains, n_images):
     return arr
 
 
-def _render_target(scene, settings, gain):
-    """The float render of scene; with a gain, the unclamped render times the gain (the
+# render's second half, compiled as render compiles it (default XLA options)
+_render_fragments = jax.jit(ds.render_fragments)
+
+
+def _render_target(dataset, index, gain):
+    """The float render of view `index` with the truth (module docstring: rasterized
+    without the view's lights); with a gain, the unclamped render times the gain (the
     clip to [0, 1] is degrade's, as a sensor's after its gain)."""
+    settings = dataset.settings
+    frags = ds.rasterize_scene(view_scene(dataset, index, dataset.truth, LightGroups()),
+                               settings)
+    scene = view_scene(dataset, index, dataset.truth)
     if gain is None:
-        return np.asarray(ds.render(scene, settings))[..., :3]
+        return np.asarray(_render_fragments(scene, frags, settings))[..., :3]
     unclamped = dataclasses.replace(settings, clamp=False)
-    return np.asarray(ds.render(scene, unclamped))[..., :3] * gain
+    return np.asarray(_render_fragments(scene, frags, unclamped))[..., :3] * gain
 
 
 def _scene_geometry(scene, material):
@@ -237,8 +253,8 @@ def make_dataset(shape="icosphere", material=None, *, n_views=3, n_lights=2, siz
         camera = ds.look_at(eye, (0.0, 0.0, 0.0), width=size, height=size, fov_y=40.0)
         views += [View(camera, [light], blank) for light in view_lights(eye, n_lights)]
     dataset = Dataset(views=views, settings=settings, **geometry)
-    images = [_render_target(view_scene(dataset, i, dataset.truth), settings,
-                             None if gains is None else gains[i]) for i in range(len(views))]
+    images = [_render_target(dataset, i, None if gains is None else gains[i])
+              for i in range(len(views))]
     views = [View(v.camera, v.lights, degrade(img, rng, noise_std, quantize_8bit,
                                               settings.clamp))
              for v, img in zip(views, images, strict=True)]

@@ -175,13 +175,16 @@ def _installed_commands():
 COMMANDS = {"render": _register_render, **_installed_commands()}
 
 
-def build_parser():
-    """The argument parser with every command of `COMMANDS` registered."""
+def build_parser(command=None):
+    """The argument parser with every command of `COMMANDS` registered, or only `command`
+    when it names one: registering a command imports its module, and the applications'
+    (fit, synth) import fitting, optax and SciPy, which `diffshade render` does not need."""
     parser = _Parser(prog="diffshade",
                      description="diffshade: a differentiable Blinn-Phong renderer.")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for register in COMMANDS.values():
-        register(subparsers)
+    for name, register in COMMANDS.items():
+        if command not in COMMANDS or name == command:
+            register(subparsers)
     return parser
 
 
@@ -206,7 +209,9 @@ def program() -> int:
 def main(argv=None) -> int:
     """Run the command line on argv (default sys.argv[1:]); returns the exit status."""
     compile_cache.enable()
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    # the command is the first argument (the program itself has no options but --help)
+    parser = build_parser(argv[0] if argv else None)
     try:
         try:
             args = parser.parse_args(argv)

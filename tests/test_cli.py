@@ -185,6 +185,21 @@ def test_commands_are_render_and_the_installed_entry_points():
     assert loaded == {"fit": register_fit, "import": register_import, "synth": register_synth}
 
 
+def test_a_command_registers_only_its_own_parser():
+    """`diffshade render` imports none of the applications (fitting, optax, SciPy), which
+    take a fresh process about as long to import as diffshade itself."""
+    code = ("import sys; from diffshade import cli; "
+            "names = lambda p: sorted(p._subparsers._group_actions[0].choices); "
+            "print(names(cli.build_parser('render')), "
+            "sorted(m for m in ('fitting', 'data_synth', 'optax', 'scipy.optimize') "
+            "if m in sys.modules), names(cli.build_parser('nothing')), "
+            "names(cli.build_parser()))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          check=True, timeout=300)
+    every = sorted(cli.COMMANDS)
+    assert done.stdout.strip() == f"{['render']} [] {every} {every}"
+
+
 def test_a_command_in_the_table_is_dispatched(monkeypatch, capsys):
     monkeypatch.setitem(cli.COMMANDS, "hello", hello_command)
     assert cli.main(["hello", "world"]) == 7

@@ -2,6 +2,7 @@
 (checked on diffshade.render_parts images), noise and quantization statistics, and the
 dataset folder round trip (including re-rendering the saved scene files)."""
 
+import dataclasses
 import json
 import os
 import re
@@ -124,6 +125,28 @@ def test_save_load_round_trip(sphere_data, tmp_path):
         np.testing.assert_allclose(getattr(loaded.truth, name), getattr(MAT, name), rtol=1e-7)
     with open(tmp_path / "truth.json", encoding="utf-8") as file:
         assert json.load(file)["shininess"] == pytest.approx(40.0)
+
+
+def test_targets_are_the_renders_bit_for_bit():
+    """make_dataset renders each view by rasterize_scene (without its lights) and
+    render_fragments: exactly diffshade.render's image, with a gain too (the unclamped
+    render times the gain, then clipped), and one rasterization program for both light
+    layouts (a directional and a point light)."""
+    from diffshade.pipeline.rendering import _rasterize_scene
+
+    rasterizations = _rasterize_scene._cache_size()
+    gains = [2.0, 0.5]
+    dataset = make_dataset(SPHERE, MAT, n_views=1, n_lights=2, size=24, seed=1, gains=gains)
+    assert _rasterize_scene._cache_size() == rasterizations + 1
+    unclamped = dataclasses.replace(dataset.settings, clamp=False)
+    for i, view in enumerate(dataset.views):
+        image = np.asarray(ds.render(view_scene(dataset, i, MAT), unclamped))[..., :3]
+        want = np.clip(image.astype(np.float64) * gains[i], 0.0, 1.0).astype(np.float32)
+        np.testing.assert_array_equal(view.target, want)
+    plain = make_dataset(SPHERE, MAT, n_views=1, n_lights=2, size=24, seed=1)
+    for i, view in enumerate(plain.views):
+        image = np.asarray(ds.render(view_scene(plain, i, MAT), plain.settings))[..., :3]
+        np.testing.assert_array_equal(view.target, image)
 
 
 def test_saved_scene_files_render_the_targets(sphere_data, tmp_path):

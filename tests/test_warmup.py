@@ -29,6 +29,12 @@ from diffshade.host import warmup
 print(json.dumps(warmup.pending(sys.argv[1:])))
 """
 
+_LOCK_PATH = """
+import json
+from diffshade.host import warmup
+print(json.dumps(warmup.lock_path()))
+"""
+
 
 def _env(numba_dir, **extra):
     env = {k: v for k, v in os.environ.items() if k not in (warmup.SWITCH, AUTO_KERNELS)}
@@ -79,3 +85,16 @@ def test_one_warmup_at_a_time(tmp_path, monkeypatch):
     with open(warmup.lock_path(), "a") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         assert warmup.compile_targets(["diffshade_active"]) is False
+        assert warmup.running()
+    assert not warmup.running()
+
+
+def test_a_run_while_a_warmup_compiles_starts_no_second(tmp_path):
+    """The second command of a script (synth, then fit) finds the first one's warm-up
+    compiling: it takes the JAX kernels too, and starts no warm-up of its own."""
+    env = _env(tmp_path)
+    targets = list(warmup.COMMAND_TARGETS)
+    with open(_run(_LOCK_PATH, env), "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        assert _run(_COLD_START, env) == [targets, "jax", []]
+    assert _run(_COLD_START, env) == [targets, "jax", targets]

@@ -12,6 +12,10 @@ detached process of low priority that compiles the pending handlers into numba's
 (`start`). The runs after it find them there and use the host kernels. The two paths
 render the same images (to float rounding: tests/test_tile_search.py, test_transforms.py).
 
+The warm-up runs at the lowest priority (`NICENESS`): on a machine of few cores it takes
+little from the run that started it, nor from the next command of a script, which finds
+the warm-up still running (its lock held) and starts no second one.
+
 Nothing happens where DIFFSHADE_WARMUP=0 or DIFFSHADE_KERNELS is set in the environment,
 where 'auto' does not mean the host kernels anyway (another backend, several devices), or
 where the handlers are not used (DIFFSHADE_FFI=0, ffi.unavailable). One warm-up process
@@ -33,8 +37,10 @@ SWITCH = "DIFFSHADE_WARMUP"
 #: hard raster)
 COMMAND_TARGETS = ("diffshade_search_hard_f32_i32", "diffshade_geometry_forward_f32",
                    "diffshade_interpolate_forward_f32")
-#: the warm-up process's niceness: it gives way to the run it was started by
-NICENESS = 10
+#: the warm-up process's niceness, the lowest priority: where it shares a core with the run
+#: it was started by, it takes ~1.5 % of it (niceness 10: ~10 %); not the idle scheduling
+#: policy, under which a busy machine would starve it for hours
+NICENESS = 19
 
 
 def pending(targets=COMMAND_TARGETS):
@@ -79,7 +85,8 @@ def cold_start():
     missing = pending()
     if missing:
         os.environ[AUTO_KERNELS] = "jax"
-        start(missing)
+        if not running():
+            start(missing)
     return missing
 
 
@@ -99,6 +106,17 @@ def lock_path():
     place = os.environ.get("NUMBA_CACHE_DIR", "") + "\0" + os.path.abspath(ffi.__file__)
     digest = hashlib.sha256(place.encode()).hexdigest()[:16]
     return os.path.join(tempfile.gettempdir(), f"diffshade-warmup-{os.getuid()}-{digest}.lock")
+
+
+def running():
+    """Whether a warm-up of this numba cache holds its lock (is compiling) now."""
+    with open(lock_path(), "a") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        fcntl.flock(lock, fcntl.LOCK_UN)
+        return False
 
 
 def wait():

@@ -21,6 +21,12 @@ There are as many passes as the most crowded tile needs (a `lax.while_loop`; one
 no tile holds more than `capacity` faces), so no face is ever left untested: a dense mesh
 in a small image costs more passes, not wrong pixels.
 
+Compiled size: the program holds one copy of each step. The first pass is the loop's
+first iteration (it also counts the passes), not a copy of the loop body before it, and
+the tile count is padded to a multiple of each `lax.map`'s batch (tiles outside the image,
+which no face touches), so that `lax.map` compiles no second body for a remainder. This
+halves the search's compile time, which a fresh install's first render waits for.
+
 Bit-exactness: the arithmetic mirrors candidates.py operation by operation, and every
 product that feeds an addition goes through `_rounded`, because XLA's CPU backend would
 otherwise fuse it into an FMA (one rounding instead of two) and move coverage decisions
@@ -151,13 +157,13 @@ def _soft_faces(clip, faces, width, height, cull_backfaces, radius_px):
     return data, _mask_box(jnp.stack([c0, c1, r0, r1], -1), ok)
 
 
-def _bin_faces(box, tiles_x, tiles_y, tile, capacity, first):
+def _bin_faces(box, tiles, tiles_x, tile, capacity, first):
     """Per tile, the faces ranked first .. first + capacity - 1 (ascending ids) among those
-    whose pixel box [F, 4] touches it: [T, capacity] int32 (-1 = empty), T = tiles_y *
-    tiles_x in row-major order; and how many faces touch each tile: [T] int32. Cost T x F,
-    in chunks of tiles."""
-    faces = box.shape[0]
-    ty, tx = jnp.divmod(jnp.arange(tiles_x * tiles_y, dtype=jnp.int32), tiles_x)
+    whose pixel box [F, 4] touches it: [T, capacity] int32 (-1 = empty), T = tiles (the
+    image's tiles in row-major order, tiles_x a row, then padding tiles below the image,
+    which no face touches); and how many faces touch each tile: [T] int32. Cost T x F, in
+    chunks of tiles (_bin_batch)."""
+    ty, tx = jnp.divmod(jnp.arange(tiles, dtype=jnp.int32), tiles_x)
 
     def one_tile(origin):
         row, col = origin
@@ -167,8 +173,25 @@ def _bin_faces(box, tiles_x, tiles_y, tile, capacity, first):
         ids = jnp.nonzero(hit & (rank >= first), size=capacity, fill_value=-1)[0]
         return ids.astype(jnp.int32), hit.sum(dtype=jnp.int32)
 
-    batch = max(1, min(tiles_x * tiles_y, BIN_ELEMENTS // max(faces, 1)))
-    return lax.map(one_tile, (ty * tile, tx * tile), batch_size=batch)
+    return lax.map(one_tile, (ty * tile, tx * tile), batch_size=_bin_batch(tiles, box))
+
+
+def _tile_batches(tiles, most):
+    """(padded tile count, tiles per lax.map step): at most `most` tiles a step, in as few
+    steps as that allows, the count padded to a whole number of steps (fewer than one
+    padding tile per step)."""
+    steps = -(-tiles // max(1, min(tiles, most)))
+    batch = -(-tiles // steps)
+    return steps * batch, batch
+
+
+def _bin_batch(tiles, box):
+    """Tiles binned per lax.map step: at most BIN_ELEMENTS (tile, face) pairs, and a
+    divisor of `tiles`, so that lax.map has no remainder to compile a second body for."""
+    batch = max(1, min(tiles, BIN_ELEMENTS // max(box.shape[0], 1)))
+    while tiles % batch:
+        batch -= 1
+    return batch
 
 
 def _owns_edge(e, a, b, s):
@@ -351,9 +374,9 @@ def search_tiles(clip, faces, near, far, radius_px, sigma, gamma, *, width, heig
     else:
         data, box = _hard_faces(clip, faces, width, height, cull_backfaces)
     tiles_x, tiles_y = -(-width // tile), -(-height // tile)
-    tiles = jnp.arange(tiles_x * tiles_y, dtype=jnp.int32)
-    origins = (tiles // tiles_x * tile, tiles % tiles_x * tile)
-    batch = max(1, TILE_ELEMENTS // (tile * tile * capacity))
+    tiles, batch = _tile_batches(tiles_x * tiles_y, TILE_ELEMENTS // (tile * tile * capacity))
+    origins = jnp.divmod(jnp.arange(tiles, dtype=jnp.int32), tiles_x)
+    origins = (origins[0] * tile, origins[1] * tile)
 
     def one_tile(args):
         ids, origin, best_keys, best_ids, reached = args
@@ -370,17 +393,23 @@ def search_tiles(clip, faces, near, far, radius_px, sigma, gamma, *, width, heig
         merge = _merge if soft else _insert_pass
         return (*merge(keys, ids, best_keys, best_ids), reached)
 
-    def search_pass(p, state):
-        tile_faces, _ = _bin_faces(box, tiles_x, tiles_y, tile, capacity, p * capacity)
-        return lax.map(one_tile, (tile_faces, origins, *state), batch_size=batch)
+    def search_pass(state):
+        # pass p: the faces ranked p * capacity ... in each tile; the first pass also
+        # says how many passes the most crowded tile needs
+        p, passes, *best = state
+        tile_faces, touching = _bin_faces(box, tiles, tiles_x, tile, capacity, p * capacity)
+        passes = jnp.where(p == 0, (touching.max() + capacity - 1) // capacity, passes)
+        best = lax.map(one_tile, (tile_faces, origins, *best), batch_size=batch)
+        return (p + 1, passes, *best)
 
-    pixels = (tiles_x * tiles_y, tile * tile)
+    pixels = (tiles, tile * tile)
     empty = (jnp.full(pixels + (k,), jnp.inf, dtype), jnp.full(pixels + (k,), -1, jnp.int32),
              jnp.zeros(pixels, jnp.int32))
-    tile_faces, touching = _bin_faces(box, tiles_x, tiles_y, tile, capacity, 0)
-    state = lax.map(one_tile, (tile_faces, origins, *empty), batch_size=batch)
-    passes = (touching.max() + capacity - 1) // capacity
-    best_keys, ids, reached = lax.fori_loop(1, passes, search_pass, state)
+    _, _, best_keys, ids, reached = lax.while_loop(lambda state: state[0] < state[1],
+                                                   search_pass,
+                                                   (jnp.int32(0), jnp.int32(1), *empty))
+    image_tiles = tiles_x * tiles_y
+    best_keys, ids, reached = best_keys[:image_tiles], ids[:image_tiles], reached[:image_tiles]
     ids = jnp.where(best_keys < jnp.inf, ids, -1)
     ids = ids.reshape(tiles_y, tiles_x, tile, tile, k).transpose(0, 2, 1, 3, 4)
     ids = ids.reshape(tiles_y * tile, tiles_x * tile, k)[:height, :width]

@@ -49,6 +49,7 @@ from diffshade.io import (
     write_png,
     write_text,
 )
+from diffshade.numerics import float_dtype
 from diffshade.pipeline import render_fragments
 from diffshade.scene import Texture, unstack_material
 from diffshade.shading import shadow_maps
@@ -411,17 +412,22 @@ def comparison_table(result, truth=None, status=None) -> str:
 _render_fragments = stored_jit(render_fragments, compiler_options=FAST_COMPILE)
 
 
-def render_rgb(dataset, index, material, lights=None):
+def render_rgb(dataset, index, material, lights=None, fragments=None):
     """View `index` rendered with `material` (and `lights`, default the view's): [H, W, 3]
     float64, equal to diffshade.render up to float rounding. The geometry is the fit's,
     fixed: the fragments come from fitting.model.cache.fixed_fragments and the shading runs in
     jax.numpy (settings.kernels 'jax'), so no program here has a host callback and the
     persistent compilation cache keeps them all; unless a light casts shadows (the maps
-    are then rasterized as the settings say)."""
+    are then rasterized as the settings say). fragments: a dict {layers: (Projected,
+    Fragments)} of this view that the call fills, for a caller that renders the view
+    again (the panels: the fitted and the initial material), which then rasterizes once."""
     scene = view_scene(dataset, index, material, lights)
     settings = dataset.settings
-    proj, frags = fixed_fragments(geometry_scene(dataset, index), settings,
-                                  layers_needed(scene, settings))
+    fragments = {} if fragments is None else fragments
+    layers = layers_needed(scene, settings)
+    if layers not in fragments:
+        fragments[layers] = fixed_fragments(geometry_scene(dataset, index), settings, layers)
+    proj, frags = fragments[layers]
     if jax.eval_shape(lambda s: shadow_maps(s, settings), scene) is None:
         settings = dataclasses.replace(settings, kernels="jax")
     return np.asarray(_render_fragments(scene, frags, settings, proj=proj))[..., :3].astype(
@@ -466,8 +472,13 @@ def write_result(out_dir, dataset, result, init, extra=None, title="", kept=None
     count = len(dataset.views)
     ids = list(range(count)) if ids is None else list(ids)
     materials = view_materials(result.material, result.values, count)  # per-view gains
-    lights = panel_lights(result.lights)
-    fitted = [render_rgb(dataset, i, materials[i], lights[i]) for i in range(count)]
+    lights, given = panel_lights(result.lights), panel_lights([v.lights for v in dataset.views])
+    fitted, initial = [], []
+    for i in range(count):  # each view rasterized once for both of its renders
+        fragments = {}
+        fitted.append(render_rgb(dataset, i, materials[i], lights[i], fragments))
+        # kept until its panel in the dtype it was rendered in (float64 adds nothing)
+        initial.append(render_rgb(dataset, i, init, given[i], fragments).astype(float_dtype()))
     residuals = [f - v.target for f, v in zip(fitted, dataset.views, strict=True)]
     kept = kept or [np.arange(v.target.shape[0] * v.target.shape[1]) for v in dataset.views]
     scale = residual_scale(residuals, kept)
@@ -485,10 +496,8 @@ def write_result(out_dir, dataset, result, init, extra=None, title="", kept=None
                         result_dict(result, init, dataset.truth, extra, maps, truth_maps)),
              write_png(os.path.join(out_dir, files["loss_curve"]),
                        loss_curve(result.loss_history, title))]
-    given = panel_lights([v.lights for v in dataset.views])
     for i in range(count):
-        image = panel(dataset.views[i].target, render_rgb(dataset, i, init, given[i]),
-                      fitted[i])
+        image = panel(dataset.views[i].target, initial[i], fitted[i])
         paths.append(write_png(os.path.join(out_dir, files["views"][i]), image))
     for i, r in enumerate(residuals):
         counted = counted_mask(r.shape, kept[i])

@@ -44,7 +44,6 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from diffshade.io import LIGHT_COMPILE, stored_jit
 from diffshade.scene import Texture
@@ -309,6 +308,10 @@ def _search_shininess(data, spec, shininess_range, grid_size, gains=None):
     grid = np.linspace(np.log(shininess_range[0]), np.log(shininess_range[1]), grid_size)
     best, profile = _grid_minimum(misfit, grid)
     lo, hi = grid[max(best - 1, 0)], grid[min(best + 1, grid_size - 1)]
+    # imported here: SciPy's optimize takes longer to import than the rest of a
+    # `diffshade synth`, which imports this module (through fitting) but never searches
+    from scipy.optimize import minimize_scalar
+
     refined = minimize_scalar(misfit, bounds=(lo, hi), method="bounded",
                               options={"xatol": 1e-6})
     return float(refined.x) if refined.fun <= profile[best] else float(grid[best])
