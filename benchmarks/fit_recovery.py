@@ -10,7 +10,7 @@ For every coefficient channel and shininess it prints the median and the worst r
 error over the fits, and the wall time per fit after compilation (median): before the
 timed fits one warm-up fit on another material compiles everything, and its time is
 reported apart. The bars of the issue: median < 0.5 % and worst < 2 % (float targets),
-worst < 3 % (8-bit targets). Writes JSON (default results/fit_recovery.json).
+worst < 3 % (8-bit targets). Writes JSON (default benchmarks/results/fit_recovery.json).
 
     python benchmarks/fit_recovery.py [--quick] [--n 30] [--no-adam]
 
@@ -134,13 +134,14 @@ def parse_args(argv):
     parser.add_argument("--srgb", action="store_true",
                         help="compare linear .npy with 8-bit sRGB PNG targets (docstring)")
     parser.add_argument("--out", default=None,
-                        help="JSON output (default results/fit_recovery.json, or "
-                             "results/fit_recovery_srgb.json with --srgb)")
+                        help="JSON output (default benchmarks/results/fit_recovery.json, or "
+                             "benchmarks/results/fit_recovery_srgb.json with --srgb)")
     args = parser.parse_args(argv)
     if args.quick:
         args.n, args.adam_steps = 5, 500
-    args.out = args.out or ("results/fit_recovery_srgb.json" if args.srgb
-                            else "results/fit_recovery.json")
+    results = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
+    args.out = args.out or os.path.join(results, "fit_recovery_srgb.json" if args.srgb
+                                        else "fit_recovery.json")
     return args
 
 
