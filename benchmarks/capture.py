@@ -276,13 +276,27 @@ def report(figures):
           "render, per view: " + ", ".join(f"{v:.4f}" for v in figures["silhouette_iou"]))
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--spp", type=int, default=16, help="Mitsuba samples per pixel")
+
+def add_photo_options(parser):
+    """The options of how the photos are made (this script and texture_capture.py)."""
     parser.add_argument("--oversample", type=int, default=3,
                         help="the pinhole render's resolution over the photo's")
     parser.add_argument("--lens-samples", type=int, default=3,
                         help="sub-pixel positions a side per photo pixel")
+
+
+def not_run(shots):
+    """Whether photograph() said Mitsuba did not run (a message: printed here)."""
+    if isinstance(shots, str):
+        print(f"Mitsuba 3 did not run ({shots}); pip install '.[peers]' and see "
+              "docs/performance.md")
+    return isinstance(shots, str)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--spp", type=int, default=16, help="Mitsuba samples per pixel")
+    add_photo_options(parser)
     parser.add_argument("--steps", type=int, default=50, help="diffshade fit --steps")
     parser.add_argument("--data", help="write the dataset and result here (default: a "
                         "temporary folder)")
@@ -290,9 +304,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     record = run_record()
     shots = photograph(args)
-    if isinstance(shots, str):
-        print(f"Mitsuba 3 did not run ({shots}); pip install '.[peers]' and see "
-              "docs/performance.md")
+    if not_run(shots):
         return
     with tempfile.TemporaryDirectory() as tmp:
         folder = args.data or tmp

@@ -60,7 +60,17 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import peers  # noqa: E402
-from capture import DIST, HEIGHT, VARIANT, WIDTH, K, mitsuba_pinhole, opencv_pose  # noqa: E402
+from capture import (  # noqa: E402
+    DIST,
+    HEIGHT,
+    VARIANT,
+    WIDTH,
+    K,
+    add_photo_options,
+    mitsuba_pinhole,
+    not_run,
+    opencv_pose,
+)
 from common import finish_record, run_record  # noqa: E402
 from lens import lens_photo, pinhole_frame  # noqa: E402
 
@@ -330,19 +340,14 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--res", type=int, default=64, help="the texture's side (texels)")
     parser.add_argument("--spp", type=int, default=16, help="Mitsuba samples per pixel")
-    parser.add_argument("--oversample", type=int, default=3,
-                        help="the pinhole render's resolution over the photo's")
-    parser.add_argument("--lens-samples", type=int, default=3,
-                        help="sub-pixel positions a side per photo pixel")
+    add_photo_options(parser)
     parser.add_argument("--data", help="write the datasets and the result here (default: a "
                         "temporary folder)")
     parser.add_argument("--out", default=str(ROOT / "benchmarks/results/texture_capture.json"))
     args = parser.parse_args(argv)
     record = run_record()
     shots = photograph(args)
-    if isinstance(shots, str):
-        print(f"Mitsuba 3 did not run ({shots}); pip install '.[peers]' and see "
-              "docs/performance.md")
+    if not_run(shots):
         return
     shots, photos_s = shots
     fitted = [i for i in range(len(VIEWS)) if i != HOLDOUT]

@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_textures import grid_laplacian
 
 import diffshade as ds
 import fitting
@@ -142,12 +143,7 @@ def test_the_ks_map_in_closed_form_is_dense_least_squares(x64):
     seen = weight.reshape(res, res, 3).max(-1) > 1e-9 * weight.mean()
     assert seen.all()  # every texel of so coarse a map is near some highlight
     lam = 0.1 * weight.mean()
-    lap = np.zeros((res * res, res * res))
-    for r in range(res):
-        for c in range(res):
-            for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
-                lap[r * res + c, r * res + c] += 1
-                lap[r * res + c, ((r + dr) % res) * res + (c + dc) % res] -= 1
+    lap = grid_laplacian(res)
     want = np.linalg.solve(normal + lam * np.kron(lap, np.eye(3)), rhs).reshape(res, res, 3)
     np.testing.assert_allclose(solved.lam, lam, rtol=1e-9)
     np.testing.assert_allclose(solved.texels, want, atol=1e-8)
