@@ -45,10 +45,12 @@ def test_active_indices_equal_numpy(capacity, host):
 
 
 @pytest.mark.parametrize("host", [True, False])
-@pytest.mark.parametrize("capacity", [40, 60, 120, 200])
+@pytest.mark.parametrize("capacity", [40, 60, 120, 200, (20, 40), (40, 60), (50, 100)])
 def test_values_and_gradients_at_active_entries(capacity, host):
     x, y, flag, active = _inputs(0.4)
-    assert int(active.sum()) > 40  # capacity 40 takes the fallback branch, the others fit
+    # capacity 40 and tiers (20, 40) take the fallback branch; the others fit (tiers: the
+    # second of (40, 60), the first of (50, 100))
+    assert 40 < int(active.sum()) <= 50
     got = jax.jit(lambda x, y: on_active(_fn, active, capacity, x, y, flag, host=host))(x, y)
     want = _plain(x, y, flag)
     for key in ("a", "b"):
@@ -80,3 +82,20 @@ def test_under_vmap():
     np.testing.assert_allclose(np.asarray(batched[1])[np.asarray(active)],
                                np.asarray(_plain(2.0 * x, y, flag)["a"])[np.asarray(active)],
                                rtol=1e-14)
+
+
+@pytest.mark.parametrize("capacity", [(20, 60), (60, 100), (10, 20)])
+def test_tiers_under_vmap_with_an_axis_name(capacity):
+    """A batch of two members, the first with fewer active entries: the tier is chosen
+    once for both (the smallest that holds each), and the values are right in each."""
+    x, y, flag, active = _inputs(0.3)
+    fewer = active & jnp.asarray(np.arange(active.size).reshape(active.shape) % 2 == 0)
+    masks = jnp.stack([fewer, active])
+    batched = jax.jit(jax.vmap(
+        lambda m, s: on_active(_fn, m, capacity, x * s, y, flag, axis_name="views")["a"],
+        axis_name="views"))(masks, jnp.array([1.0, 2.0]))
+    for member, (mask, scale) in enumerate(zip(masks, (1.0, 2.0), strict=True)):
+        mask = np.asarray(mask)
+        np.testing.assert_allclose(np.asarray(batched[member])[mask],
+                                   np.asarray(_plain(scale * x, y, flag)["a"])[mask],
+                                   rtol=1e-14)

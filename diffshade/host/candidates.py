@@ -672,18 +672,20 @@ GROUP = 1024
 @numba.njit(cache=True, nogil=True)
 def _insert_group8(ids, keys, fragments, depth, signed_d2, bound, key_lo, key_hi, count,
                    sigma):
-    """_insert_group for lists of 8 (the soft search's default), without branches but for
-    libm's key: every fragment goes through _insert8, whose lists are always sorted (so
-    neither the counts of filled entries nor a sort at the end are needed); returns how
-    many fragments were dropped."""
-    dropped = 0
+    """_insert_group for lists of 8 (the soft search's default), without branches: the
+    keys that need libm (where the bracket straddles a rounding boundary) are computed
+    first, in a loop of their own (so the insertions' loop has no branch and no call),
+    into key_lo; then every fragment goes through _insert8, whose lists are always sorted
+    (so neither the counts of filled entries nor a sort at the end are needed); returns
+    how many fragments were dropped."""
     depth_bits = depth.view(np.int64)
     for i in range(count):
+        if key_lo[i] != key_hi[i]:
+            key_lo[i] = _fragment_key(depth[i], signed_d2[i], bound[i], depth_bits[i], sigma)
+    dropped = 0
+    for i in range(count):
         pixel, f = fragments[i] % (TILE_H * TILE_W), fragments[i] // (TILE_H * TILE_W)
-        key = key_lo[i]
-        if key != key_hi[i]:  # the bracket straddles a rounding boundary: libm
-            key = _fragment_key(depth[i], signed_d2[i], bound[i], depth_bits[i], sigma)
-        dropped += _insert8(keys, ids, pixel, key, f)
+        dropped += _insert8(keys, ids, pixel, key_lo[i], f)
     return dropped
 
 

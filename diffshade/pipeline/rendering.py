@@ -51,9 +51,10 @@ from diffshade.shading.texturing import textured_material
 
 DEFAULT_SETTINGS = RenderSettings()
 
-#: Phong shading of a soft render lights at most this many slots per pixel on average
-#: when only that many have a non-zero blend weight (diffshade.shading.compact); else all of them
-ACTIVE_SLOTS_PER_PIXEL = 4
+#: Phong shading of a soft render lights only the slots with a non-zero blend weight, in
+#: an array of the first of these sizes (slots per pixel on average) that holds them all
+#: (diffshade.shading.compact's tiers); all the slots when none does
+ACTIVE_SLOTS_PER_PIXEL = (3, 4)
 
 
 def view_dirs(scene, points):
@@ -135,7 +136,7 @@ def _shade_active(scene, proj, frags, active, light, axis_name, host):
     light(Samples) -> (ShadingParts, colour). The other slots' face ids are masked to -1,
     which the interpolation kernels skip, should on_active process every slot."""
     height, width, k = frags.face_ids.shape
-    capacity = height * width * min(k, ACTIVE_SLOTS_PER_PIXEL)
+    capacity = tuple(sorted({height * width * min(k, tier) for tier in ACTIVE_SLOTS_PER_PIXEL}))
 
     def lit(face_ids, bary, front):
         # N fragments ([N], [N, 3], [N]) as N pixels of one slot each

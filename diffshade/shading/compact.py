@@ -41,24 +41,33 @@ def on_active(fn, active, capacity, *arrays, axis_name=None, host=None):
     (N = prod(S)); returns the pytree reshaped to [*S, ...]. Entries where `active` is
     False are 0 or fn's value (the caller must not depend on them).
 
-    axis_name: the name of an enclosing `vmap` axis (a batch of views): the branch is then
-    chosen once for the whole batch (compacted when every member fits), so that vmap
-    keeps the `lax.cond` instead of running both branches. host: find the active entries
-    with the compiled kernel (active_indices)."""
+    capacity: an int, or a tuple of ints in ascending order (tiers): fn runs on the
+    smallest tier that holds the active entries (`lax.switch` picks at run time; each tier
+    is compiled), and everywhere when none does. axis_name: the name of an enclosing
+    `vmap` axis (a batch of views): the branch is then chosen once for the whole batch
+    (the smallest tier every member fits), so that vmap keeps the `lax.switch` instead of
+    running every branch. host: find the active entries with the compiled kernel
+    (active_indices)."""
     shape = active.shape
     n = active.size
     flat = [a.reshape((n,) + a.shape[len(shape):]) for a in arrays]
-    if capacity >= n:
+    tiers = tuple(c for c in (capacity if isinstance(capacity, tuple) else (capacity,))
+                  if c < n)
+    if not tiers:
         return jax.tree.map(lambda o: o.reshape(shape + o.shape[1:]), fn(*flat))
-    idx, count = active_indices(jax.lax.stop_gradient(active).reshape(n), capacity, host)
+    idx, count = active_indices(jax.lax.stop_gradient(active).reshape(n), tiers[-1], host)
 
-    def compacted(flat):
-        out = fn(*[jnp.take(a, idx, axis=0, mode="clip") for a in flat])
-        # unique_indices: the indices in range are distinct, and the padding (N) is
-        # dropped; without it, the derivative of the scatter is two more scatters and a
-        # gather over the N entries (how JAX handles repeated indices)
-        return jax.tree.map(lambda o: jnp.zeros((n,) + o.shape[1:], o.dtype).at[idx].set(
-            o, mode="drop", unique_indices=True), out)
+    def compacted(size):
+        def branch(flat):
+            # the first `size` indices: the active entries, then the padding (N)
+            part = idx[:size]
+            out = fn(*[jnp.take(a, part, axis=0, mode="clip") for a in flat])
+            # unique_indices: the indices in range are distinct, and the padding (N) is
+            # dropped; without it, the derivative of the scatter is two more scatters and
+            # a gather over the N entries (how JAX handles repeated indices)
+            return jax.tree.map(lambda o: jnp.zeros((n,) + o.shape[1:], o.dtype).at[part].set(
+                o, mode="drop", unique_indices=True), out)
+        return branch
 
     def everywhere(flat):
         # checkpointed: under reverse mode, lax.cond returns the residuals of both
@@ -67,8 +76,9 @@ def on_active(fn, active, capacity, *arrays, axis_name=None, host=None):
         # Checkpointed, it keeps only its operands and recomputes the rest when taken.
         return jax.checkpoint(fn)(*flat)
 
-    fits = count <= capacity
+    # the smallest tier that holds them all; len(tiers): none does
+    tier = sum((count > size).astype(jnp.int32) for size in tiers)
     if axis_name is not None:
-        fits = jax.lax.pmin(fits.astype(jnp.int32), axis_name) > 0
-    out = jax.lax.cond(fits, compacted, everywhere, flat)
+        tier = jax.lax.pmax(tier, axis_name)
+    out = jax.lax.switch(tier, [compacted(size) for size in tiers] + [everywhere], flat)
     return jax.tree.map(lambda o: o.reshape(shape + o.shape[1:]), out)
