@@ -130,7 +130,8 @@ def stages(size):
                                   axis=0))
     weights = jax.jit(lambda s, f: render_module.blend_weights(s, f, soft))
     active = (weights(scene, frags)[0] > 0.0).reshape(-1)
-    capacity = size * size * render_module.ACTIVE_SLOTS_PER_PIXEL
+    # the indices are found for the largest tier (compact.on_active)
+    capacity = size * size * max(render_module.ACTIVE_SLOTS_PER_PIXEL)
     compaction = jax.jit(lambda m: active_indices(m, capacity))
     after_raster = jax.jit(lambda s, f: ds.render_fragments(s, f, soft))
     target = jnp.full((size, size, 4), 0.5, jnp.float32)

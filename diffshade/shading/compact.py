@@ -15,9 +15,12 @@ runs `jnp.nonzero` as a cumulative sum and a scatter over all the slots (524,288
 pass over the mask.
 """
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.extend import core as jex_core
 
 from diffshade.host.active_kernel import first_active
 from diffshade.host.hostcall import host_call
@@ -43,11 +46,11 @@ def on_active(fn, active, capacity, *arrays, axis_name=None, host=None):
 
     capacity: an int, or a tuple of ints in ascending order (tiers): fn runs on the
     smallest tier that holds the active entries (`lax.switch` picks at run time; each tier
-    is compiled), and everywhere when none does. axis_name: the name of an enclosing
-    `vmap` axis (a batch of views): the branch is then chosen once for the whole batch
-    (the smallest tier every member fits), so that vmap keeps the `lax.switch` instead of
-    running every branch. host: find the active entries with the compiled kernel
-    (active_indices)."""
+    is compiled), and everywhere when none does. Derivatives go through the largest tier
+    (or everywhere) only (_forward_tiers). axis_name: the name of an enclosing `vmap` axis
+    (a batch of views): the branch is then chosen once for the whole batch (the smallest
+    tier every member fits), so that vmap keeps the `lax.switch` instead of running every
+    branch. host: find the active entries with the compiled kernel (active_indices)."""
     shape = active.shape
     n = active.size
     flat = [a.reshape((n,) + a.shape[len(shape):]) for a in arrays]
@@ -56,12 +59,23 @@ def on_active(fn, active, capacity, *arrays, axis_name=None, host=None):
     if not tiers:
         return jax.tree.map(lambda o: o.reshape(shape + o.shape[1:]), fn(*flat))
     idx, count = active_indices(jax.lax.stop_gradient(active).reshape(n), tiers[-1], host)
+    if len(tiers) == 1:
+        out = _on_tiers(lambda size: fn, tiers, axis_name, idx, count, flat)
+    else:
+        out = _forward_tiers(fn, tiers, axis_name, idx, count, flat)
+    return jax.tree.map(lambda o: o.reshape(shape + o.shape[1:]), out)
+
+
+def _on_tiers(fn, tiers, axis_name, idx, count, flat):
+    """fn on the first `size` of the active entries' indices idx (padded with N) for the
+    smallest size in tiers that holds all `count`, scattered back to N rows; or on every
+    row when none does. fn(size): the function for `size` rows (N: every row)."""
+    n = flat[0].shape[0]
 
     def compacted(size):
         def branch(flat):
-            # the first `size` indices: the active entries, then the padding (N)
             part = idx[:size]
-            out = fn(*[jnp.take(a, part, axis=0, mode="clip") for a in flat])
+            out = fn(size)(*[jnp.take(a, part, axis=0, mode="clip") for a in flat])
             # unique_indices: the indices in range are distinct, and the padding (N) is
             # dropped; without it, the derivative of the scatter is two more scatters and
             # a gather over the N entries (how JAX handles repeated indices)
@@ -74,11 +88,40 @@ def on_active(fn, active, capacity, *arrays, axis_name=None, host=None):
         # branches, zeros for the branch not taken; this branch has many residual
         # arrays of N rows, which every call of the compacted branch would write as zeros.
         # Checkpointed, it keeps only its operands and recomputes the rest when taken.
-        return jax.checkpoint(fn)(*flat)
+        return jax.checkpoint(fn(n))(*flat)
 
     # the smallest tier that holds them all; len(tiers): none does
     tier = sum((count > size).astype(jnp.int32) for size in tiers)
     if axis_name is not None:
         tier = jax.lax.pmax(tier, axis_name)
-    out = jax.lax.switch(tier, [compacted(size) for size in tiers] + [everywhere], flat)
-    return jax.tree.map(lambda o: o.reshape(shape + o.shape[1:]), out)
+    return jax.lax.switch(tier, [compacted(size) for size in tiers] + [everywhere], flat)
+
+
+def _forward_tiers(fn, tiers, axis_name, idx, count, flat):
+    """_on_tiers with every tier in the forward pass, and only the largest (and
+    everywhere) in a derivative: under reverse mode a `lax.switch` keeps the residuals of
+    every branch (zeros for those that did not run), and the tiers' residuals differ in
+    shape, so each more tier would add its own to the memory and the work of a forward +
+    backward. fn's closure (every value it closes over, the integer ones included) is
+    passed across the custom_jvp boundary explicitly: fn is traced once per number of
+    rows, and its jaxpr's constants become arguments."""
+    sizes = tiers + (flat[0].shape[0],)
+    traced = {size: jax.make_jaxpr(fn, return_shape=True)(*[a[:size] for a in flat])
+              for size in sizes}
+
+    def run(tiers, consts, idx, count, flat):
+        def rows(size):
+            program, shapes = traced[size]
+            call = jex_core.jaxpr_as_fun(jex_core.ClosedJaxpr(program.jaxpr, consts[size]))
+            return lambda *arrays: jax.tree.unflatten(jax.tree.structure(shapes),
+                                                      call(*arrays))
+        return _on_tiers(rows, tiers, axis_name, idx, count, flat)
+
+    @jax.custom_jvp
+    def tiered(consts, idx, count, flat):
+        return run(tiers, consts, idx, count, flat)
+
+    @tiered.defjvp
+    def tiered_jvp(primals, tangents):
+        return jax.jvp(functools.partial(run, tiers[-1:]), primals, tangents)
+    return tiered({size: traced[size][0].consts for size in sizes}, idx, count, flat)
