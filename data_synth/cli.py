@@ -21,7 +21,8 @@ import os
 import shutil
 import uuid
 
-from data_synth.scenes import make_dataset
+from data_synth import background
+from data_synth.scenes import dataset_layout, make_dataset
 from diffshade.io import check_writable, load_scenes
 from diffshade.settings import SHADING_MODES
 from fitting.data.folder import save_dataset
@@ -134,16 +135,32 @@ def _what(args):
     return scene, None, settings
 
 
+def layout_of(args):
+    """The Dataset synth's `args` make, before its targets are rendered
+    (data_synth.scenes.dataset_layout)."""
+    shape, material, settings = _what(args)
+    return dataset_layout(shape, material, n_views=args.views, n_lights=args.lights,
+                          size=args.size, seed=args.seed, shading=args.shading or "phong",
+                          settings=settings, texture=args.texture)
+
+
 def run_synth(args) -> int:
-    """The `synth` command: prints the dataset folder's path."""
+    """The `synth` command: prints the dataset folder's path. While it renders, the fit of
+    the dataset compiles in the background (data_synth.background)."""
     _check_output(args.output)
     if args.seed < 0:
         raise ValueError(f"--seed: got {args.seed}; expected an integer >= 0")
     shape, material, settings = _what(args)
-    dataset = make_dataset(shape, material, n_views=args.views, n_lights=args.lights,
-                           size=args.size, seed=args.seed, quantize_8bit=args.quantize_8bit,
-                           noise_std=args.noise, shading=args.shading or "phong",
-                           settings=settings, texture=args.texture)
-    save_dataset_atomically(dataset, args.output)
+    process, failed = background.start(args), True
+    try:
+        dataset = make_dataset(shape, material, n_views=args.views, n_lights=args.lights,
+                               size=args.size, seed=args.seed,
+                               quantize_8bit=args.quantize_8bit, noise_std=args.noise,
+                               shading=args.shading or "phong", settings=settings,
+                               texture=args.texture)
+        save_dataset_atomically(dataset, args.output)
+        failed = False
+    finally:
+        background.finish(process, failed)
     print(args.output)
     return 0

@@ -1,0 +1,90 @@
+"""`diffshade synth` compiles, on a second core, the programs of the fit that follows it.
+
+The README's first line is `diffshade synth -o out/data && diffshade fit out/data -o
+out/fit`. On a fresh install both commands spend most of their time compiling, one
+program after another on one core. But what the fit compiles depends on the dataset's
+geometry, lights and settings only (fitting.precompile), and synth knows those before it
+renders the targets. So while synth renders, `start` runs `python -m data_synth.background
+OPTIONS` — the same dataset's layout (data_synth.scenes.dataset_layout) through
+fitting.precompile — into the command line's compilation cache and program store
+(diffshade.io.compile_cache), and the fit then loads those programs instead of compiling
+them. A fit with other options, or of other data, compiles what it needs as before.
+
+`finish` waits for that process before synth exits (a command leaves nothing running
+behind it), or ends it where synth failed. Ended at any point, it leaves the caches whole:
+their entries are written atomically and checked when read.
+
+Nothing is started for library use (the cache is off there), where DIFFSHADE_WARMUP=0
+(diffshade.host.warmup.SWITCH, which turns the fresh install's background compiles off),
+or on a machine with a single core to run it on, where it would only slow synth down.
+"""
+
+import json
+import os
+import subprocess
+import sys
+
+from diffshade.host.warmup import SWITCH
+from diffshade.io import compile_cache
+
+#: the synth options that make the dataset's layout (data_synth.cli.layout_of)
+LAYOUT_OPTIONS = ("shape", "scene", "material", "views", "lights", "size", "seed", "shading",
+                  "texture")
+#: how long synth waits for the process after its own work, in seconds, before ending it
+#: (it takes a few seconds; it never should take this long)
+PATIENCE = 300.0
+
+
+def _cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def applies() -> bool:
+    """Whether a synth run compiles its fit's programs in the background (module
+    docstring)."""
+    return (compile_cache.store_dir() is not None and os.environ.get(SWITCH) != "0"
+            and _cores() >= 2)
+
+
+def start(args):
+    """Start precompiling the fit of the dataset synth's `args` describe; returns the
+    process, or None where that does not apply."""
+    if not applies():
+        return None
+    options = json.dumps({name: getattr(args, name) for name in LAYOUT_OPTIONS})
+    return subprocess.Popen([sys.executable, "-m", "data_synth.background", options],
+                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+
+
+def finish(process, failed=False):
+    """Wait for the process `start` gave (up to PATIENCE seconds), or end it at once
+    where synth `failed`."""
+    if process is None:
+        return
+    if not failed:
+        try:
+            process.wait(PATIENCE)
+            return
+        except subprocess.TimeoutExpired:
+            pass
+    process.kill()
+    process.wait()
+
+
+def main(argv):
+    """python -m data_synth.background OPTIONS (JSON of LAYOUT_OPTIONS)."""
+    from argparse import Namespace
+
+    from data_synth.cli import layout_of
+    from fitting.precompile import precompile
+
+    compile_cache.enable()
+    precompile(layout_of(Namespace(**json.loads(argv[0]))))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

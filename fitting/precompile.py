@@ -1,0 +1,55 @@
+"""Compile the programs of a default `diffshade fit` of a dataset without fitting it.
+
+What a fit compiles depends on the dataset's geometry (mesh, cameras, image sizes, which
+pixels are covered), its lights and settings, not on the targets' values. `diffshade
+synth` knows all of that before it renders the targets, so on a machine of several cores
+it runs `precompile` on the dataset's layout in a second process while it renders
+(data_synth.background): the programs go into the command line's program store and JAX's
+compilation cache (diffshade.io.compile_cache), and the `diffshade fit` that follows loads
+them instead of compiling them.
+
+`precompile` takes the fit's own steps, once each and in the fit's order, on grey
+targets: the cache (fitting.model.cache.build_cache), the closed-form start
+(fitting.run.start_run), one Levenberg-Marquardt step, the report's standard errors and
+misfit check (fitting.driver.fit_result) and the first view's panel renders
+(fitting.report.result.panel_renders). A fit with other options (--fit, --loss,
+--method ...) compiles what these do not cover, as it would have anyway.
+"""
+
+import dataclasses
+
+import numpy as np
+
+from fitting.data.views import Dataset, material_for
+from fitting.driver import fit_result
+from fitting.inputs import fit_spec
+from fitting.model.cache import build_cache
+from fitting.report.result import panel_renders
+from fitting.run import advance, finish, start_run
+from fitting.solve.distribute import for_options
+from fitting.solve.options import FitOptions
+from fitting.spec.params import DEFAULT_INIT, start_material
+
+#: the targets' colour while precompiling: inside (0, 1), so that every pixel counts
+GREY = 0.5
+
+
+def grey_targets(dataset: Dataset) -> Dataset:
+    """`dataset` with every target a uniform GREY of its shape and dtype."""
+    views = [dataclasses.replace(v, target=np.full_like(v.target, GREY))
+             for v in dataset.views]
+    return dataclasses.replace(dataset, views=views)
+
+
+def precompile(dataset: Dataset) -> None:
+    """Compile (and run once) the programs `diffshade fit DATASET` runs with its default
+    options on `dataset`'s geometry (module docstring); its targets are not read."""
+    dataset = grey_targets(dataset)
+    spec, options = fit_spec(), FitOptions()
+    init = start_material(material_for(dataset, DEFAULT_INIT, "init"), spec)
+    views = for_options(build_cache(dataset, init, edge_margin=options.edge_margin), options)
+    state = start_run(views, spec, init, options)
+    advance(state, views, should_stop=lambda: True)  # one step
+    finish(state, views)
+    result = fit_result(state, dataset, views)
+    panel_renders(dataset, result, init, [0])
