@@ -1,0 +1,110 @@
+"""synth compiles its fit's programs in the background (data_synth.background,
+fitting.precompile): the fit that follows compiles nothing; the layout is make_dataset's
+dataset before rendering; the process is waited for, or ended where synth fails."""
+
+import argparse
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from data_synth import background, make_dataset
+from data_synth.cli import layout_of
+from data_synth.scenes import dataset_layout
+from diffshade.host import warmup
+from diffshade.io import compile_cache
+from fitting.precompile import GREY, grey_targets
+
+ROOT = Path(__file__).resolve().parent.parent
+SYNTH = ["synth", "--size", "16", "--views", "2", "--lights", "2", "-o", "data"]
+FIT = ["fit", "data", "-o", "fit", "--quiet"]
+
+
+def _run(argv, cwd, env):
+    return subprocess.run([sys.executable, "-m", "diffshade", *argv], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=900, check=True)
+
+
+def _compiled(log):
+    """The programs JAX compiled (not loaded from its cache) in a run's log."""
+    compiled = re.findall(r"Finished XLA compilation of jit\((\S+)\)", log)
+    loaded = re.findall(r"Persistent compilation cache hit for 'jit_(\S+)'", log)
+    for name in loaded:
+        compiled.remove(name)
+    return compiled
+
+
+@pytest.mark.parametrize("in_background", [False, True])
+def test_the_fit_after_synth_compiles_nothing(tmp_path, in_background):
+    """As on a fresh install (the JAX kernels, empty caches): with the background compile
+    the fit loads every program; without it (DIFFSHADE_WARMUP=0) it compiles its own."""
+    env = {k: v for k, v in os.environ.items() if k != warmup.SWITCH}
+    env |= {"PYTHONPATH": os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]),
+            "DIFFSHADE_COMPILE_CACHE": "1", "DIFFSHADE_COMPILE_CACHE_DIR": str(tmp_path / "c"),
+            "DIFFSHADE_KERNELS": "jax"}
+    _run(SYNTH, tmp_path, env if in_background else env | {warmup.SWITCH: "0"})
+    fit = _run(FIT, tmp_path, env | {"JAX_LOG_COMPILES": "1"})
+    compiled = _compiled(fit.stderr)
+    if in_background:
+        assert compiled == []
+    else:  # the rasterization, the parts and the Jacobian programs at least
+        assert {"_fragments", "view_parts", "normal_system"} <= set(compiled)
+    assert "material.mtl" in fit.stdout
+
+
+def _same(a, b):
+    """Two pytrees of one structure with equal leaves."""
+    (leaves_a, tree_a), (leaves_b, tree_b) = jax.tree.flatten(a), jax.tree.flatten(b)
+    assert tree_a == tree_b
+    for x, y in zip(leaves_a, leaves_b, strict=True):
+        np.testing.assert_array_equal(x, y)
+
+
+def test_the_layout_is_the_dataset_before_rendering():
+    kwargs = {"n_views": 2, "n_lights": 2, "size": 12, "seed": 3, "shading": "gouraud"}
+    made = make_dataset("torus", **kwargs, noise_std=0.1)
+    layout = dataset_layout("torus", **kwargs)
+    np.testing.assert_array_equal(layout.mesh.vertices, made.mesh.vertices)
+    np.testing.assert_array_equal(layout.model, made.model)
+    assert layout.settings == made.settings
+    _same(layout.truth, made.truth)
+    for got, want in zip(layout.views, made.views, strict=True):
+        _same((got.camera, got.lights), (want.camera, want.lights))
+        np.testing.assert_array_equal(got.target, np.zeros_like(want.target))
+    assert all(np.all(v.target == GREY) for v in grey_targets(layout).views)
+
+
+def test_the_background_layout_follows_synths_options():
+    args = argparse.Namespace(shape="box", scene=None, material="0.1,0.5,0.3,20", views=1,
+                              lights=3, size=10, seed=0, shading=None, texture=None)
+    layout = layout_of(args)
+    assert len(layout.views) == 3 and layout.views[0].target.shape == (10, 10, 3)
+    np.testing.assert_allclose(np.asarray(layout.truth.kd), 0.5)
+    assert set(background.LAYOUT_OPTIONS) <= set(vars(args))
+
+
+def test_it_applies_only_with_the_store_on_and_not_switched_off(tmp_path, monkeypatch):
+    monkeypatch.setattr(compile_cache, "_store", None)
+    assert not background.applies()  # library use, or DIFFSHADE_COMPILE_CACHE=0
+    monkeypatch.setattr(compile_cache, "_store", str(tmp_path / "programs"))
+    monkeypatch.setattr(background, "_cores", lambda: 2)
+    monkeypatch.setenv(warmup.SWITCH, "0")
+    assert not background.applies()
+    monkeypatch.delenv(warmup.SWITCH)
+    assert background.applies()
+    monkeypatch.setattr(background, "_cores", lambda: 1)
+    assert not background.applies() and background.start(None) is None
+
+
+def test_a_failed_synth_ends_the_process_at_once():
+    process = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    start = time.perf_counter()
+    background.finish(process, failed=True)
+    assert process.returncode is not None and time.perf_counter() - start < 30
+    background.finish(None)  # nothing started: nothing to do
