@@ -10,15 +10,20 @@ fitting.precompile — into the command line's compilation cache and program sto
 (diffshade.io.compile_cache), and the fit then loads those programs instead of compiling
 them. A fit with other options, or of other data, compiles what it needs as before.
 
-`finish` waits for that process before synth exits (a command leaves nothing running
-behind it), or ends it where synth failed. Ended at any point, it leaves the caches whole:
-their entries are written atomically and checked when read.
+The process holds a lock for the dataset's folder while it runs
+(fitting.precompile.lock_path: synth takes it and hands it over), and the fit of that
+folder waits for it after loading the dataset, so that the fit's start (its imports, the
+dataset) runs alongside the end of the compilation and no program is compiled twice.
+synth does not wait for it (`finish`), except to end it where synth failed. Ended at any
+point, it leaves the caches whole: their entries are written atomically and checked when
+read.
 
 Nothing is started for library use (the cache is off there), where DIFFSHADE_WARMUP=0
 (diffshade.host.warmup.SWITCH, which turns the fresh install's background compiles off),
 or on a machine with a single core to run it on, where it would only slow synth down.
 """
 
+import fcntl
 import json
 import os
 import subprocess
@@ -26,13 +31,11 @@ import sys
 
 from diffshade.host.warmup import SWITCH
 from diffshade.io import compile_cache
+from fitting.precompile import lock_path
 
 #: the synth options that make the dataset's layout (data_synth.cli.layout_of)
 LAYOUT_OPTIONS = ("shape", "scene", "material", "views", "lights", "size", "seed", "shading",
                   "texture")
-#: how long synth waits for the process after its own work, in seconds, before ending it
-#: (it takes a few seconds; it never should take this long)
-PATIENCE = 300.0
 
 
 def _cores() -> int:
@@ -50,29 +53,29 @@ def applies() -> bool:
 
 
 def start(args):
-    """Start precompiling the fit of the dataset synth's `args` describe; returns the
-    process, or None where that does not apply."""
+    """Start precompiling the fit of the dataset synth's `args` describe, holding its lock
+    (module docstring); returns the process, or None where that does not apply or another
+    holds the lock."""
     if not applies():
         return None
     options = json.dumps({name: getattr(args, name) for name in LAYOUT_OPTIONS})
-    return subprocess.Popen([sys.executable, "-m", "data_synth.background", options],
-                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
+    with open(lock_path(args.output), "ab") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:  # that dataset's fit is being compiled already
+            return None
+        # the process inherits the locked file: the lock is held until it exits
+        return subprocess.Popen([sys.executable, "-m", "data_synth.background", options],
+                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL, pass_fds=(lock.fileno(),))
 
 
 def finish(process, failed=False):
-    """Wait for the process `start` gave (up to PATIENCE seconds), or end it at once
-    where synth `failed`."""
-    if process is None:
-        return
-    if not failed:
-        try:
-            process.wait(PATIENCE)
-            return
-        except subprocess.TimeoutExpired:
-            pass
-    process.kill()
-    process.wait()
+    """After synth's own work: where synth `failed`, end the process `start` gave (its
+    dataset will not be fitted); else leave it compiling."""
+    if process is not None and failed:
+        process.kill()
+        process.wait()
 
 
 def main(argv):

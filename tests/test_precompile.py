@@ -19,7 +19,7 @@ from data_synth.cli import layout_of
 from data_synth.scenes import dataset_layout
 from diffshade.host import warmup
 from diffshade.io import compile_cache
-from fitting.precompile import GREY, grey_targets
+from fitting.precompile import GREY, grey_targets, lock_path, wait_for_background
 
 ROOT = Path(__file__).resolve().parent.parent
 SYNTH = ["synth", "--size", "16", "--views", "2", "--lights", "2", "-o", "data"]
@@ -102,9 +102,47 @@ def test_it_applies_only_with_the_store_on_and_not_switched_off(tmp_path, monkey
     assert not background.applies() and background.start(None) is None
 
 
-def test_a_failed_synth_ends_the_process_at_once():
+def test_a_failed_synth_ends_the_process_a_finished_one_leaves_it():
     process = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
-    start = time.perf_counter()
-    background.finish(process, failed=True)
-    assert process.returncode is not None and time.perf_counter() - start < 30
+    try:
+        start = time.perf_counter()
+        background.finish(process)
+        assert process.poll() is None and time.perf_counter() - start < 5
+        background.finish(process, failed=True)
+        assert process.returncode is not None and time.perf_counter() - start < 30
+    finally:
+        process.kill()
+        process.wait()
     background.finish(None)  # nothing started: nothing to do
+
+
+_HOLD = """
+import fcntl, sys, time
+with open(sys.argv[1], "ab") as lock:
+    fcntl.flock(lock, fcntl.LOCK_EX)
+    print("held", flush=True)
+    time.sleep(float(sys.argv[2]))
+"""
+
+
+def test_the_fit_waits_for_its_datasets_background_compile(tmp_path, monkeypatch):
+    monkeypatch.setattr(compile_cache, "_store", str(tmp_path / "cache" / "programs"))
+    (tmp_path / "cache").mkdir()
+    path = lock_path(tmp_path / "data")
+    assert path == lock_path(str(tmp_path / "x" / ".." / "data"))  # the folder, however named
+    assert path != lock_path(tmp_path / "other")
+    start = time.perf_counter()
+    wait_for_background(tmp_path / "data")  # no lock file: no compile to wait for
+    assert time.perf_counter() - start < 1.0
+    holder = subprocess.Popen([sys.executable, "-c", _HOLD, path, "2"], stdout=subprocess.PIPE,
+                              text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        start = time.perf_counter()
+        wait_for_background(tmp_path / "data", patience=0.3)  # gives up
+        assert 0.3 <= time.perf_counter() - start < 1.5 and holder.poll() is None
+        wait_for_background(tmp_path / "data")
+        assert holder.wait(1) == 0  # returned once the holder let go
+    finally:
+        holder.kill()
+        holder.wait()
