@@ -19,7 +19,7 @@ point, it leaves the caches whole: their entries are written atomically and chec
 read.
 
 Nothing is started for library use (the cache is off there), where DIFFSHADE_WARMUP=0
-(diffshade.host.warmup.SWITCH, which turns the fresh install's background compiles off),
+(SWITCH, which turns the fresh install's background compilations off),
 or on a machine with a single core to run it on, where it would only slow synth down.
 """
 
@@ -29,11 +29,14 @@ import os
 import subprocess
 import sys
 
-from diffshade.host.warmup import SWITCH
-from diffshade.io import compile_cache
+from diffshade.io import enable_compile_cache, store_dir
 from fitting.precompile import lock_path
 
-#: the synth options that make the dataset's layout (data_synth.cli.layout_of)
+#: the environment variable that turns the background compilations off ("0"): the fresh
+#: install's (diffshade.host.warmup.SWITCH) and this one
+SWITCH = "DIFFSHADE_WARMUP"
+
+#: the synth options that make the dataset's layout (data_synth.options.layout_of)
 LAYOUT_OPTIONS = ("shape", "scene", "material", "views", "lights", "size", "seed", "shading",
                   "texture")
 
@@ -48,7 +51,7 @@ def _cores() -> int:
 def applies() -> bool:
     """Whether a synth run compiles its fit's programs in the background (module
     docstring)."""
-    return (compile_cache.store_dir() is not None and os.environ.get(SWITCH) != "0"
+    return (store_dir() is not None and os.environ.get(SWITCH) != "0"
             and _cores() >= 2)
 
 
@@ -82,10 +85,10 @@ def main(argv):
     """python -m data_synth.background OPTIONS (JSON of LAYOUT_OPTIONS)."""
     from argparse import Namespace
 
-    from data_synth.cli import layout_of
+    from data_synth.options import layout_of
     from fitting.precompile import precompile
 
-    compile_cache.enable()
+    enable_compile_cache()
     precompile(layout_of(Namespace(**json.loads(argv[0]))))
 
 

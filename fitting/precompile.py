@@ -29,7 +29,7 @@ import time
 
 import numpy as np
 
-from diffshade.io import compile_cache
+from diffshade.io import store_dir
 
 #: the targets' colour while precompiling: inside (0, 1), so that every pixel counts
 GREY = 0.5
@@ -41,7 +41,7 @@ PATIENCE = 120.0
 def lock_path(dataset_path) -> str | None:
     """The lock file of a background precompile of the dataset folder `dataset_path`, in
     the compilation cache's folder; None while the program store is off (library use)."""
-    store = compile_cache.store_dir()
+    store = store_dir()
     if store is None:
         return None
     digest = hashlib.sha256(os.path.realpath(dataset_path).encode()).hexdigest()[:16]

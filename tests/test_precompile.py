@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from data_synth import background, make_dataset
-from data_synth.cli import layout_of
+from data_synth.options import layout_of
 from data_synth.scenes import dataset_layout
 from diffshade.host import warmup
 from diffshade.io import compile_cache
@@ -90,6 +90,7 @@ def test_the_background_layout_follows_synths_options():
 
 
 def test_it_applies_only_with_the_store_on_and_not_switched_off(tmp_path, monkeypatch):
+    assert background.SWITCH == warmup.SWITCH  # one switch for both
     monkeypatch.setattr(compile_cache, "_store", None)
     assert not background.applies()  # library use, or DIFFSHADE_COMPILE_CACHE=0
     monkeypatch.setattr(compile_cache, "_store", str(tmp_path / "programs"))
