@@ -3,6 +3,8 @@ fitting.precompile): the fit that follows compiles nothing; the layout is make_d
 dataset before rendering; the process is waited for, or ended where synth fails."""
 
 import argparse
+import hashlib
+import json
 import os
 import re
 import subprocess
@@ -18,7 +20,7 @@ from data_synth import background, make_dataset
 from data_synth.options import layout_of
 from data_synth.scenes import dataset_layout
 from diffshade.host import warmup
-from diffshade.io import compile_cache
+from diffshade.io import compile_cache, program_entries
 from fitting.precompile import GREY, grey_targets, lock_path, wait_for_background
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -147,3 +149,36 @@ def test_the_fit_waits_for_its_datasets_background_compile(tmp_path, monkeypatch
     finally:
         holder.kill()
         holder.wait()
+
+
+def _whole(path):
+    """Whether a store entry is whole: its header's length and SHA-256 match its code."""
+    blob = path.read_bytes()
+    head, _, code = blob[len(program_entries.MAGIC):].partition(b"\n")
+    head = json.loads(head)
+    return (blob.startswith(program_entries.MAGIC) and head["code_bytes"] == len(code)
+            and head["code_sha256"] == hashlib.sha256(code).hexdigest())
+
+
+def test_a_killed_background_compile_leaves_the_cache_whole(tmp_path):
+    """Killed while it compiles, the process leaves only whole entries and its lock free;
+    the fit after it compiles the rest and runs."""
+    env = {k: v for k, v in os.environ.items() if k != warmup.SWITCH}
+    env |= {"PYTHONPATH": os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]),
+            "DIFFSHADE_COMPILE_CACHE": "1", "DIFFSHADE_COMPILE_CACHE_DIR": str(tmp_path / "c"),
+            "DIFFSHADE_KERNELS": "jax"}
+    _run(SYNTH, tmp_path, env | {warmup.SWITCH: "0"})
+    options = {"shape": None, "scene": None, "material": None, "views": 2, "lights": 2,
+               "size": 16, "seed": 0, "shading": None, "texture": None}
+    process = subprocess.Popen([sys.executable, "-m", "data_synth.background",
+                                json.dumps(options)], cwd=tmp_path, env=env)
+    store = tmp_path / "c" / compile_cache.STORE_FOLDER
+    deadline = time.monotonic() + 300
+    while not list(store.rglob("*.bin")) and time.monotonic() < deadline:
+        time.sleep(0.05)  # killed after its first program, while it compiles the next
+    process.kill()
+    process.wait()
+    written = list(store.rglob("*.bin"))
+    assert written and all(_whole(path) for path in written)
+    fit = _run(FIT, tmp_path, env | {"JAX_LOG_COMPILES": "1"})
+    assert "material.mtl" in fit.stdout and _compiled(fit.stderr)  # it compiled the rest
