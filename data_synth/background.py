@@ -62,15 +62,15 @@ def start(args):
     if not applies():
         return None
     options = json.dumps({name: getattr(args, name) for name in LAYOUT_OPTIONS})
-    with open(lock_path(args.output), "ab") as lock:
-        try:
+    try:
+        with open(lock_path(args.output), "ab") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:  # that dataset's fit is being compiled already
-            return None
-        # the process inherits the locked file: the lock is held until it exits
-        return subprocess.Popen([sys.executable, "-m", "data_synth.background", options],
-                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL, pass_fds=(lock.fileno(),))
+            # the process inherits the locked file: the lock is held until it exits
+            return subprocess.Popen([sys.executable, "-m", "data_synth.background", options],
+                                    stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                    stderr=subprocess.DEVNULL, pass_fds=(lock.fileno(),))
+    except OSError:  # that dataset's fit is being compiled already, or no lock to be had:
+        return None  # synth runs as without it
 
 
 def finish(process, failed=False):

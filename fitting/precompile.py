@@ -55,15 +55,18 @@ def wait_for_background(dataset_path, patience=PATIENCE) -> None:
     if path is None or not os.path.exists(path):
         return
     deadline = time.monotonic() + patience
-    with open(path, "rb") as lock:
-        while True:
-            try:
-                fcntl.flock(lock, fcntl.LOCK_SH | fcntl.LOCK_NB)
-                return
-            except BlockingIOError:
-                if time.monotonic() > deadline:
+    try:
+        with open(path, "rb") as lock:
+            while True:
+                try:
+                    fcntl.flock(lock, fcntl.LOCK_SH | fcntl.LOCK_NB)
                     return
-                time.sleep(0.02)
+                except BlockingIOError:
+                    if time.monotonic() > deadline:
+                        return
+                    time.sleep(0.02)
+    except OSError:  # a lock file that cannot be read: nothing to wait for
+        return
 
 
 def grey_targets(dataset):

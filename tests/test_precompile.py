@@ -182,3 +182,36 @@ def test_a_killed_background_compile_leaves_the_cache_whole(tmp_path):
     assert written and all(_whole(path) for path in written)
     fit = _run(FIT, tmp_path, env | {"JAX_LOG_COMPILES": "1"})
     assert "material.mtl" in fit.stdout and _compiled(fit.stderr)  # it compiled the rest
+
+
+def test_one_background_compile_per_dataset(tmp_path, monkeypatch):
+    monkeypatch.setattr(compile_cache, "_store", str(tmp_path / "cache" / "programs"))
+    (tmp_path / "cache").mkdir()
+    monkeypatch.setattr(background, "_cores", lambda: 2)
+    monkeypatch.delenv(warmup.SWITCH, raising=False)
+    args = argparse.Namespace(shape=None, scene=None, material=None, views=1, lights=1,
+                              size=8, seed=0, shading=None, texture=None,
+                              output=str(tmp_path / "data"))
+    first = background.start(args)
+    try:
+        assert first is not None
+        assert background.start(args) is None  # its lock is held: no second one
+        holder = subprocess.run([sys.executable, "-c", _TRY_LOCK, lock_path(args.output)],
+                                capture_output=True, text=True, check=True)
+        assert holder.stdout.strip() == "held"  # by the process, synth's file closed
+    finally:
+        background.finish(first, failed=True)
+    start = time.perf_counter()
+    wait_for_background(args.output, patience=5.0)
+    assert time.perf_counter() - start < 2.0  # ended, it let go of the lock
+
+
+_TRY_LOCK = """
+import fcntl, sys
+with open(sys.argv[1], "rb") as lock:
+    try:
+        fcntl.flock(lock, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        print("free")
+    except BlockingIOError:
+        print("held")
+"""
