@@ -59,12 +59,13 @@ def test_geometry_targets_equal_the_kernels(x64, soft):
                                             f"diffshade_geometry_backward_{width}"}
         (bary, depth, dist), grads = jax.jit(fb)(*per_face)
         args = (*per_face, W, H, soft, tiny(dtype), 2)
-        want = kernels.geometry_forward(ids.reshape(-1, K), *args)
+        *want, edge = kernels.geometry_forward(ids.reshape(-1, K), *args)
         for got, ref in zip((bary, depth, dist), want, strict=True):
             assert got.dtype == dtype
             np.testing.assert_array_equal(np.asarray(got).reshape(ref.shape), ref)
-        want = kernels.geometry_backward(ids.reshape(-1, K), *args, cot[0].reshape(-1, K, 3),
-                                         cot[1].reshape(-1, K), cot[2].reshape(-1, K))
+        want = kernels.geometry_backward(ids.reshape(-1, K), *args, edge,
+                                         cot[0].reshape(-1, K, 3), cot[1].reshape(-1, K),
+                                         cot[2].reshape(-1, K))
         for got, ref in zip(grads, want, strict=True):
             np.testing.assert_allclose(np.asarray(got), ref, rtol=1e-12 if x64 else 1e-5,
                                        atol=1e-12 if x64 else 1e-5)
@@ -330,6 +331,7 @@ _LAYOUT = {
     "BUFFER_DIMS": "offsetof(XLA_FFI_Buffer, dims)",
     "BUFFER_SIZE": "XLA_FFI_Buffer_STRUCT_SIZE",
     "PRED": "XLA_FFI_DataType_PRED",
+    "S8": "XLA_FFI_DataType_S8",
     "S32": "XLA_FFI_DataType_S32",
     "S64": "XLA_FFI_DataType_S64",
     "F32": "XLA_FFI_DataType_F32",
@@ -404,7 +406,8 @@ def test_geometry_target_rejects_bad_shapes():
     ids, corner_w, corner_z, coeffs, scr = _fragment_inputs(np.float32)
     results = (jax.ShapeDtypeStruct((H, W, K, 3), jnp.float32),
                jax.ShapeDtypeStruct((H, W, K), jnp.float32),
-               jax.ShapeDtypeStruct((H, W, K), jnp.float32))
+               jax.ShapeDtypeStruct((H, W, K), jnp.float32),
+               jax.ShapeDtypeStruct((H, W, K), jnp.int8))
     attributes = {"width": W, "height": H, "soft": 1, "threads": 1}
     target = "diffshade_geometry_forward_f32"
     cases = [
@@ -413,8 +416,12 @@ def test_geometry_target_rejects_bad_shapes():
         ((ids, corner_w.astype(np.float64), corner_z, coeffs, scr), results,
          "argument 1 has dtype float64 (F64), expected float32 (F32)"),
         ((ids, corner_w, corner_z, coeffs, scr), (results[0], results[1],
-                                                  jax.ShapeDtypeStruct((H, W), jnp.float32)),
+                                                  jax.ShapeDtypeStruct((H, W), jnp.float32),
+                                                  results[3]),
          f"result 2 has {H * W} elements, expected {H * W * K} (1 per element of argument 0)"),
+        ((ids, corner_w, corner_z, coeffs, scr), results[:3] + (
+            jax.ShapeDtypeStruct((H, W, K), jnp.int32),),
+         "result 3 has dtype int32 (S32), expected int8 (S8)"),
     ]
     with jax.enable_x64(True):
         for operands, shapes, expected in cases:
