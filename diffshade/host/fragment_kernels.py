@@ -207,11 +207,10 @@ def geometry_forward_into(ids, corner_w, corner_z, coeffs, scr, width, height, s
                 else:
                     s0, s1, s2, _, _, _, b0, b1, b2, _, _ = _soft_bary(e0, e1, e2, w0, w1, w2,
                                                                        table, f, tiny)
-                    i, d2 = _nearest_edge(px, py, table, f)[:2]
-                    if s0 >= 0.0 and s1 >= 0.0 and s2 >= 0.0:
-                        dist[pixel, slot], edge[pixel, slot] = d2, i
-                    else:
-                        dist[pixel, slot], edge[pixel, slot] = -d2, i + OUTSIDE
+                    i, d2, _, _, _ = _nearest_edge(px, py, table, f)
+                    inside = s0 >= 0.0 and s1 >= 0.0 and s2 >= 0.0
+                    dist[pixel, slot] = d2 if inside else -d2
+                    edge[pixel, slot] = i if inside else i + OUTSIDE
                 bary[pixel, slot, 0], bary[pixel, slot, 1], bary[pixel, slot, 2] = b0, b1, b2
                 depth[pixel, slot] = b0 * corner_z[f, 0] + b1 * corner_z[f, 1] + b2 * corner_z[f, 2]
 
