@@ -71,6 +71,35 @@ def test_geometry_targets_equal_the_kernels(x64, soft):
                                        atol=1e-12 if x64 else 1e-5)
 
 
+@pytest.mark.parametrize("soft", [False, True])
+def test_geometry_forward_saves_the_nearest_edge(soft):
+    # soft: the index of the nearest edge (from corner i to corner i+1), measured here
+    # with NumPy, plus OUTSIDE where the distance is negated; the backward reads it
+    ids, corner_w, corner_z, coeffs, scr = _fragment_inputs(np.float64)
+    flat = ids.reshape(-1, K)
+    _, _, dist, edge = kernels.geometry_forward(flat, corner_w, corner_z, coeffs, scr, W, H,
+                                                soft, tiny(np.float64), 2)
+    valid = flat >= 0
+    assert edge.dtype == np.int8
+    assert np.all(edge[~valid] == 0)
+    if not soft:
+        assert np.all(edge == 0)
+        return
+    rows, cols = np.divmod(np.arange(H * W), W)
+    p = np.stack([cols + 0.5, rows + 0.5], -1)[:, None, :]  # [P, 1, 2]
+    corners = scr[np.maximum(flat, 0)]  # [P, K, 3, 2]
+    d2 = []
+    for i in range(3):
+        a, b = corners[..., i, :], corners[..., (i + 1) % 3, :]
+        e = b - a
+        t = np.clip(np.sum((p - a) * e, -1) / np.sum(e * e, -1), 0.0, 1.0)
+        d2.append(np.sum((p - a - t[..., None] * e) ** 2, -1))
+    d2 = np.stack(d2, -1)
+    np.testing.assert_array_equal((edge % kernels.OUTSIDE)[valid], np.argmin(d2, -1)[valid])
+    np.testing.assert_array_equal((edge >= kernels.OUTSIDE)[valid], np.signbit(dist)[valid])
+    np.testing.assert_allclose(np.abs(dist)[valid], d2.min(-1)[valid], rtol=1e-12)
+
+
 @pytest.mark.parametrize("x64", [False, True])
 def test_interpolation_targets_equal_the_kernels(x64):
     with jax.enable_x64(x64):
