@@ -47,12 +47,12 @@ def _inv(den, tiny):
 #: a row of _face_table: the edge coefficients [3, 3] (row-major) at _COEFFS, the corners'
 #: clip W [3] at _CW and their reciprocals [3] at _INV_W, then per edge i (from corner i to
 #: corner i+1 mod 3) _EDGE_WIDTH values from _EDGES + i * _EDGE_WIDTH: its start (ax, ay),
-#: its vector (ex, ey) = b - a and 1 / |e|^2
-_COEFFS, _CW, _INV_W, _EDGES, _EDGE_WIDTH, _TABLE_WIDTH = 0, 9, 12, 15, 5, 30
+#: its vector (ex, ey) = b - a and 1 / |e|^2; then the corners' eye-space depth [3] at _CZ
+_COEFFS, _CW, _INV_W, _EDGES, _EDGE_WIDTH, _CZ, _TABLE_WIDTH = 0, 9, 12, 15, 5, 30, 33
 
 
 @numba.njit(cache=True, nogil=True)
-def _face_table(corner_w, coeffs, scr, tiny):
+def _face_table(corner_w, corner_z, coeffs, scr, tiny):
     """Per face, what the kernels read of it, in one float64 row (see _TABLE_WIDTH): [F,
     _TABLE_WIDTH]. Reciprocals by _inv; (ex, ey) computed in the dtype of scr, as the
     kernels once did per fragment. A fragment reads one row instead of four arrays, with
@@ -64,6 +64,7 @@ def _face_table(corner_w, coeffs, scr, tiny):
             for j in range(3):
                 table[f, _COEFFS + 3 * i + j] = coeffs[f, i, j]
             table[f, _CW + i] = corner_w[f, i]
+            table[f, _CZ + i] = corner_z[f, i]
             table[f, _INV_W + i] = _inv(corner_w[f, i], tiny)
             j = (i + 1) % 3
             ex, ey = scr[f, j, 0] - scr[f, i, 0], scr[f, j, 1] - scr[f, i, 1]
@@ -181,7 +182,7 @@ def geometry_forward_into(ids, corner_w, corner_z, coeffs, scr, width, height, s
     """geometry_forward writing every element of bary, depth, dist and edge (as XLA's
     buffers given by an FFI call, ffi.py)."""
     npix, k = ids.shape
-    table = _face_table(corner_w, coeffs, scr, tiny)
+    table = _face_table(corner_w, corner_z, coeffs, scr, tiny)
     xs, pxs, ys, pys = _pixel_coords(width, height)
     for chunk in prange(chunks):
         start, stop = _chunk(chunk, chunks, npix // width)  # whole rows
@@ -212,7 +213,8 @@ def geometry_forward_into(ids, corner_w, corner_z, coeffs, scr, width, height, s
                     dist[pixel, slot] = d2 if inside else -d2
                     edge[pixel, slot] = i if inside else i + OUTSIDE
                 bary[pixel, slot, 0], bary[pixel, slot, 1], bary[pixel, slot, 2] = b0, b1, b2
-                depth[pixel, slot] = b0 * corner_z[f, 0] + b1 * corner_z[f, 1] + b2 * corner_z[f, 2]
+                depth[pixel, slot] = (b0 * table[f, _CZ] + b1 * table[f, _CZ + 1]
+                                      + b2 * table[f, _CZ + 2])
 
 
 #: geometry_backward's per-face accumulator row: the gradients of corner_w [3] at _W,
@@ -265,7 +267,7 @@ def geometry_backward_into(ids, corner_w, corner_z, coeffs, scr, width, height, 
     """geometry_backward writing its gradients into out_w, out_z, out_coeffs and out_scr."""
     npix, k = ids.shape
     nfaces = coeffs.shape[0]
-    table = _face_table(corner_w, coeffs, scr, tiny)
+    table = _face_table(corner_w, corner_z, coeffs, scr, tiny)
     # float64 accumulators: more accurate, and no conversion per fragment; a face's sums
     # side by side in one row (_ACC_WIDTH), not in four arrays: a fragment's accumulation
     # writes one contiguous row
@@ -289,9 +291,9 @@ def geometry_backward_into(ids, corner_w, corner_z, coeffs, scr, width, height, 
                     # the distance's gradient needs only the edge the forward found
                     _dist_grad(acc, chunk, f, px, py, table, g_d, edge[pixel, slot])
                 # depth = b . corner_z: its gradient joins the barycentrics'
-                gb0 = g_bary[pixel, slot, 0] + g_z * corner_z[f, 0]
-                gb1 = g_bary[pixel, slot, 1] + g_z * corner_z[f, 1]
-                gb2 = g_bary[pixel, slot, 2] + g_z * corner_z[f, 2]
+                gb0 = g_bary[pixel, slot, 0] + g_z * table[f, _CZ]
+                gb1 = g_bary[pixel, slot, 1] + g_z * table[f, _CZ + 1]
+                gb2 = g_bary[pixel, slot, 2] + g_z * table[f, _CZ + 2]
                 if gb0 == 0.0 and gb1 == 0.0 and gb2 == 0.0 and g_z == 0.0:
                     continue  # e.g. a fragment whose blend weight underflows to 0
                 e0, e1, e2, w0, w1, w2 = _face(table, f, x, y)
