@@ -62,6 +62,7 @@ from diffshade.host.xla_ffi import (
     FRAME_ARGS,
     FRAME_RETS,
     PRED,
+    S8,
     S32,
     S64,
     address_of,
@@ -113,8 +114,9 @@ def _flat(frame, which, index, dtype):
 # -- fragment geometry (raster.fragment_geometry) ------------------------------------------
 # arguments: ids [R, W, K] int32, corner_w [F, 3], corner_z [F, 3], coeffs [F, 3, 3], scr
 # [F, 3, 2]; attributes: width, height, soft. Forward results: bary [R, W, K, 3], depth
-# and dist [R, W, K]; backward: cotangents of those three follow the arguments, results
-# are the gradients of the four per-face arrays.
+# and dist [R, W, K], the nearest edges [R, W, K] int8; backward: the nearest edges, then
+# the cotangents of bary, depth and dist follow the arguments, results are the gradients
+# of the four per-face arrays.
 
 @numba.njit(cache=True, nogil=True)
 def _geometry_inputs(frame, values, dtype):
@@ -134,7 +136,8 @@ def _geometry_forward(frame, values, dtype, tiny):
     kernels.geometry_forward_into(
         ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny,
         values[3], _array3(frame, FRAME_RETS, 0, k, 3, dtype),
-        _array2(frame, FRAME_RETS, 1, k, dtype), _array2(frame, FRAME_RETS, 2, k, dtype))
+        _array2(frame, FRAME_RETS, 1, k, dtype), _array2(frame, FRAME_RETS, 2, k, dtype),
+        _array2(frame, FRAME_RETS, 3, k, np.int8))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -144,8 +147,9 @@ def _geometry_backward(frame, values, dtype, tiny):
     k = ids.shape[1]
     kernels.geometry_backward_into(
         ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny,
-        values[3], _array3(frame, FRAME_ARGS, 5, k, 3, dtype),
-        _array2(frame, FRAME_ARGS, 6, k, dtype), _array2(frame, FRAME_ARGS, 7, k, dtype),
+        values[3], _array2(frame, FRAME_ARGS, 5, k, np.int8),
+        _array3(frame, FRAME_ARGS, 6, k, 3, dtype), _array2(frame, FRAME_ARGS, 7, k, dtype),
+        _array2(frame, FRAME_ARGS, 8, k, dtype),
         _array2(frame, FRAME_RETS, 0, 3, dtype), _array2(frame, FRAME_RETS, 1, 3, dtype),
         _array3(frame, FRAME_RETS, 2, 3, 3, dtype), _array3(frame, FRAME_RETS, 3, 3, 2, dtype))
 
@@ -326,9 +330,10 @@ def _geometry(body, f, dtype, tiny_value):
     faces = (spec(f, 2, (3,)), spec(f, 2, (3,)), spec(f, 3, (3, 3)), spec(f, 3, (2, 3)))
     per_id = (spec(f, (2, ANY), (3,), TIMES, 0, 3), spec(f, (1, ANY), (), TIMES, 0, 1),
               spec(f, (1, ANY), (), TIMES, 0, 1))
-    args, rets = (ids, *faces), per_id
+    edge = spec(S8, (1, ANY), (), TIMES, 0, 1)
+    args, rets = (ids, *faces), (*per_id, edge)
     if body == 2:
-        args = (*args, *per_id)
+        args = (*args, edge, *per_id)
         rets = tuple(s[:6] + (TIMES, i + 1, 1) for i, s in enumerate(faces))
     return Target(body, dtype, tiny_value, args, rets, ("width", "height", "soft", THREADS))
 
@@ -430,8 +435,8 @@ def unavailable():
 def target_for(base, args):
     """The target of `base` (geometry_forward, search, ...) for operands `args`, or None
     where no handler takes their dtypes: float32 or float64 (one of them for all of a
-    call's float operands, but the search's per-view scalars), int32 face ids, bool masks,
-    the search's faces int32 or int64."""
+    call's float operands, but the search's per-view scalars), int32 face ids, int8
+    nearest edges, bool masks, the search's faces int32 or int64."""
     dtypes = [np.dtype(a.dtype) for a in args]
     floats = {d for d in dtypes if d.kind == "f"}
     width = {np.dtype(np.float32): "f32", np.dtype(np.float64): "f64"}
@@ -444,7 +449,7 @@ def target_for(base, args):
         return f"diffshade_{base}_{width[dtypes[0]]}_{ints[dtypes[1]]}"
     if base == "active":
         return "diffshade_active" if dtypes == [np.dtype(np.bool_)] else None
-    if len(floats) != 1 or not all(d.kind == "f" or d == np.int32 for d in dtypes):
+    if len(floats) != 1 or not all(d.kind == "f" or d in (np.int32, np.int8) for d in dtypes):
         return None
     return f"diffshade_{base}_{width[floats.pop()]}"
 
