@@ -181,18 +181,21 @@ def _uniform_fit(data, spec, material, options):
     return state, data
 
 
-def _solve_map(dataset, material, field, res, masks, options, smoothness, spec):
-    """The `field` map (TextureSolution) with the uniform RGB coefficients of `spec`
-    solved with it (fitting.solve.texture_joint) and everything else at `material`'s;
-    returns (the map, the material with those coefficients)."""
-    blank = dataclasses.replace(material, **{field: Texture(jnp.zeros((res, res, 3)))})
+def _solve_maps(dataset, material, maps, masks, options, smoothness, spec):
+    """The maps ({field: RES}) with the uniform RGB coefficients of `spec` solved with them,
+    as one least-squares solution (fitting.solve.texture_joint), everything else at
+    `material`'s; returns (the JointSolution, the material with those coefficients and
+    the maps)."""
+    blank = dataclasses.replace(material, **{field: Texture(jnp.zeros((res, res, 3)))
+                                             for field, res in maps.items()})
     scenes = [view_scene(dataset, i, blank) for i in range(len(dataset.views))]
     targets = [v.target for v in dataset.views]
     joint = [name for name in ("ka", "kd", "ks") if getattr(spec, name) == "rgb"]
-    solution, found = solve_texture_jointly(
-        scenes, targets, masks, res, dataset.settings, field=field, coefficients=joint,
+    solution = solve_texture_jointly(
+        scenes, targets, masks, maps, dataset.settings, coefficients=joint,
         upper=spec.upper, method=options.method, smoothness=smoothness)
-    return solution, dataclasses.replace(material, **found)
+    material = dataclasses.replace(material, **solution.values)
+    return solution, _with_maps(material, solution.maps)
 
 
 def _with_maps(material, maps):
@@ -237,15 +240,12 @@ def _start(data, spec, maps, init, options):
 
 
 def _round(dataset, data, masks, maps, uniform, material, options, smoothness):
-    """One round (module docstring): (solved {field: TextureSolution}, the material
-    after it, the uniform fit's RunState, its FitData)."""
-    solved = {}
-    for field, res in maps.items():
-        solved[field], material = _solve_map(dataset, material, field, res, masks, options,
-                                             smoothness, uniform)
-        material = _with_maps(material, {field: solved[field]})
+    """One round (module docstring): (the maps' JointSolution, the material after it, the
+    uniform fit's RunState, its FitData)."""
+    joint, material = _solve_maps(dataset, material, maps, masks, options, smoothness,
+                                  uniform)
     state, data = _uniform_fit(data, uniform, material, options)
-    return solved, _with_values(material, to_values(state.best_params, uniform)), state, data
+    return joint, _with_values(material, to_values(state.best_params, uniform)), state, data
 
 
 def fit_maps(dataset, spec: FitSpec, init, maps: dict, options, *, smoothness,
@@ -267,8 +267,9 @@ def fit_maps(dataset, spec: FitSpec, init, maps: dict, options, *, smoothness,
     texels = {field: np.asarray(getattr(material, field).texels) for field in maps}
     log, converged = [], False
     for number in range(1, rounds + 1):
-        solved, material, state, data = _round(dataset, data, masks, maps, uniform,
-                                               material, options, smoothness)
+        joint, material, state, data = _round(dataset, data, masks, maps, uniform,
+                                              material, options, smoothness)
+        solved = joint.maps
         new_values = material_values(material, uniform)
         new_texels = {field: np.asarray(s.texels) for field, s in solved.items()}
         change = _change(values, new_values, texels, new_texels)

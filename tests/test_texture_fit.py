@@ -152,6 +152,69 @@ def test_the_ks_map_in_closed_form_is_dense_least_squares(x64):
     np.testing.assert_allclose(exact.texels, truth.texels, atol=1e-6)
 
 
+# ------------------------------------------- kd and ks maps and ka: one system
+
+
+def dense_columns(scenes, targets, masks, res, settings):
+    """(the columns [N, p] of the kd texels, the ks texels and ka (3), the targets less
+    the render with all of them at 0 [N]) over the counted pixel-channels, by jacfwd."""
+    columns, residuals = [], []
+    zero = (jnp.zeros((res, res, 3)), jnp.zeros((res, res, 3)), jnp.zeros(3))
+    for scene, target, mask in zip(scenes, targets, masks, strict=True):
+        def view(kd, ks, ka, s=scene):
+            material = ds.replace(s.material, kd=ds.replace(s.material.kd, texels=kd),
+                                  ks=ds.replace(s.material.ks, texels=ks), ka=ka)
+            return ds.render(ds.replace(s, material=material), settings)[..., :3]
+        jac = jax.jit(jax.jacfwd(view, argnums=(0, 1, 2)))(*zero)
+        keep = np.repeat(np.asarray(mask).reshape(-1), 3)
+        n = keep.size
+        columns.append(np.concatenate([np.asarray(j).reshape(n, -1) for j in jac], 1)[keep])
+        residuals.append((np.asarray(target) - np.asarray(view(*zero))).reshape(-1)[keep])
+    return np.concatenate(columns), np.concatenate(residuals)
+
+
+@pytest.mark.cost(40)
+def test_kd_and_ks_maps_and_ka_are_one_least_squares_solution(x64):
+    """Both maps and the uniform ka from one solve: the dense regularized least squares
+    over all their unknowns at once; the texels' share of ka's normal matrix is the
+    Schur complement's (ka's block of the dense inverse)."""
+    from fitting.solve.texture_joint import solve_texture_jointly
+
+    res, smoothness = 3, 0.05
+    rng = np.random.default_rng(8)
+    kd, ks = (ds.texture(rng.uniform(0.2, 0.7, (res, res, 3))) for _ in range(2))
+    scenes, targets, masks = sphere_views(
+        ds.material(ka=(0.2, 0.25, 0.15), kd=kd, ks=ks, shininess=8.0),
+        [0.0, 90.0, 180.0, 270.0])
+    noisy = [t + 0.01 * np.random.default_rng(i).normal(size=t.shape)
+             for i, t in enumerate(targets)]
+    settings = ds.RenderSettings(clamp=False)
+    joint = solve_texture_jointly(scenes, noisy, masks, {"kd": res, "ks": res}, settings,
+                                  coefficients=["ka"], smoothness=smoothness, tol=1e-13)
+    a, y = dense_columns(scenes, noisy, masks, res, settings)
+    normal = a.T @ a
+    texels = res * res * 3
+    lap = np.kron(grid_laplacian(res), np.eye(3))
+    prior, lam = np.zeros_like(normal), []
+    for block in range(2):  # each map's weight: smoothness x its own mean data weight
+        span = slice(block * texels, (block + 1) * texels)
+        lam.append(smoothness * normal[span, span].sum(1).mean())
+        prior[span, span] = lam[-1] * lap
+    want = np.linalg.solve(normal + prior, a.T @ y)
+    assert np.all((want[-3:] > 0) & (want[-3:] < 1))  # inside the box: the free optimum
+    np.testing.assert_allclose(joint.maps["kd"].texels, want[:texels].reshape(res, res, 3),
+                               atol=1e-7)
+    np.testing.assert_allclose(joint.maps["ks"].texels,
+                               want[texels:2 * texels].reshape(res, res, 3), atol=1e-7)
+    np.testing.assert_allclose(joint.values["ka"], want[-3:], atol=1e-8)
+    np.testing.assert_allclose([joint.maps["kd"].lam, joint.maps["ks"].lam], lam, rtol=1e-9)
+    # ka's marginal: P'P less the texels' share is the inverse of ka's block of the inverse
+    schur = np.diag(normal[-3:, -3:]) - joint.eliminated[("ka", "ka")]
+    marginal = np.linalg.inv(normal + prior)[-3:, -3:]
+    np.testing.assert_allclose(1.0 / schur, np.diag(marginal), rtol=1e-6)
+    np.testing.assert_allclose(marginal - np.diag(np.diag(marginal)), 0.0, atol=1e-12)
+
+
 # --------------------------------------------------------- Adam and L-BFGS on texels
 
 
