@@ -248,14 +248,16 @@ def _check_options(field_names, method, smoothness):
 
 def solve_maps(scenes, targets, masks, maps, settings=None, *, method="linear",
                smoothness=DEFAULT_SMOOTHNESS, tol=1e-6, maxiter=None,
-               lr=DEFAULT_TEXEL_LR) -> MapSolve:
+               lr=DEFAULT_TEXEL_LR, affine=True) -> MapSolve:
     """The maps ({field: RES}, fields among kd and ks) that explain each of K sets of
     targets, together, on one operator (module docstring).
 
     scenes: one Scene per view whose material's fields in `maps` are Textures (their
     texels are ignored; their wraps kept); targets: per view [K, H, W, 3] (or [H, W, 3]:
     K = 1) linear images; masks, settings, method, smoothness, tol, maxiter, lr: as
-    solve_texture's."""
+    solve_texture's. affine=False: each target is an image d itself, not less the render
+    with the maps at 0 (the normal equations' right-hand side is A'Md: the solve is
+    H^-1 A'Md, its sigma meaningless)."""
     settings = replace(RenderSettings() if settings is None else settings, clamp=False)
     fields = tuple(maps)
     _check_options(fields, method, smoothness)
@@ -266,7 +268,7 @@ def solve_maps(scenes, targets, masks, maps, settings=None, *, method="linear",
     targets = [jnp.asarray(y) for y in targets]
     targets = [y[None] if y.ndim == 3 else y for y in targets]
     masks = [jnp.asarray(m, bool) for m in masks]
-    out = _solve(scenes, targets, masks, smoothness, tol, maxiter, lr,
+    out = _solve(scenes, targets, masks, smoothness, tol, maxiter, lr, affine,
                  res=tuple(maps[f] for f in fields), settings=settings, fields=fields,
                  method=method)
     texels, coverage, diagonal, lam, iterations, residual, sigma, warm, images = out
@@ -340,8 +342,8 @@ def _sigma(parts, targets, masks, maps, seen_count):
 
 
 @partial(jax.jit, static_argnames=("res", "settings", "fields", "method"))
-def _solve(scenes, targets, masks, smoothness, tol, maxiter, lr, *, res, settings, fields,
-           method):
+def _solve(scenes, targets, masks, smoothness, tol, maxiter, lr, affine, *, res, settings,
+           fields, method):
     """solve_maps' arrays, as one compiled program (the views unrolled, the right-hand
     sides and the probes looped)."""
     dtype = targets[0].dtype
@@ -390,7 +392,9 @@ def _solve(scenes, targets, masks, smoothness, tol, maxiter, lr, *, res, setting
     def one(target_k):
         rhs = None
         for (b, _, transpose), y, mask in zip(parts, target_k, masks, strict=True):
-            term = transpose(jnp.where(mask[..., None], y - b, 0.0).astype(dtype))[0]
+            # affine is traced: the texel share's solve (affine=False) compiles nothing
+            term = transpose(jnp.where(mask[..., None], jnp.where(affine, y - b, y),
+                                       0.0).astype(dtype))[0]
             rhs = term if rhs is None else _add(rhs, term)
         x, iterations, residual, warm = _minimize(method, operator, probed, _flat(rhs),
                                                   precondition, inverse, tol, maxiter, lr)
