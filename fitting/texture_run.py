@@ -140,6 +140,12 @@ def check_maps(dataset, maps, key="textures"):
         check(key, f"{field}={res}", map_bytes(dataset, res),
                      f"a {res}x{res} {field} map from {len(dataset.views)} views",
                      elements=12 * res * res)
+    if len(maps) > 1:  # one system: the renders once, every map's texels
+        texels = sum(map_bytes(dataset, res) - map_bytes(dataset, 0) for res in maps.values())
+        text = ",".join(f"{field}={res}" for field, res in maps.items())
+        check(key, text, map_bytes(dataset, 0) + texels,
+              f"{text} maps solved together from {len(dataset.views)} views",
+              elements=12 * sum(res * res for res in maps.values()))
 
 
 def check_map_fit(dataset, spec: FitSpec, maps, options, callback=None, key="textures"):
@@ -200,6 +206,11 @@ def _uniform_fit(data, spec, material, options):
     return state, data
 
 
+def _joint(spec):
+    """The uniform RGB coefficients solved with the maps."""
+    return [name for name in ("ka", "kd", "ks") if getattr(spec, name) == "rgb"]
+
+
 def _solve_maps(dataset, material, maps, masks, options, smoothness, spec):
     """The maps ({field: RES}) with the uniform RGB coefficients of `spec` solved with them,
     as one least-squares solution (fitting.solve.texture_joint), everything else at
@@ -209,9 +220,8 @@ def _solve_maps(dataset, material, maps, masks, options, smoothness, spec):
                                              for field, res in maps.items()})
     scenes = [view_scene(dataset, i, blank) for i in range(len(dataset.views))]
     targets = [v.target for v in dataset.views]
-    joint = [name for name in ("ka", "kd", "ks") if getattr(spec, name) == "rgb"]
     solution = solve_texture_jointly(
-        scenes, targets, masks, maps, dataset.settings, coefficients=joint,
+        scenes, targets, masks, maps, dataset.settings, coefficients=_joint(spec),
         upper=spec.upper, method=options.method, smoothness=smoothness)
     material = dataclasses.replace(material, **solution.values)
     return solution, _with_maps(material, solution.maps)
@@ -323,9 +333,8 @@ def fit_maps(dataset, spec: FitSpec, init, maps: dict, options, *, smoothness,
             material, carried = _extrapolated(material, carried)
     eliminated = None
     if uniform.fits_material:
-        joint = [name for name in ("ka", "kd", "ks") if getattr(uniform, name) == "rgb"]
-        share = texel_share(dataset, material, to_values(state.best_params, uniform), uniform,
-                            maps, masks, batch=1 + len(joint), method=options.method,
+        share = texel_share(dataset, data, to_values(state.best_params, uniform), uniform,
+                            maps, masks, batch=1 + len(_joint(uniform)), method=options.method,
                             smoothness=smoothness)
         unknowns = 3 * sum(int(np.sum(np.asarray(s.coverage) > 0)) for s in solved.values())
         eliminated = (share, unknowns)

@@ -9,36 +9,39 @@ J = d render / d v, A = d render / d t, M the counted pixels. The covariance of 
 the texels marginalised (free to move with v, as the fit lets them) is sigma^2 times v's
 block of its inverse, the inverse of the Schur complement J'MJ - J'MA H^-1 A'MJ: less
 than J'MJ by `texel_share` = J'MA H^-1 A'MJ, which fitting.report.uncertainty subtracts
-(its `eliminated`). Each column of J is an image per view (jacfwd of the render at the
-fitted values), the maps' solve of them all is one solve_maps call (one right-hand side
-per value, on one operator), and the share is P_i'M (A T_j), T_j = H^-1 A'MP_j.
+(its `eliminated`). Each column of J is an image per view (uncertainty's own rows of J,
+from the fit's program on the cached pixels, put in place: nothing more to compile),
+the maps' solve of them all a few solve_maps calls (a right-hand side per value, on the
+fit's operator and compiled program), and the share is P_i'M (A T_j), T_j = H^-1 A'MP_j.
 
 The prior is part of H: the texels are marginalised under the same smoothness prior the
 maps are solved with (with smoothness 0, the plain least-squares marginal).
 """
 
-from functools import partial
-
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from diffshade import render, replace
+from diffshade import replace
 from fitting.data.views import view_scene
+from fitting.model.batch import unpadded
+from fitting.report.uncertainty import rows_fold
 from fitting.solve.texture import solve_maps
 from fitting.spec.params import values_to_material
 
 __all__ = ["texel_share"]
 
 
-@partial(jax.jit, static_argnames=("spec", "settings"))
-def _columns(values, scene, spec, settings):
-    """[H, W, 3, p]: d render / d each scalar of `values` (value_names order)."""
-    def image(v):
-        material = values_to_material(v, spec, scene.material)
-        return render(replace(scene, material=material), settings)[..., :3]
-    leaves = jax.tree.leaves(jax.jacfwd(image)(values))
-    return jnp.concatenate([leaf.reshape(*leaf.shape[:3], -1) for leaf in leaves], -1)
+def _columns(values, data, spec, shapes):
+    """Per view [H, W, 3, p]: d model / d each scalar of `values` (value_names order) at
+    the view's cached pixels (the rows fitting.report.uncertainty's J is made of), 0
+    elsewhere; shapes: each view's (H, W)."""
+    jac = rows_fold(values, data, spec)(lambda total, rows, *_: rows[1], None)
+    columns = []
+    for rows, view, (height, width) in zip(unpadded(jac, data.views), data.views, shapes,
+                                           strict=True):
+        image = np.zeros((height * width, 3, rows.shape[-1]))
+        image[np.asarray(view.pixels)] = rows
+        columns.append(image.reshape(height, width, 3, -1))
+    return columns
 
 
 def _solved_images(scenes, columns, masks, maps, settings, batch, options):
@@ -57,17 +60,17 @@ def _solved_images(scenes, columns, masks, maps, settings, batch, options):
     return [np.concatenate(view) for view in images]
 
 
-def texel_share(dataset, material, values, spec, maps, masks, batch=1,
+def texel_share(dataset, data, values, spec, maps, masks, batch=1,
                 **options) -> np.ndarray:
     """[p, p] J'MA H^-1 A'MJ (module docstring) at `values` (a fit's physical values of
-    `spec`, value_names order) with `material`'s maps ({field: RES}, Textures in it) and
-    everything else; masks: per view [H, W] bool, the counted pixels; batch: right-hand
-    sides per solve (_solved_images); options: solve_maps' keywords (smoothness,
-    method)."""
+    `spec`, value_names order) on `data` (the fit's FitData, whose material holds the maps
+    ({field: RES}) and everything else); masks: per view [H, W] bool, the counted pixels;
+    batch: right-hand sides per solve (_solved_images); options: solve_maps' keywords
+    (smoothness, method)."""
     settings = replace(dataset.settings, clamp=False)
+    material = values_to_material(values, spec, data.material)
     scenes = [view_scene(dataset, i, material) for i in range(len(dataset.views))]
-    values = jax.tree.map(jnp.asarray, values)
-    columns = [np.asarray(_columns(values, s, spec, settings)) for s in scenes]
+    columns = _columns(values, data, spec, [np.shape(m) for m in masks])
     images = _solved_images(scenes, columns, masks, maps, settings, batch, options)
     share = sum(np.einsum("hwci,jhwc->ij", np.where(np.asarray(m)[..., None, None], c, 0.0),
                           a)

@@ -293,9 +293,6 @@ def solve_texture(scenes, targets, masks, res, settings=None, *, field="kd",
     same objective; lr: Adam's learning rate, in texel units); maxiter: the most
     iterations (default 1000; fitting.solve.texture_descent.DEFAULT_MAXITER for descent).
     smoothness >= 0: the prior's unitless weight. Raises ValueError for a bad argument."""
-    _check_options((field,), method, smoothness)
-    if not isinstance(res, int) or isinstance(res, bool):
-        _check_arguments(scenes, res, field)
     return solve_maps(scenes, [jnp.asarray(y)[None] for y in targets], masks, {field: res},
                       settings, method=method, smoothness=smoothness, tol=tol,
                       maxiter=maxiter, lr=lr).solution(field)
@@ -332,11 +329,11 @@ def _prior_weight(smoothness, weights, seen):
         3 * jnp.sum(seen), 1)
 
 
-def _sigma(parts, targets, masks, maps, seen_count):
-    """sigma of one right-hand side's solution: sqrt(RSS / (counted values less the seen
-    unknowns))."""
-    rss = sum(jnp.sum(jnp.where(mask[..., None], forward(maps) + b - y, 0.0) ** 2)
-              for (b, forward, _), y, mask in zip(parts, targets, masks, strict=True))
+def _sigma(parts, targets, masks, images, seen_count):
+    """sigma of one right-hand side's solution (images: its A t per view): sqrt(RSS /
+    (counted values less the seen unknowns))."""
+    rss = sum(jnp.sum(jnp.where(mask[..., None], image + b - y, 0.0) ** 2)
+              for (b, _, _), image, y, mask in zip(parts, images, targets, masks, strict=True))
     values = 3 * sum(jnp.sum(mask) for mask in masks)
     return jnp.sqrt(rss / jnp.maximum(values - 3 * seen_count, 1))
 
@@ -399,8 +396,8 @@ def _solve(scenes, targets, masks, smoothness, tol, maxiter, lr, affine, *, res,
         x, iterations, residual, warm = _minimize(method, operator, probed, _flat(rhs),
                                                   precondition, inverse, tol, maxiter, lr)
         maps = _unflat(x, res)
-        sigma = _sigma(parts, target_k, masks, maps, sum(jnp.sum(s) for s in seen))
         images = [forward(maps) for _, forward, _ in parts]
+        sigma = _sigma(parts, target_k, masks, images, sum(jnp.sum(s) for s in seen))
         return maps, iterations, residual, warm, sigma, images
     maps, iterations, residual, warm, sigma, images = jax.lax.map(
         one, [jnp.asarray(y) for y in targets])
