@@ -389,7 +389,7 @@ def _solve(scenes, targets, masks, smoothness, tol, maxiter, lr, affine, *, res,
     def one(target_k):
         rhs = None
         for (b, _, transpose), y, mask in zip(parts, target_k, masks, strict=True):
-            # affine is traced: the texel share's solve (affine=False) compiles nothing
+            # affine is traced: the texel share's solves (affine=False) share this program
             term = transpose(jnp.where(mask[..., None], jnp.where(affine, y - b, y),
                                        0.0).astype(dtype))[0]
             rhs = term if rhs is None else _add(rhs, term)
