@@ -628,27 +628,68 @@ def bilinear_normal_matrix(res, rng, reach=1):
 
 @pytest.mark.parametrize("res", [2, 3, 9])
 def test_probed_stencil_is_the_operator_for_couplings_one_apart(res, x64):
-    from fitting.solve.texture import _stencil, _stencil_operator
+    from fitting.solve.texture_stencil import block_stencil, stencil_operator
 
     normal = bilinear_normal_matrix(res, np.random.default_rng(res))
 
-    def data(t):
-        return jnp.asarray(normal) @ t.reshape(-1)
-    operator = _stencil_operator(_stencil(lambda t: data(t).reshape(t.shape), res,
-                                          jnp.float64))
+    def data(maps):
+        return ((jnp.asarray(normal) @ maps[0].reshape(-1)).reshape(maps[0].shape),)
+    operator = stencil_operator(block_stencil(data, (res,), jnp.float64), 1)
     t = np.random.default_rng(1).normal(size=(res, res, 3))
-    np.testing.assert_allclose(operator(jnp.asarray(t)).reshape(-1), normal @ t.reshape(-1),
-                               rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(operator((jnp.asarray(t),))[0].reshape(-1),
+                               normal @ t.reshape(-1), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("res", [3, 8])
+def test_the_block_stencil_of_two_maps_is_their_joint_operator(res, x64):
+    """Pixels that read a bilinear cell of a kd map and of a ks map at the same place: the
+    probed block stencil is the joint normal matrix, the couplings between the maps
+    included, and its preconditioner inverts each texel's 2 x 2 block."""
+    from fitting.solve.texture_stencil import (
+        block_preconditioner,
+        block_stencil,
+        stencil_operator,
+    )
+
+    rng = np.random.default_rng(res)
+    rows = []
+    for _ in range(6 * res * res):
+        row, col = rng.integers(res, size=2)
+        read = np.zeros((2, res, res))
+        for dr in range(2):
+            for dc in range(2):
+                read[:, (row + dr) % res, (col + dc) % res] += rng.uniform(0.1, 1.0, 2)
+        rows.append(read.reshape(-1))
+    a = np.array(rows)
+    normal = a.T @ a  # [kd texels, ks texels] per channel
+    n = res * res
+
+    def data(maps):
+        flat = jnp.stack([m.reshape(n, 3) for m in maps]).reshape(2 * n, 3)
+        out = (jnp.asarray(normal) @ flat).reshape(2, res, res, 3)
+        return out[0], out[1]
+    stencil = block_stencil(data, (res, res), jnp.float64)
+    maps = tuple(jnp.asarray(rng.normal(size=(res, res, 3))) for _ in range(2))
+    got = stencil_operator(stencil, 2)(maps)
+    np.testing.assert_allclose(np.stack(got), np.stack(data(maps)), rtol=1e-12, atol=1e-12)
+    z = block_preconditioner(stencil, (0.0, 0.0), 1e-30)(maps)
+    for i in range(n):
+        block = normal[np.ix_([i, n + i], [i, n + i])]
+        r = np.stack([m.reshape(n, 3)[i] for m in maps])
+        np.testing.assert_allclose(np.stack([x.reshape(n, 3)[i] for x in z]),
+                                   np.linalg.solve(block, r), rtol=1e-9)
 
 
 @pytest.mark.parametrize("res", [9])
 def test_probed_diagonal_is_exact_for_couplings_shorter_than_the_stride(res, x64):
-    from fitting.solve.texture import _stencil
+    from fitting.solve.texture_stencil import block_stencil
 
     normal = bilinear_normal_matrix(res, np.random.default_rng(res), reach=3)
-    stencil = _stencil(lambda t: (jnp.asarray(normal) @ t.reshape(-1)).reshape(t.shape), res,
-                       jnp.float64)
-    np.testing.assert_allclose(stencil[(0, 0)].reshape(-1), np.diag(normal), rtol=1e-12)
+    stencil = block_stencil(
+        lambda maps: ((jnp.asarray(normal) @ maps[0].reshape(-1)).reshape(maps[0].shape),),
+        (res,), jnp.float64)
+    np.testing.assert_allclose(stencil[(0, 0, (0, 0))].reshape(-1), np.diag(normal),
+                               rtol=1e-12)
 
 
 def test_the_material_fit_refuses_a_textured_truth_pointing_at_texture(tmp_path, capsys):
