@@ -8,6 +8,12 @@ texture's wrap decides: 'repeat' takes u and v modulo 1 (blending across the edg
 out-of-bounds gather), and the value is differentiable with respect to every texel (a
 sample's four texels get its bilinear weights) and to the UV (piecewise linear).
 
+The lookup is a FragmentOp (diffshade.host.hostop: every JAX transform kept) whose host
+kernels (diffshade.host.texture_kernels) make one pass over the samples forward, and one
+backward that scatters each cotangent straight into the texels [H, W, C] and computes the
+UVs' gradient only where reverse mode needs it; in jax.numpy (another backend, or
+kernels='jax') it is four gathers, and XLA's scatter-add as their transpose.
+
 Minification: there is no mip-mapping. A texel smaller than a pixel is read at the
 pixel's sample points only, so a far or grazing textured surface aliases; render
 supersampled (diffshade.pipeline.rendering.render_supersampled) to average more
