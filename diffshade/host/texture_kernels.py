@@ -79,6 +79,25 @@ def _weights(weights, gx, gy, fx, fy):
     return weights[0], weights[1], weights[2], weights[3]
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _blend(out, i, texels, rows, w, nc):
+    """out[i] = the four texel rows [4] blended by their weights w [4], nc channels."""
+    for ch in range(nc):
+        out[i, ch] = (w[0] * texels[rows[0], ch] + w[1] * texels[rows[1], ch]
+                      + w[2] * texels[rows[2], ch] + w[3] * texels[rows[3], ch])
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _scatter(acc, g_out, i, rows, w, nc):
+    """Sample i's cotangent g_out[i] into the four texel rows of acc by their weights."""
+    for ch in range(nc):
+        g = g_out[i, ch]
+        acc[rows[0], ch] += w[0] * g
+        acc[rows[1], ch] += w[1] * g
+        acc[rows[2], ch] += w[2] * g
+        acc[rows[3], ch] += w[3] * g
+
+
 @numba.njit(cache=True, nogil=True)
 def _chunk(chunk, chunks, n):
     """The sample range [start, stop) of one of `chunks` equal parts."""
@@ -109,11 +128,12 @@ def sample_forward_into(ids, uv, texels, height, width, clamp, chunks, out):
                     out[i, ch] = 0.0
                 continue
             t00, t01, t10, t11, fx, fy, _, _ = _cell(uv[i, 0], uv[i, 1], height, width, clamp)
-            gx, gy = 1.0 - fx, 1.0 - fy
-            w00, w01, w10, w11 = _weights(weights, gx, gy, fx, fy)
-            for ch in range(nc):
-                out[i, ch] = (w00 * texels[base + t00, ch] + w01 * texels[base + t01, ch]
-                              + w10 * texels[base + t10, ch] + w11 * texels[base + t11, ch])
+            rows = base + t00, base + t01, base + t10, base + t11
+            w = _weights(weights, 1.0 - fx, 1.0 - fy, fx, fy)
+            if nc == 3:  # RGB, the common case: a loop of constant length, unrolled
+                _blend(out, i, texels, rows, w, 3)
+            else:
+                _blend(out, i, texels, rows, w, nc)
     return out
 
 
@@ -137,6 +157,7 @@ def sample_backward_into(ids, uv, texels, g_out, height, width, clamp, uv_grad, 
     acc = np.zeros((chunks,) + texels.shape, texels.dtype)
     for chunk in prange(chunks):
         weights = np.empty(4, texels.dtype)
+        part = acc[chunk]
         start, stop = _chunk(chunk, chunks, n)
         for i in range(start, stop):
             base = _offset(ids, i, area, total)
@@ -147,15 +168,15 @@ def sample_backward_into(ids, uv, texels, g_out, height, width, clamp, uv_grad, 
                                                        clamp)
             t00, t01, t10, t11 = base + t00, base + t01, base + t10, base + t11
             gx, gy = 1.0 - fx, 1.0 - fy
-            w00, w01, w10, w11 = _weights(weights, gx, gy, fx, fy)
+            w = _weights(weights, gx, gy, fx, fy)
+            if nc == 3:  # as in the forward
+                _scatter(part, g_out, i, (t00, t01, t10, t11), w, 3)
+            else:
+                _scatter(part, g_out, i, (t00, t01, t10, t11), w, nc)
             du = dv = 0.0
-            for ch in range(nc):
-                g = g_out[i, ch]
-                acc[chunk, t00, ch] += w00 * g
-                acc[chunk, t01, ch] += w01 * g
-                acc[chunk, t10, ch] += w10 * g
-                acc[chunk, t11, ch] += w11 * g
-                if uv_grad:
+            if uv_grad:
+                for ch in range(nc):
+                    g = g_out[i, ch]
                     a, b = texels[t00, ch], texels[t01, ch]
                     c, d = texels[t10, ch], texels[t11, ch]
                     du += g * (gy * (b - a) + fy * (d - c))
