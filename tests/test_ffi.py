@@ -16,12 +16,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffshade.host import candidates, hostcall, xla_ffi
+from diffshade.host import candidates, hostcall, texture_kernels, xla_ffi
 from diffshade.host import fragment_kernels as kernels
 from diffshade.numerics import tiny
 from diffshade.raster.fragments import fragment_geometry
 from diffshade.raster.interpolation import interpolate_corners
 from diffshade.shading import compact
+from diffshade.shading.texturing import sample_texels
 
 H, W, K, F = 6, 5, 3, 7
 
@@ -125,6 +126,43 @@ def test_interpolation_targets_equal_the_kernels(x64):
         np.testing.assert_array_equal(np.asarray(g_bary).reshape(-1, K, 3), want_bary)
         np.testing.assert_allclose(np.asarray(g_corners), want_corners, rtol=1e-12 if x64
                                    else 1e-5, atol=1e-12 if x64 else 1e-5)
+
+
+@pytest.mark.parametrize("x64", [False, True])
+@pytest.mark.parametrize("clamp", [0, 1])
+def test_texture_targets_equal_the_kernels(x64, clamp):
+    with jax.enable_x64(x64):
+        dtype = np.float64 if x64 else np.float32
+        rng = np.random.default_rng(5)
+        n, height, width = 50, 4, 6
+        ids = np.where(rng.uniform(size=n) < 0.2, -1, 0).astype(np.int32)
+        uv = rng.uniform(-0.5, 1.5, (n, 2)).astype(dtype)
+        texels = rng.uniform(size=(height * width, 3)).astype(dtype)
+        g_out = rng.normal(size=(n, 3)).astype(dtype)
+        op = lambda u, t: sample_texels(ids, u, t, host=True, height=height, width=width,
+                                        clamp=clamp, uv_grad=1)[0]
+
+        def fb(uv, texels):  # both gradients: the backward with uv_grad = 1
+            out, vjp = jax.vjp(op, uv, texels)
+            return out, vjp(g_out)
+
+        def fb_texels(uv, texels):  # the texels' only: uv_grad = 0
+            return jax.vjp(lambda t: op(uv, t), texels)[1](g_out)[0]
+        width_name = "f64" if x64 else "f32"
+        assert _targets(fb, uv, texels) == {f"diffshade_texture_forward_{width_name}",
+                                             f"diffshade_texture_backward_{width_name}"}
+        out, (g_uv, g_texels) = jax.jit(fb)(uv, texels)
+        args = (height, width, bool(clamp))
+        np.testing.assert_array_equal(np.asarray(out), texture_kernels.sample_forward(
+            ids, uv, texels, *args, 2))
+        for uv_grad, got in ((True, (g_uv, g_texels)), (False, (None, jax.jit(fb_texels)(
+                uv, texels)))):
+            want = texture_kernels.sample_backward(ids, uv, texels, g_out, *args, uv_grad, 3)
+            for a, b in zip(got, want, strict=True):
+                if a is not None:
+                    np.testing.assert_allclose(np.asarray(a), b, rtol=1e-12 if x64 else 1e-5,
+                                               atol=1e-12 if x64 else 1e-5)
+            assert uv_grad or not np.any(want[0])
 
 
 @pytest.mark.parametrize("capacity", [1, 10, 40])

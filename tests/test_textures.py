@@ -51,15 +51,63 @@ def naive_sample(texels, u, v, wrap):
     return value
 
 
+def lookups(texture, uv, valid=None):
+    """sample_texture by every path: {name: function of (texels, uv)}: the host kernels
+    called at once (eager) and under jit (the FFI targets), and jax.numpy under jit."""
+    def path(host):
+        return lambda t, u: sample_texture(ds.replace(texture, texels=t), u, host, valid)
+    return {"host": path(True), "host jit": jax.jit(path(True)),
+            "jax.numpy jit": jax.jit(path(False))}
+
+
 @pytest.mark.parametrize("wrap", ["repeat", "clamp"])
 def test_lookup_matches_a_naive_bilinear_loop_inside_and_outside_the_unit_square(wrap, x64):
     rng = np.random.default_rng(1)
     texels = rng.random((5, 7, 3))
     uv = np.concatenate([rng.uniform(-2.5, 3.5, (60, 2)), [[0, 0], [1, 1], [0.5, 1e-9],
                                                           [1e6, -1e6], [-1.0, 2.0]]])
-    got = np.asarray(sample_texture(ds.texture(texels, wrap), jnp.asarray(uv)))
     want = np.array([naive_sample(texels, u, v, wrap) for u, v in uv])
-    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9)
+    for name, lookup in lookups(ds.texture(texels, wrap), uv).items():
+        got = np.asarray(lookup(jnp.asarray(texels), jnp.asarray(uv)))
+        np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9, err_msg=name)
+
+
+@pytest.mark.parametrize("wrap", ["repeat", "clamp"])
+def test_lookup_of_nan_and_infinite_uvs_reads_in_range(wrap, x64):
+    """A NaN UV (or an infinite one under 'repeat', whose modulo is NaN) reads NaN, by every
+    path alike, its reads in range; clamp takes an infinite UV to the edge texels."""
+    texels = np.arange(2.0, 14.0).reshape(3, 4, 1)
+    inf, nan = np.inf, np.nan
+    uv = np.array([[nan, 0.5], [0.5, nan], [inf, 0.5], [-inf, 0.5], [0.5, inf], [0.5, -inf],
+                   [0.3, 0.7]])
+    clamped = [naive_sample(texels, min(max(u, -1.0), 2.0), min(max(v, -1.0), 2.0), "clamp")
+               for u, v in uv[2:6]]
+    want = np.concatenate([np.full((2, 1), nan), clamped if wrap == "clamp" else
+                           np.full((4, 1), nan), [naive_sample(texels, 0.3, 0.7, wrap)]])
+    for name, lookup in lookups(ds.texture(texels, wrap), uv).items():
+        got = np.asarray(lookup(jnp.asarray(texels), jnp.asarray(uv)))
+        np.testing.assert_allclose(got, want, rtol=1e-12, err_msg=name)  # NaN where want's
+
+
+@pytest.mark.parametrize("wrap", ["repeat", "clamp"])
+def test_lookup_gradients_agree_across_paths_and_skip_invalid_samples(wrap, x64):
+    """Reverse mode of every path against forward mode of jax.numpy (jvp), for the texels
+    alone (the host backward then skips the UVs' gradient) and for texels and UVs; samples
+    not `valid` read 0 and give no gradient."""
+    rng = np.random.default_rng(4)
+    texels, uv = rng.random((4, 6, 3)), rng.uniform(-0.5, 1.5, (40, 2))
+    valid = np.arange(40) % 4 != 1
+    weights = rng.normal(size=(40, 3))
+    d_tex, d_uv = rng.normal(size=texels.shape), rng.normal(size=uv.shape)
+    for name, lookup in lookups(ds.texture(texels, wrap), uv, jnp.asarray(valid)).items():
+        loss = lambda t, u, lookup=lookup: jnp.sum(lookup(t, u) * weights)
+        assert np.all(np.asarray(lookup(texels, uv))[~valid] == 0.0), name
+        g_tex, g_uv = jax.grad(loss, (0, 1))(texels, uv)
+        assert np.all(np.asarray(g_uv)[~valid] == 0.0), name
+        np.testing.assert_allclose(jax.grad(loss)(texels, uv), g_tex, rtol=1e-12, atol=1e-12)
+        _, jvp = jax.jvp(loss, (texels, uv), (d_tex, d_uv))
+        np.testing.assert_allclose(np.sum(g_tex * d_tex) + np.sum(g_uv * d_uv), jvp,
+                                   rtol=1e-10, err_msg=name)
 
 
 def test_texel_centres_read_their_texel_and_v_runs_up_the_image(x64):

@@ -39,7 +39,7 @@ import numba
 import numpy as np
 from numba import carray, cfunc, types
 
-from diffshade.host import active_kernel, candidates, xla_ffi
+from diffshade.host import active_kernel, candidates, texture_kernels, xla_ffi
 from diffshade.host import fragment_kernels as kernels
 from diffshade.host.ffi_check import (
     ANY,
@@ -179,6 +179,30 @@ def _interpolate_backward(frame, values, dtype):
         _array3(frame, FRAME_RETS, 1, 3, c, dtype))
 
 
+# -- texture lookup (texturing.sample_texels) ------------------------------------------------
+# arguments: ids [M] int32 (texture offsets), uv [M, 2], texels [T, C]; attributes: height,
+# width, clamp, uv_grad (read by the backward). Forward result [M, C]; backward: the
+# cotangent [M, C] follows, results g_uv and g_texels.
+
+@numba.njit(cache=True, nogil=True)
+def _texture_forward(frame, values, dtype):
+    c = buffer_dim(item(frame, FRAME_ARGS, 2), -1)
+    texture_kernels.sample_forward_into(
+        _flat(frame, FRAME_ARGS, 0, np.int32), _array2(frame, FRAME_ARGS, 1, 2, dtype),
+        _array2(frame, FRAME_ARGS, 2, c, dtype), values[0], values[1], values[2] != 0,
+        values[4], _array2(frame, FRAME_RETS, 0, c, dtype))
+
+
+@numba.njit(cache=True, nogil=True)
+def _texture_backward(frame, values, dtype):
+    c = buffer_dim(item(frame, FRAME_ARGS, 2), -1)
+    texture_kernels.sample_backward_into(
+        _flat(frame, FRAME_ARGS, 0, np.int32), _array2(frame, FRAME_ARGS, 1, 2, dtype),
+        _array2(frame, FRAME_ARGS, 2, c, dtype), _array2(frame, FRAME_ARGS, 3, c, dtype),
+        values[0], values[1], values[2] != 0, values[3] != 0, values[4],
+        _array2(frame, FRAME_RETS, 0, 2, dtype), _array2(frame, FRAME_RETS, 1, c, dtype))
+
+
 # -- active slots (compact.active_indices) --------------------------------------------------
 # argument: mask [N] bool; results: indices [capacity] int32, count [] int32
 
@@ -307,7 +331,8 @@ def _search_hard(frame, values, dtype, face_dtype):
 
 #: the handlers' bodies, by the number a handler is made with (_handler)
 _BODIES = ("active", "geometry_forward", "geometry_backward", "interpolate_forward",
-           "interpolate_backward", "search_soft", "search_hard")
+           "interpolate_backward", "search_soft", "search_hard", "texture_forward",
+           "texture_backward")
 
 
 class Target(NamedTuple):
@@ -360,6 +385,17 @@ def _search(body, f, dtype, i, ints):
     return Target(body, dtype, ints, args, rets, attrs)
 
 
+def _texture(body, f, dtype):
+    """The texture lookup's target (body 7: forward, 8: backward) of float code f."""
+    ids, uv, texels = spec(S32, (1, ANY)), spec(f, (2, ANY), (2,), TIMES, 0, 2), spec(f, 2)
+    out = spec(f, (2, ANY), (), PER_LAST, 0, 2)
+    attrs = ("height", "width", "clamp", "uv_grad", THREADS)
+    if body == 7:
+        return Target(body, dtype, 0, (ids, uv, texels), (out,), attrs)
+    return Target(body, dtype, 0, (ids, uv, texels, out), (uv, texels[:6] + (TIMES, 2, 1)),
+                  attrs)
+
+
 def _handler(name, target):
     """The FFI handler of target `name`: answers XLA's metadata query, checks the call
     frame against the target (an XLA error where it differs), else runs the body. A
@@ -389,8 +425,12 @@ def _handler(name, target):
             _interpolate_backward(frame, values, dtype)
         elif body == 5:
             _search_soft(frame, values, dtype, other)
-        else:
+        elif body == 6:
             _search_hard(frame, values, dtype, other)
+        elif body == 7:
+            _texture_forward(frame, values, dtype)
+        else:
+            _texture_backward(frame, values, dtype)
         return pointer(0)
     handler.__name__ = handler.__qualname__ = f"_handler_{name}"
     return handler
@@ -406,6 +446,8 @@ for _width, _f, _dtype, _tiny in (("f32", F32, np.float32, _TINY32),
         TARGETS[f"diffshade_{_BODIES[_body]}_{_width}"] = _geometry(_body, _f, _dtype, _tiny)
     for _body in (3, 4):
         TARGETS[f"diffshade_{_BODIES[_body]}_{_width}"] = _interpolation(_body, _f, _dtype)
+    for _body in (7, 8):
+        TARGETS[f"diffshade_{_BODIES[_body]}_{_width}"] = _texture(_body, _f, _dtype)
     for _ints, _i, _int in (("i32", S32, np.int32), ("i64", S64, np.int64)):
         for _body in (5, 6):
             TARGETS[f"diffshade_{_BODIES[_body]}_{_width}_{_ints}"] = _search(
