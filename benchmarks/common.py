@@ -28,9 +28,14 @@ def time_call(fn, *args, repeats=10, warmup=2):
 
 
 def _timed(fn):
-    start = time.perf_counter()
+    return timed_cpu(fn)[0]
+
+
+def timed_cpu(fn):
+    """(wall s, CPU s of the process, all threads) of one call, its results ready."""
+    wall, cpu = time.perf_counter(), time.process_time()
     jax.block_until_ready(fn())
-    return time.perf_counter() - start
+    return time.perf_counter() - wall, time.process_time() - cpu
 
 
 def _settled(times, settle):
@@ -41,7 +46,8 @@ def _settled(times, settle):
 
 def time_settings(calls, *, rounds=7, settle=0.15, min_warmup=2, max_warmup=20, seed=0):
     """Time several settings against each other: {name: zero-argument fn} ->
-    {name: {"compile_s", "warmup_calls", "median_ms", "q1_ms", "q3_ms", "min_ms", "max_ms"}}.
+    {name: {"compile_s", "warmup_calls", "median_ms", "q1_ms", "q3_ms", "min_ms", "max_ms",
+    "runs_ms", "cpu_median_ms", "cpu_min_ms"}} (cpu: the process's CPU time, all threads).
 
     The protocol: (1) each fn's first call (trace, compile and run) is timed apart, as
     compile_s; (2) each fn is then called until its time settles (the last three calls
@@ -62,13 +68,17 @@ def time_settings(calls, *, rounds=7, settle=0.15, min_warmup=2, max_warmup=20, 
     for _ in range(rounds):
         shuffle(order)
         for name in order:
-            runs[name].append(_timed(calls[name]))
+            runs[name].append(timed_cpu(calls[name]))
     out = {}
-    for name, times in runs.items():
+    for name, pairs in runs.items():
+        times, cpu = [w for w, _ in pairs], [c for _, c in pairs]
         q1, median, q3 = statistics.quantiles(times, n=4, method="inclusive")
         out[name] = {"compile_s": compile_s[name], "warmup_calls": warmups[name],
                      "median_ms": 1e3 * median, "q1_ms": 1e3 * q1, "q3_ms": 1e3 * q3,
-                     "min_ms": 1e3 * min(times), "max_ms": 1e3 * max(times)}
+                     "min_ms": 1e3 * min(times), "max_ms": 1e3 * max(times),
+                     "runs_ms": [round(1e3 * t, 2) for t in times],
+                     "cpu_median_ms": 1e3 * statistics.median(cpu),
+                     "cpu_min_ms": 1e3 * min(cpu)}
     return out
 
 

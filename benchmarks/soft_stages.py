@@ -6,7 +6,9 @@ it: the whole soft forward (render), the hard forward, the rasterization
 (rasterize_scene: search + fragment geometry), the search kernel alone
 (candidates.find_candidates) and its per-face setup and binning into tiles (the part
 before its parallel loop over tiles), the geometry and interpolation kernels alone
-(fragment_kernels), the blend weights, the active-slot compaction (compact.active_indices)
+(fragment_kernels), forward and backward (given cotangents where a reverse pass has them:
+barycentrics and depth where the blend weight is not 0, the distance wherever a face
+is), the blend weights, the active-slot compaction (compact.active_indices)
 and what follows the rasterization (render_fragments); everything after the search (the
 fragment geometry from fixed face ids, then render_fragments), forward and forward +
 backward with respect to the material and the vertices; then forward + backward with
@@ -72,7 +74,10 @@ def traffic(frags, capacity, image_bytes):
     normals, 40N); the blend weights read ids, depth and distance and write a weight
     (16N); the compaction reads the mask (N) and writes `capacity` indices; shading and
     blending read the fragments and write the image (a cached step: the shading cache,
-    stages()). A forward + backward reads and
+    stages()). The geometry backward reads the ids, the saved nearest edges (N) and the
+    cotangents of the geometry's outputs (25N in all); the interpolation backward reads
+    the ids, barycentrics and the cotangents of its 6 floats and writes the barycentrics'
+    (52N). A forward + backward reads and
     writes at least as much again (each array the forward reads has a cotangent of its
     size). Per-face inputs and the image are small next to these."""
     nbytes = lambda name: getattr(frags, name).nbytes
@@ -87,11 +92,26 @@ def traffic(frags, capacity, image_bytes):
     hard = pixels * (4 + (4 + 16) + (4 + 16 + 1)) + image_bytes
     return {"forward": forward, "hard": hard,
             "raster": search + geometry, "search": search, "geometry": geometry,
+            "geometry_backward": ids + slots + geometry_out,
+            "interpolation_backward": ids + 2 * nbytes("bary") + 6 * 4 * slots,
             "shading": shading, "interpolation": ids + nbytes("bary") + 6 * 4 * slots,
             "weights": ids + nbytes("depth") + nbytes("dist") + 4 * slots,
             "compaction": slots + 4 * capacity, "after_search": geometry + shading,
             "after_search_fb": 2 * (geometry + shading), "fb": 2 * forward,
             "cached": 2 * shading}
+
+
+def _cotangents(ids, active, seed=0):
+    """Cotangents as a reverse pass gives them to the geometry and interpolation kernels:
+    of the barycentrics [P, K, 3], depth [P, K] and interpolated values [P, K, 6] where
+    active [P, K] (the blend weight is not 0), of the distance [P, K] where a face is
+    (the coverage counts every fragment); random normal, float32."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    normal = lambda *shape: rng.standard_normal(ids.shape + shape).astype(np.float32)
+    on, valid = active[..., None], (ids >= 0)
+    return normal(3) * on, normal() * active, normal() * valid, normal(6) * on
 
 
 def stages(size):
@@ -130,6 +150,10 @@ def stages(size):
                                   axis=0))
     weights = jax.jit(lambda s, f: render_module.blend_weights(s, f, soft))
     active = (weights(scene, frags)[0] > 0.0).reshape(-1)
+    geometry_args = (ids, corner_w, corner_z, coeffs, scr, size, size, True, 1e-30,
+                     kernels.chunks())
+    edge = kernels.geometry_forward(*geometry_args)[3]
+    g_bary, g_depth, g_dist, g_values = _cotangents(ids, np.asarray(active).reshape(ids.shape))
     # the indices are found for the largest tier (compact.on_active)
     capacity = size * size * max(render_module.ACTIVE_SLOTS_PER_PIXEL)
     compaction = jax.jit(lambda m: active_indices(m, capacity))
@@ -179,12 +203,15 @@ def stages(size):
             width=size, height=size, k=SOFT_K, radius_px=radius, sigma=soft.sigma,
             gamma=soft.gamma), "search"),
         ("    its setup and binning", search_setup, "setup"),
-        ("  geometry forward kernel", lambda: kernels.geometry_forward(
-            ids, corner_w, corner_z, coeffs, scr, size, size, True, 1e-30, kernels.chunks()),
+        ("  geometry forward kernel", lambda: kernels.geometry_forward(*geometry_args),
          "geometry"),
+        ("  geometry backward kernel", lambda: kernels.geometry_backward(
+            *geometry_args, edge, g_bary, g_depth, g_dist), "geometry_backward"),
         ("render_fragments", lambda: after_raster(scene, frags), "shading"),
         ("  interpolation kernel, all slots", lambda: kernels.interpolate_forward(
             ids, bary, corners, kernels.chunks()), "interpolation"),
+        ("  interpolation backward, all slots", lambda: kernels.interpolate_backward(
+            ids, bary, corners, g_values, kernels.chunks()), "interpolation_backward"),
         ("  blend weights", lambda: weights(scene, frags), "weights"),
         ("  active slots (compaction)", lambda: compaction(active), "compaction"),
         ("after the search, forward", lambda: after_search_fwd(*material_vertices),

@@ -10,10 +10,10 @@ light, specular) in soft raster with K = 8, Phong shading, at --size^2: untextur
 (icosphere(4)) against the same sphere with UVs (icosphere(4, uv=True)) and a random kd
 texture of --texels^2. Forward (render) and forward + backward (value_and_grad of an MSE
 with respect to the material: the texture's texels, or the uniform kd) are each compiled
-apart, warmed up, then run --rounds rounds in an order shuffled per round, so that a
-change in the machine's load hits both alike; the medians of wall and CPU time
-(time.process_time, all threads) and the textured / untextured ratios are printed. The
-issue's target: a ratio <= 1.2 for both passes.
+apart, warmed up until their times settle, then run --rounds rounds in an order shuffled
+per round, so that a change in the machine's load hits both alike (common.time_settings);
+the medians of wall and CPU time (time.process_time, all threads) and the textured /
+untextured ratios are printed. The issue's target: a ratio <= 1.2 for both passes.
 
 fit: a synthetic dataset (data_synth.make_dataset, icosphere, the procedural kd of
 --texels^2 texels, --views views at --size^2, float targets) and fitting.texture_fit's
@@ -31,10 +31,8 @@ timings need an idle machine.
 import argparse
 import json
 import os
-import random
 import statistics
 import sys
-import time
 from pathlib import Path
 
 import jax
@@ -42,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import write_results  # noqa: E402
+from common import time_settings, timed_cpu, write_results  # noqa: E402
 from peers import SOFT_K, judged_scene  # noqa: E402
 
 import diffshade as ds  # noqa: E402
@@ -67,33 +65,6 @@ def calls(scene, settings, target):
                                                                                   scene)}
 
 
-def timed(fn):
-    """(wall s, CPU s) of one call, its results ready."""
-    wall, cpu = time.perf_counter(), time.process_time()
-    jax.block_until_ready(fn())
-    return time.perf_counter() - wall, time.process_time() - cpu
-
-
-def interleaved(fns, rounds, warmup=3, seed=0):
-    """{name: {"compile_s", "wall_ms", "cpu_ms", "wall_runs_ms"}}: each fn's first call
-    apart, `warmup` more calls each, then `rounds` rounds in a shuffled order."""
-    out = {name: {"compile_s": timed(fn)[0]} for name, fn in fns.items()}
-    for fn in fns.values():
-        for _ in range(warmup):
-            timed(fn)
-    runs = {name: [] for name in fns}
-    order, shuffle = list(fns), random.Random(seed).shuffle
-    for _ in range(rounds):
-        shuffle(order)
-        for name in order:
-            runs[name].append(timed(fns[name]))
-    for name, times in runs.items():
-        out[name].update(wall_ms=1e3 * statistics.median(w for w, _ in times),
-                         cpu_ms=1e3 * statistics.median(c for _, c in times),
-                         wall_runs_ms=[round(1e3 * w, 2) for w, _ in times])
-    return out
-
-
 def render_benchmark(args):
     """The render part (module docstring): prints and returns its record."""
     load_before = os.getloadavg()[0]
@@ -103,16 +74,18 @@ def render_benchmark(args):
     scenes = {"untextured": plain, "textured": textured(plain, args.texels)}
     fns = {f"{name} {kind}": fn for name, scene in scenes.items()
            for kind, fn in calls(scene, settings, target).items()}
-    stats = interleaved(fns, args.rounds)
+    stats = time_settings(fns, rounds=args.rounds)
     rows = []
     for kind in ("forward", "forward+backward"):
         base, tex = stats[f"untextured {kind}"], stats[f"textured {kind}"]
-        rows.append({"pass": kind, "untextured_ms": base["wall_ms"], "textured_ms": tex["wall_ms"],
-                     "ratio": tex["wall_ms"] / base["wall_ms"],
-                     "untextured_cpu_ms": base["cpu_ms"], "textured_cpu_ms": tex["cpu_ms"],
-                     "cpu_ratio": tex["cpu_ms"] / base["cpu_ms"]})
-        print(f"{kind:>17}: untextured {base['wall_ms']:7.1f} ms (CPU {base['cpu_ms']:7.1f})  "
-              f"textured {tex['wall_ms']:7.1f} ms (CPU {tex['cpu_ms']:7.1f})  ratio "
+        rows.append({"pass": kind, "untextured_ms": base["median_ms"],
+                     "textured_ms": tex["median_ms"], "ratio": tex["median_ms"] / base["median_ms"],
+                     "untextured_cpu_ms": base["cpu_median_ms"],
+                     "textured_cpu_ms": tex["cpu_median_ms"],
+                     "cpu_ratio": tex["cpu_median_ms"] / base["cpu_median_ms"]})
+        print(f"{kind:>17}: untextured {base['median_ms']:7.1f} ms (CPU "
+              f"{base['cpu_median_ms']:7.1f})  textured {tex['median_ms']:7.1f} ms (CPU "
+              f"{tex['cpu_median_ms']:7.1f})  ratio "
               f"{rows[-1]['ratio']:.2f} wall, {rows[-1]['cpu_ratio']:.2f} CPU (target <= 1.2)")
     print(f"{args.size}^2, soft K = {SOFT_K}, {args.texels}^2 kd texture, "
           f"{int(plain.mesh.faces.shape[0])} faces; loadavg {load_before:.1f} -> "
@@ -135,7 +108,7 @@ def fit_benchmark(args):
     def solve():
         solutions.append(fit_texture(data, args.texels))
         return solutions[-1].texels
-    times = [timed(solve) for _ in range(1 + args.fit_runs)]
+    times = [timed_cpu(solve) for _ in range(1 + args.fit_runs)]
     solution = solutions[-1]
     truth, texels = np.asarray(data.truth.kd.texels), np.asarray(solution.texels)
     twice = np.asarray(solution.coverage) >= 2

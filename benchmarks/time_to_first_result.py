@@ -9,7 +9,10 @@ this checkout first on PYTHONPATH) in a temporary folder:
   temporary folder per run) and an empty numba cache (NUMBA_CACHE_DIR, likewise: numba
   otherwise keeps its compiled kernels beside the installed package), so everything is
   compiled, as on the first run after installing;
-- warm: the same command again with the caches the cold run filled;
+- after warm-up: the same command again once the background compilation a cold run
+  starts (diffshade.host.warmup) is done: it runs on the host kernels the cold run did
+  not have, so it compiles their programs (the programs of the JAX kernels are others);
+- warm: the same command once more, every cache filled for the kernels it runs on;
 - off: DIFFSHADE_COMPILE_CACHE=0 with a warm numba cache (what every run after the
   first cost before the compilation cache).
 Each figure is the median over --runs such processes (interpreter start included), as
@@ -35,7 +38,10 @@ With --fresh-install it measures what a new user meets instead, each run with em
 and JAX caches (new temporary folders) and the compilation cache on, as after `pip
 install`: the first image (`diffshade render --builtin sphere -o out/first.png`) and the
 README's main job (`diffshade synth -o out/data`, then `diffshade fit out/data -o out/fit`:
-two processes, timed together), each the median over --runs. On a fresh install a run
+two processes, timed together), each the median over --runs. The CPU time is that of
+those processes: it leaves out the background compilations they start (the host kernels',
+and synth's compilation of the fit's programs, data_synth.background, which the fit waits
+for). On a fresh install a run
 takes the JAX kernels while the host kernels compile in the background
 (diffshade.host.warmup); the benchmark waits for that warm-up after each run (it is not
 part of the figure, but it shares the machine with the run it was started by), then times
@@ -202,13 +208,14 @@ def fresh_install_main(runs, out):
 
 
 def cold_warm(args, cwd, runs):
-    """{cold, warm, off: [(wall, CPU) seconds]} of `runs` processes each."""
-    walls = {"cold": [], "warm": [], "off": []}
+    """{cold, after_warmup, warm, off: [(wall, CPU) seconds]} of `runs` processes each."""
+    walls = {"cold": [], "after_warmup": [], "warm": [], "off": []}
     for i in range(runs):
         cache_dir = os.path.join(cwd, f"cache_{args[0]}_{i}")
         numba_dir = cache_dir + "_numba"
         walls["cold"].append(run_wall(args, cwd, cache_dir, numba_dir))
         wait_for_warmup(cache_dir, numba_dir)
+        walls["after_warmup"].append(run_wall(args, cwd, cache_dir, numba_dir))
         walls["warm"].append(run_wall(args, cwd, cache_dir, numba_dir))
         walls["off"].append(run_wall(args, cwd, None, numba_dir))
     return walls

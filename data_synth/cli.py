@@ -16,16 +16,17 @@ An existing DATASET is replaced when it is a dataset folder (it has a dataset.js
 empty; any other existing path is an error, checked before rendering.
 """
 
-import dataclasses
 import os
 import shutil
 import uuid
 
+from data_synth import background
+from data_synth.options import what
 from data_synth.scenes import make_dataset
-from diffshade.io import check_writable, load_scenes
+from diffshade.io import check_writable
 from diffshade.settings import SHADING_MODES
 from fitting.data.folder import save_dataset
-from fitting.inputs import non_negative_float, parse_material, positive_int
+from fitting.inputs import non_negative_float, positive_int
 
 
 def register(subparsers):
@@ -116,34 +117,23 @@ def save_dataset_atomically(dataset, out_dir) -> str:
     return out_dir
 
 
-def _what(args):
-    """(shape, material or None, RenderSettings or None) for make_dataset: --shape and
-    --material, or the Scene of --scene with its settings (--shading overriding)."""
-    if args.scene is None:
-        material = (None if args.material in (None, "random")
-                    else parse_material(args.material, "--material"))
-        return args.shape or "icosphere", material, None
-    for option, value in (("--shape", args.shape), ("--material", args.material)):
-        if value is not None:
-            raise ValueError(f"{option}: got {value!r} with --scene; expected the shape and "
-                             "materials inside the scene file")
-    scenes, settings = load_scenes(args.scene)  # any camera: the layout replaces them
-    scene = scenes[0]
-    if args.shading:
-        settings = dataclasses.replace(settings, shading=args.shading)
-    return scene, None, settings
-
-
 def run_synth(args) -> int:
-    """The `synth` command: prints the dataset folder's path."""
+    """The `synth` command: prints the dataset folder's path. While it renders, the fit of
+    the dataset compiles in the background (data_synth.background)."""
     _check_output(args.output)
     if args.seed < 0:
         raise ValueError(f"--seed: got {args.seed}; expected an integer >= 0")
-    shape, material, settings = _what(args)
-    dataset = make_dataset(shape, material, n_views=args.views, n_lights=args.lights,
-                           size=args.size, seed=args.seed, quantize_8bit=args.quantize_8bit,
-                           noise_std=args.noise, shading=args.shading or "phong",
-                           settings=settings, texture=args.texture)
-    save_dataset_atomically(dataset, args.output)
+    shape, material, settings = what(args)
+    process, failed = background.start(args), True
+    try:
+        dataset = make_dataset(shape, material, n_views=args.views, n_lights=args.lights,
+                               size=args.size, seed=args.seed,
+                               quantize_8bit=args.quantize_8bit, noise_std=args.noise,
+                               shading=args.shading or "phong", settings=settings,
+                               texture=args.texture)
+        save_dataset_atomically(dataset, args.output)
+        failed = False
+    finally:
+        background.finish(process, failed)
     print(args.output)
     return 0

@@ -226,6 +226,29 @@ def _with_texture(truth, texture, mesh, shape):
     return ds.replace(truth, kd=ds.texture(procedural_kd(texture)))
 
 
+def _layout(shape, material, rng, n_views, n_lights, size, shading, settings, texture):
+    """(Dataset with black targets, info) of make_dataset's arguments (the material drawn
+    from `rng` when None)."""
+    settings = ds.RenderSettings(shading=shading) if settings is None else settings
+    geometry, info = _geometry(shape, material, rng, texture)
+    blank = np.zeros((size, size, 3), np.float32)
+    views = []
+    for eye in camera_eyes(n_views):
+        camera = ds.look_at(eye, (0.0, 0.0, 0.0), width=size, height=size, fov_y=40.0)
+        views += [View(camera, [light], blank) for light in view_lights(eye, n_lights)]
+    return Dataset(views=views, settings=settings, **geometry), info
+
+
+def dataset_layout(shape="icosphere", material=None, *, n_views=3, n_lights=2, size=128,
+                   seed=0, shading="phong", settings=None, texture=None) -> Dataset:
+    """The Dataset make_dataset(...) with these arguments renders, before it renders:
+    its mesh, cameras, lights, settings and truth, with black targets. What the fit of
+    that dataset compiles depends on these alone (fitting.precompile)."""
+    _check_counts(n_views, n_lights, size, 0.0)
+    return _layout(shape, material, np.random.default_rng(seed), n_views, n_lights, size,
+                   shading, settings, texture)[0]
+
+
 def make_dataset(shape="icosphere", material=None, *, n_views=3, n_lights=2, size=128,
                  seed=0, quantize_8bit=False, noise_std=0.0, shading="phong",
                  settings=None, gains=None, texture=None) -> Dataset:
@@ -245,19 +268,13 @@ def make_dataset(shape="icosphere", material=None, *, n_views=3, n_lights=2, siz
     _check_counts(n_views, n_lights, size, noise_std)
     gains = _check_gains(gains, n_views * n_lights)
     rng = np.random.default_rng(seed)
-    settings = ds.RenderSettings(shading=shading) if settings is None else settings
-    geometry, info = _geometry(shape, material, rng, texture)
-    blank = np.zeros((size, size, 3), np.float32)
-    views = []
-    for eye in camera_eyes(n_views):
-        camera = ds.look_at(eye, (0.0, 0.0, 0.0), width=size, height=size, fov_y=40.0)
-        views += [View(camera, [light], blank) for light in view_lights(eye, n_lights)]
-    dataset = Dataset(views=views, settings=settings, **geometry)
+    dataset, info = _layout(shape, material, rng, n_views, n_lights, size, shading, settings,
+                            texture)
     images = [_render_target(dataset, i, None if gains is None else gains[i])
-              for i in range(len(views))]
+              for i in range(len(dataset.views))]
     views = [View(v.camera, v.lights, degrade(img, rng, noise_std, quantize_8bit,
-                                              settings.clamp))
-             for v, img in zip(views, images, strict=True)]
+                                              dataset.settings.clamp))
+             for v, img in zip(dataset.views, images, strict=True)]
     info.update(seed=seed, quantize_8bit=quantize_8bit, noise_std=noise_std,
                 n_views=n_views, n_lights=n_lights)
     if gains is not None:

@@ -176,12 +176,14 @@ def _bound_warning(names, values, spec):
 
 
 def fit_result(state, dataset, data, *, with_uncertainty=True, warn=False, truth=None,
-               status="converged", stop_message="") -> FitResult:
+               status="converged", stop_message="", eliminated=None) -> FitResult:
     """A FitResult at the state's best params (fitting.run.RunState): values, standard
     errors and warnings (fitting.report.uncertainty; raised as warnings when `warn`), the values
     at a bound, the misfit check, relative errors against `truth` (default the dataset's)
     when known; loss is the best loss, loss_history the whole history. data: the cached
-    data, or its ShardedViews (fitting.solve.distribute: the report's sums a chunk at a time)."""
+    data, or its ShardedViews (fitting.solve.distribute: the report's sums a chunk at a time).
+    eliminated: unknowns marginalised in the standard errors (fitting.report.uncertainty's
+    keyword: a fit's map texels)."""
     if state.best_params is None:
         raise ValueError("state: no step had a finite loss; there is no result to report")
     spec, truth = state.spec, dataset.truth if truth is None else truth
@@ -189,8 +191,8 @@ def fit_result(state, dataset, data, *, with_uncertainty=True, warn=False, truth
     views, data = data, fit_data(data)  # sharded views: the report a chunk at a time
     widths = [v.camera.width for v in dataset.views]
     rounding = carried_rounding(dataset.views)
-    report = (uncertainty(values, views, spec, widths=widths, rounding=rounding, warn=warn)
-              if with_uncertainty else None)
+    report = (uncertainty(values, views, spec, widths=widths, rounding=rounding, warn=warn,
+                          eliminated=eliminated) if with_uncertainty else None)
     bound = tuple(n for n, b in zip(value_names(values), at_bound(values, spec), strict=True)
                   if b)
     check = misfit(values, views, spec, widths, rounding) if with_uncertainty else None
@@ -251,7 +253,8 @@ def map_fit_result(run, dataset, **options) -> FitResult:
     if not run.state.spec.fits_material:  # only maps: no uniform value to report on
         options["with_uncertainty"] = False
     result = fit_result(run.state, dataset, run.data,
-                        status="converged" if run.converged else "budget", **options)
+                        status="converged" if run.converged else "budget",
+                        eliminated=run.eliminated, **options)
     return dataclasses.replace(result, textures=run.maps, rounds=run.rounds)
 
 

@@ -7,9 +7,10 @@ The rule (docs/textures.md, "Recovering a texture"):
 0. a uniform fit: `spec`'s quantities, the mapped ones included as uniform RGB, from
    `init` (the usual fit: fitting.run, with `options`) gives the start; each map starts
    flat at its uniform value;
-1. each round: every map in turn (kd, then ks), solved together with the uniform RGB
-   coefficients (ka, and kd or ks where not mapped: fitting.solve.texture_joint, the
-   shininess and everything else held at its current value), in closed form
+1. each round: the maps (kd, ks or both) and the uniform RGB coefficients (ka, and kd
+   or ks where not mapped) solved as one least-squares system
+   (fitting.solve.texture_joint, the shininess and everything else held at its current
+   value), in closed form
    (fitting.solve.texture) or by the method's descent (Adam, L-BFGS:
    fitting.solve.texture_descent); then the uniform quantities of `spec` (less the
    mapped ones, the shininess included) refitted with the maps held, by the usual fit on
@@ -23,6 +24,15 @@ The rule (docs/textures.md, "Recovering a texture"):
    or after `rounds` rounds (default MAX_ROUNDS). A spec that fits nothing beside one
    map (--fit kd with --texture kd=RES) holds the rest at `init`: one round, the map's
    closed form.
+3. the rounds carry only the shininess (the next round's joint solve sets the maps and
+   the RGB coefficients again), and the shininess approaches its fixed point
+   geometrically (each round's uniform fit sees the held maps' curvature, not the
+   joint one): after two rounds whose steps in log-shininess shrink by a ratio r in
+   (0, MAX_RATIO), the next round starts from their limit, Aitken's delta-squared
+   x + dx r / (1 - r) (that step at most MAX_LOG_STEP; then two plain rounds again);
+4. after the last round, the texels' share of the uniform values' normal matrix at the
+   result (fitting.report.texel_share), so that their standard errors marginalise the
+   texels (MapRun.eliminated).
 
 Each step lowers the same least-squares objective, so the rounds only go down hill. The
 maps' pixels are those the uniform fit counts (covered, inside the view's mask, edge_margin
@@ -50,6 +60,7 @@ from fitting.data.views import view_scene
 from fitting.model.batch import batched
 from fitting.model.cache import build_cache
 from fitting.model.loss import make_loss
+from fitting.report.texel_share import texel_share
 from fitting.run import advance, finish, start_run
 from fitting.solve.texture import TEXTURE_FIELDS
 from fitting.solve.texture_joint import solve_texture_jointly
@@ -67,6 +78,10 @@ MAX_RES = 8192
 #: sampling's (fitting.solve.texture)
 TEXEL_COPIES = 64
 RELATIVE_FLOOR = 0.01
+#: the largest ratio of two rounds' shininess steps that is extrapolated, and the largest
+#: extrapolated step in log-shininess (_extrapolated)
+MAX_RATIO = 0.97
+MAX_LOG_STEP = np.log(2.0)
 SATURATION_EPS = 1e-6
 MATERIAL_VALUES = ("ka", "kd", "ks", "shininess")
 
@@ -76,13 +91,17 @@ class MapRun(NamedTuple):
     alternation's); data: its FitData (the base
     material holds the maps); maps: {field: TextureSolution}; rounds: one dict per round
     (its number, change, the uniform fit's loss and steps, each map's iterations);
-    converged: the last round's change was at most round_tol."""
+    converged: the last round's change was at most round_tol; eliminated: (the texels'
+    share of the uniform values' normal matrix, the seen texels' unknowns) for their
+    standard errors with the maps marginalised (fitting.report.texel_share), None when
+    no uniform value is fitted."""
 
     state: object
     data: object
     maps: dict
     rounds: tuple
     converged: bool
+    eliminated: tuple | None = None
 
 
 def _resolution(field, res, key):
@@ -121,6 +140,12 @@ def check_maps(dataset, maps, key="textures"):
         check(key, f"{field}={res}", map_bytes(dataset, res),
                      f"a {res}x{res} {field} map from {len(dataset.views)} views",
                      elements=12 * res * res)
+    if len(maps) > 1:  # one system: the renders once, every map's texels
+        texels = sum(map_bytes(dataset, res) - map_bytes(dataset, 0) for res in maps.values())
+        text = ",".join(f"{field}={res}" for field, res in maps.items())
+        check(key, text, map_bytes(dataset, 0) + texels,
+              f"{text} maps solved together from {len(dataset.views)} views",
+              elements=12 * sum(res * res for res in maps.values()))
 
 
 def check_map_fit(dataset, spec: FitSpec, maps, options, callback=None, key="textures"):
@@ -181,18 +206,25 @@ def _uniform_fit(data, spec, material, options):
     return state, data
 
 
-def _solve_map(dataset, material, field, res, masks, options, smoothness, spec):
-    """The `field` map (TextureSolution) with the uniform RGB coefficients of `spec`
-    solved with it (fitting.solve.texture_joint) and everything else at `material`'s;
-    returns (the map, the material with those coefficients)."""
-    blank = dataclasses.replace(material, **{field: Texture(jnp.zeros((res, res, 3)))})
+def _joint(spec):
+    """The uniform RGB coefficients solved with the maps."""
+    return [name for name in ("ka", "kd", "ks") if getattr(spec, name) == "rgb"]
+
+
+def _solve_maps(dataset, material, maps, masks, options, smoothness, spec):
+    """The maps ({field: RES}) with the uniform RGB coefficients of `spec` solved with them,
+    as one least-squares solution (fitting.solve.texture_joint), everything else at
+    `material`'s; returns (the JointSolution, the material with those coefficients and
+    the maps)."""
+    blank = dataclasses.replace(material, **{field: Texture(jnp.zeros((res, res, 3)))
+                                             for field, res in maps.items()})
     scenes = [view_scene(dataset, i, blank) for i in range(len(dataset.views))]
     targets = [v.target for v in dataset.views]
-    joint = [name for name in ("ka", "kd", "ks") if getattr(spec, name) == "rgb"]
-    solution, found = solve_texture_jointly(
-        scenes, targets, masks, res, dataset.settings, field=field, coefficients=joint,
+    solution = solve_texture_jointly(
+        scenes, targets, masks, maps, dataset.settings, coefficients=_joint(spec),
         upper=spec.upper, method=options.method, smoothness=smoothness)
-    return solution, dataclasses.replace(material, **found)
+    material = dataclasses.replace(material, **solution.values)
+    return solution, _with_maps(material, solution.maps)
 
 
 def _with_maps(material, maps):
@@ -237,15 +269,30 @@ def _start(data, spec, maps, init, options):
 
 
 def _round(dataset, data, masks, maps, uniform, material, options, smoothness):
-    """One round (module docstring): (solved {field: TextureSolution}, the material
-    after it, the uniform fit's RunState, its FitData)."""
-    solved = {}
-    for field, res in maps.items():
-        solved[field], material = _solve_map(dataset, material, field, res, masks, options,
-                                             smoothness, uniform)
-        material = _with_maps(material, {field: solved[field]})
+    """One round (module docstring): (the maps' JointSolution, the material after it, the
+    uniform fit's RunState, its FitData)."""
+    joint, material = _solve_maps(dataset, material, maps, masks, options, smoothness,
+                                  uniform)
     state, data = _uniform_fit(data, uniform, material, options)
-    return solved, _with_values(material, to_values(state.best_params, uniform)), state, data
+    return joint, _with_values(material, to_values(state.best_params, uniform)), state, data
+
+
+def _extrapolated(material, carried):
+    """(the material for the next round, the log-shininess history since the last
+    extrapolation): after two plain rounds whose shininess moves geometrically (ratio r
+    in (0, MAX_RATIO)), the shininess they converge to, Aitken's delta-squared (module
+    docstring), which the next round starts from."""
+    carried = [*carried, np.log(np.asarray(material.shininess, np.float64))]
+    if len(carried) < 3:
+        return material, carried
+    first, second = carried[-2] - carried[-3], carried[-1] - carried[-2]
+    ratio = np.where(np.abs(first) > 0, second / np.where(first == 0, 1.0, first), 0.0)
+    if not np.all((ratio > 0) & (ratio < MAX_RATIO)):
+        return material, carried[-2:]
+    target = carried[-1] + np.clip(second * ratio / (1.0 - ratio), -MAX_LOG_STEP,
+                                   MAX_LOG_STEP)
+    shininess = np.exp(target).astype(np.asarray(material.shininess).dtype)
+    return dataclasses.replace(material, shininess=jnp.asarray(shininess)), [target]
 
 
 def fit_maps(dataset, spec: FitSpec, init, maps: dict, options, *, smoothness,
@@ -266,9 +313,11 @@ def fit_maps(dataset, spec: FitSpec, init, maps: dict, options, *, smoothness,
     values = material_values(material, uniform)
     texels = {field: np.asarray(getattr(material, field).texels) for field in maps}
     log, converged = [], False
+    carried = [np.log(np.asarray(material.shininess, np.float64))] if uniform.shininess else None
     for number in range(1, rounds + 1):
-        solved, material, state, data = _round(dataset, data, masks, maps, uniform,
-                                               material, options, smoothness)
+        joint, material, state, data = _round(dataset, data, masks, maps, uniform,
+                                              material, options, smoothness)
+        solved = joint.maps
         new_values = material_values(material, uniform)
         new_texels = {field: np.asarray(s.texels) for field, s in solved.items()}
         change = _change(values, new_values, texels, new_texels)
@@ -280,5 +329,14 @@ def fit_maps(dataset, spec: FitSpec, init, maps: dict, options, *, smoothness,
         converged = change <= round_tol or (len(maps) == 1 and not uniform.fits_material)
         if converged:
             break
+        if carried is not None:
+            material, carried = _extrapolated(material, carried)
+    eliminated = None
+    if uniform.fits_material:
+        share = texel_share(dataset, data, to_values(state.best_params, uniform), uniform,
+                            maps, masks, batch=1 + len(_joint(uniform)), method=options.method,
+                            smoothness=smoothness)
+        unknowns = 3 * sum(int(np.sum(np.asarray(s.coverage) > 0)) for s in solved.values())
+        eliminated = (share, unknowns)
     state.wall_time = time.perf_counter() - start  # the whole alternation's
-    return MapRun(state, data, solved, tuple(log), converged)
+    return MapRun(state, data, solved, tuple(log), converged, eliminated)

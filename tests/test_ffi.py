@@ -16,12 +16,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffshade.host import candidates, hostcall, xla_ffi
+from diffshade.host import candidates, hostcall, texture_kernels, xla_ffi
 from diffshade.host import fragment_kernels as kernels
 from diffshade.numerics import tiny
 from diffshade.raster.fragments import fragment_geometry
 from diffshade.raster.interpolation import interpolate_corners
 from diffshade.shading import compact
+from diffshade.shading.texturing import sample_texels
 
 H, W, K, F = 6, 5, 3, 7
 
@@ -59,15 +60,45 @@ def test_geometry_targets_equal_the_kernels(x64, soft):
                                             f"diffshade_geometry_backward_{width}"}
         (bary, depth, dist), grads = jax.jit(fb)(*per_face)
         args = (*per_face, W, H, soft, tiny(dtype), 2)
-        want = kernels.geometry_forward(ids.reshape(-1, K), *args)
+        *want, edge = kernels.geometry_forward(ids.reshape(-1, K), *args)
         for got, ref in zip((bary, depth, dist), want, strict=True):
             assert got.dtype == dtype
             np.testing.assert_array_equal(np.asarray(got).reshape(ref.shape), ref)
-        want = kernels.geometry_backward(ids.reshape(-1, K), *args, cot[0].reshape(-1, K, 3),
-                                         cot[1].reshape(-1, K), cot[2].reshape(-1, K))
+        want = kernels.geometry_backward(ids.reshape(-1, K), *args, edge,
+                                         cot[0].reshape(-1, K, 3), cot[1].reshape(-1, K),
+                                         cot[2].reshape(-1, K))
         for got, ref in zip(grads, want, strict=True):
             np.testing.assert_allclose(np.asarray(got), ref, rtol=1e-12 if x64 else 1e-5,
                                        atol=1e-12 if x64 else 1e-5)
+
+
+@pytest.mark.parametrize("soft", [False, True])
+def test_geometry_forward_saves_the_nearest_edge(soft):
+    # soft: the index of the nearest edge (from corner i to corner i+1), measured here
+    # with NumPy, plus OUTSIDE where the distance is negated; the backward reads it
+    ids, corner_w, corner_z, coeffs, scr = _fragment_inputs(np.float64)
+    flat = ids.reshape(-1, K)
+    _, _, dist, edge = kernels.geometry_forward(flat, corner_w, corner_z, coeffs, scr, W, H,
+                                                soft, tiny(np.float64), 2)
+    valid = flat >= 0
+    assert edge.dtype == np.int8
+    assert np.all(edge[~valid] == 0)
+    if not soft:
+        assert np.all(edge == 0)
+        return
+    rows, cols = np.divmod(np.arange(H * W), W)
+    p = np.stack([cols + 0.5, rows + 0.5], -1)[:, None, :]  # [P, 1, 2]
+    corners = scr[np.maximum(flat, 0)]  # [P, K, 3, 2]
+    d2 = []
+    for i in range(3):
+        a, b = corners[..., i, :], corners[..., (i + 1) % 3, :]
+        e = b - a
+        t = np.clip(np.sum((p - a) * e, -1) / np.sum(e * e, -1), 0.0, 1.0)
+        d2.append(np.sum((p - a - t[..., None] * e) ** 2, -1))
+    d2 = np.stack(d2, -1)
+    np.testing.assert_array_equal((edge % kernels.OUTSIDE)[valid], np.argmin(d2, -1)[valid])
+    np.testing.assert_array_equal((edge >= kernels.OUTSIDE)[valid], np.signbit(dist)[valid])
+    np.testing.assert_allclose(np.abs(dist)[valid], d2.min(-1)[valid], rtol=1e-12)
 
 
 @pytest.mark.parametrize("x64", [False, True])
@@ -95,6 +126,43 @@ def test_interpolation_targets_equal_the_kernels(x64):
         np.testing.assert_array_equal(np.asarray(g_bary).reshape(-1, K, 3), want_bary)
         np.testing.assert_allclose(np.asarray(g_corners), want_corners, rtol=1e-12 if x64
                                    else 1e-5, atol=1e-12 if x64 else 1e-5)
+
+
+@pytest.mark.parametrize("x64", [False, True])
+@pytest.mark.parametrize("clamp", [0, 1])
+def test_texture_targets_equal_the_kernels(x64, clamp):
+    with jax.enable_x64(x64):
+        dtype = np.float64 if x64 else np.float32
+        rng = np.random.default_rng(5)
+        n, height, width = 50, 4, 6
+        ids = np.where(rng.uniform(size=n) < 0.2, -1, 0).astype(np.int32)
+        uv = rng.uniform(-0.5, 1.5, (n, 2)).astype(dtype)
+        texels = rng.uniform(size=(height * width, 3)).astype(dtype)
+        g_out = rng.normal(size=(n, 3)).astype(dtype)
+        op = lambda u, t: sample_texels(ids, u, t, host=True, height=height, width=width,
+                                        clamp=clamp, uv_grad=1)[0]
+
+        def fb(uv, texels):  # both gradients: the backward with uv_grad = 1
+            out, vjp = jax.vjp(op, uv, texels)
+            return out, vjp(g_out)
+
+        def fb_texels(uv, texels):  # the texels' only: uv_grad = 0
+            return jax.vjp(lambda t: op(uv, t), texels)[1](g_out)[0]
+        width_name = "f64" if x64 else "f32"
+        assert _targets(fb, uv, texels) == {f"diffshade_texture_forward_{width_name}",
+                                             f"diffshade_texture_backward_{width_name}"}
+        out, (g_uv, g_texels) = jax.jit(fb)(uv, texels)
+        args = (height, width, bool(clamp))
+        np.testing.assert_array_equal(np.asarray(out), texture_kernels.sample_forward(
+            ids, uv, texels, *args, 2))
+        for uv_grad, got in ((True, (g_uv, g_texels)), (False, (None, jax.jit(fb_texels)(
+                uv, texels)))):
+            want = texture_kernels.sample_backward(ids, uv, texels, g_out, *args, uv_grad, 3)
+            for a, b in zip(got, want, strict=True):
+                if a is not None:
+                    np.testing.assert_allclose(np.asarray(a), b, rtol=1e-12 if x64 else 1e-5,
+                                               atol=1e-12 if x64 else 1e-5)
+            assert uv_grad or not np.any(want[0])
 
 
 @pytest.mark.parametrize("capacity", [1, 10, 40])
@@ -330,6 +398,7 @@ _LAYOUT = {
     "BUFFER_DIMS": "offsetof(XLA_FFI_Buffer, dims)",
     "BUFFER_SIZE": "XLA_FFI_Buffer_STRUCT_SIZE",
     "PRED": "XLA_FFI_DataType_PRED",
+    "S8": "XLA_FFI_DataType_S8",
     "S32": "XLA_FFI_DataType_S32",
     "S64": "XLA_FFI_DataType_S64",
     "F32": "XLA_FFI_DataType_F32",
@@ -404,7 +473,8 @@ def test_geometry_target_rejects_bad_shapes():
     ids, corner_w, corner_z, coeffs, scr = _fragment_inputs(np.float32)
     results = (jax.ShapeDtypeStruct((H, W, K, 3), jnp.float32),
                jax.ShapeDtypeStruct((H, W, K), jnp.float32),
-               jax.ShapeDtypeStruct((H, W, K), jnp.float32))
+               jax.ShapeDtypeStruct((H, W, K), jnp.float32),
+               jax.ShapeDtypeStruct((H, W, K), jnp.int8))
     attributes = {"width": W, "height": H, "soft": 1, "threads": 1}
     target = "diffshade_geometry_forward_f32"
     cases = [
@@ -413,8 +483,12 @@ def test_geometry_target_rejects_bad_shapes():
         ((ids, corner_w.astype(np.float64), corner_z, coeffs, scr), results,
          "argument 1 has dtype float64 (F64), expected float32 (F32)"),
         ((ids, corner_w, corner_z, coeffs, scr), (results[0], results[1],
-                                                  jax.ShapeDtypeStruct((H, W), jnp.float32)),
+                                                  jax.ShapeDtypeStruct((H, W), jnp.float32),
+                                                  results[3]),
          f"result 2 has {H * W} elements, expected {H * W * K} (1 per element of argument 0)"),
+        ((ids, corner_w, corner_z, coeffs, scr), results[:3] + (
+            jax.ShapeDtypeStruct((H, W, K), jnp.int32),),
+         "result 3 has dtype int32 (S32), expected int8 (S8)"),
     ]
     with jax.enable_x64(True):
         for operands, shapes, expected in cases:

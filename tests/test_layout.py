@@ -47,10 +47,12 @@ FLOORS = {
         ("solve", ["fitting.solve"]),
         ("report", ["fitting.report"]),
         ("driver", ["fitting", "fitting.checkpoint", "fitting.cli", "fitting.driver",
-                    "fitting.import_cli", "fitting.inputs", "fitting.plan", "fitting.refine",
-                    "fitting.run", "fitting.texture_fit", "fitting.texture_run"]),
+                    "fitting.import_cli", "fitting.inputs", "fitting.plan", "fitting.precompile",
+                    "fitting.refine", "fitting.run", "fitting.texture_fit",
+                    "fitting.texture_run"]),
     ],
-    "data_synth": [("data_synth", ["data_synth", "data_synth.cli", "data_synth.materials",
+    "data_synth": [("data_synth", ["data_synth", "data_synth.background", "data_synth.cli",
+                                   "data_synth.materials", "data_synth.options",
                                    "data_synth.scenes"])],
 }
 #: what fitting and data_synth may import diffshade through: the package, the floors' packages

@@ -254,7 +254,7 @@ def markers(scene, settings):
     camera's, plus one per shadowed light), shadow-map lookups (the argmax that picks a
     map), loops over a light's samples (scan), depth sorts, the fragment layers, and
     texel reads (operations whose first table operand has a row per texel of the
-    effect's TEXELS: the lookup of its cells' corners)."""
+    effect's TEXELS: the texture lookup's)."""
     ops = primitive_counts(scene, settings)
     return {"cos": ops["cos"], "sin": ops["sin"],
             "rasterizations": ops["fragment_geometry_op"], "map lookups": ops["argmax"],
@@ -265,16 +265,13 @@ def markers(scene, settings):
 
 def texel_reads(scene, settings):
     """Equations of render(scene) reading a table of TEXELS[0] * TEXELS[1] rows: a texture
-    lookup's cell corners (the interpolation op's corners, its last operand, or a gather's
-    table off the CPU backend); the plain program has no table of that many rows."""
+    lookup's texels (the texture op's, its last operand, or a gather's table off the CPU
+    backend); the plain program has no table of that many rows."""
     rows = TEXELS[0] * TEXELS[1]
 
     def reads(eqn):
-        if eqn.primitive.name == "gather":
-            return eqn.invars[0].aval.shape[:1] == (rows,)
-        if eqn.primitive.name == "interpolate_corners_op":
-            return eqn.invars[-1].aval.shape[:1] == (rows,)
-        return False
+        table = {"gather": 0, "sample_texture_op": -1}.get(eqn.primitive.name)
+        return table is not None and eqn.invars[table].aval.shape[:1] == (rows,)
     return sum(map(reads, equations(scene, settings)))
 
 

@@ -51,15 +51,63 @@ def naive_sample(texels, u, v, wrap):
     return value
 
 
+def lookups(texture, uv, valid=None):
+    """sample_texture by every path: {name: function of (texels, uv)}: the host kernels
+    called at once (eager) and under jit (the FFI targets), and jax.numpy under jit."""
+    def path(host):
+        return lambda t, u: sample_texture(ds.replace(texture, texels=t), u, host, valid)
+    return {"host": path(True), "host jit": jax.jit(path(True)),
+            "jax.numpy jit": jax.jit(path(False))}
+
+
 @pytest.mark.parametrize("wrap", ["repeat", "clamp"])
 def test_lookup_matches_a_naive_bilinear_loop_inside_and_outside_the_unit_square(wrap, x64):
     rng = np.random.default_rng(1)
     texels = rng.random((5, 7, 3))
     uv = np.concatenate([rng.uniform(-2.5, 3.5, (60, 2)), [[0, 0], [1, 1], [0.5, 1e-9],
                                                           [1e6, -1e6], [-1.0, 2.0]]])
-    got = np.asarray(sample_texture(ds.texture(texels, wrap), jnp.asarray(uv)))
     want = np.array([naive_sample(texels, u, v, wrap) for u, v in uv])
-    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9)
+    for name, lookup in lookups(ds.texture(texels, wrap), uv).items():
+        got = np.asarray(lookup(jnp.asarray(texels), jnp.asarray(uv)))
+        np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9, err_msg=name)
+
+
+@pytest.mark.parametrize("wrap", ["repeat", "clamp"])
+def test_lookup_of_nan_and_infinite_uvs_reads_in_range(wrap, x64):
+    """A NaN UV (or an infinite one under 'repeat', whose modulo is NaN) reads NaN, by every
+    path alike, its reads in range; clamp takes an infinite UV to the edge texels."""
+    texels = np.arange(2.0, 14.0).reshape(3, 4, 1)
+    inf, nan = np.inf, np.nan
+    uv = np.array([[nan, 0.5], [0.5, nan], [inf, 0.5], [-inf, 0.5], [0.5, inf], [0.5, -inf],
+                   [0.3, 0.7]])
+    clamped = [naive_sample(texels, min(max(u, -1.0), 2.0), min(max(v, -1.0), 2.0), "clamp")
+               for u, v in uv[2:6]]
+    want = np.concatenate([np.full((2, 1), nan), clamped if wrap == "clamp" else
+                           np.full((4, 1), nan), [naive_sample(texels, 0.3, 0.7, wrap)]])
+    for name, lookup in lookups(ds.texture(texels, wrap), uv).items():
+        got = np.asarray(lookup(jnp.asarray(texels), jnp.asarray(uv)))
+        np.testing.assert_allclose(got, want, rtol=1e-12, err_msg=name)  # NaN where want's
+
+
+@pytest.mark.parametrize("wrap", ["repeat", "clamp"])
+def test_lookup_gradients_agree_across_paths_and_skip_invalid_samples(wrap, x64):
+    """Reverse mode of every path against forward mode of jax.numpy (jvp), for the texels
+    alone (the host backward then skips the UVs' gradient) and for texels and UVs; samples
+    not `valid` read 0 and give no gradient."""
+    rng = np.random.default_rng(4)
+    texels, uv = rng.random((4, 6, 3)), rng.uniform(-0.5, 1.5, (40, 2))
+    valid = np.arange(40) % 4 != 1
+    weights = rng.normal(size=(40, 3))
+    d_tex, d_uv = rng.normal(size=texels.shape), rng.normal(size=uv.shape)
+    for name, lookup in lookups(ds.texture(texels, wrap), uv, jnp.asarray(valid)).items():
+        loss = lambda t, u, lookup=lookup: jnp.sum(lookup(t, u) * weights)
+        assert np.all(np.asarray(lookup(texels, uv))[~valid] == 0.0), name
+        g_tex, g_uv = jax.grad(loss, (0, 1))(texels, uv)
+        assert np.all(np.asarray(g_uv)[~valid] == 0.0), name
+        np.testing.assert_allclose(jax.grad(loss)(texels, uv), g_tex, rtol=1e-12, atol=1e-12)
+        _, jvp = jax.jvp(loss, (texels, uv), (d_tex, d_uv))
+        np.testing.assert_allclose(np.sum(g_tex * d_tex) + np.sum(g_uv * d_uv), jvp,
+                                   rtol=1e-10, err_msg=name)
 
 
 def test_texel_centres_read_their_texel_and_v_runs_up_the_image(x64):
@@ -628,27 +676,68 @@ def bilinear_normal_matrix(res, rng, reach=1):
 
 @pytest.mark.parametrize("res", [2, 3, 9])
 def test_probed_stencil_is_the_operator_for_couplings_one_apart(res, x64):
-    from fitting.solve.texture import _stencil, _stencil_operator
+    from fitting.solve.texture_stencil import block_stencil, stencil_operator
 
     normal = bilinear_normal_matrix(res, np.random.default_rng(res))
 
-    def data(t):
-        return jnp.asarray(normal) @ t.reshape(-1)
-    operator = _stencil_operator(_stencil(lambda t: data(t).reshape(t.shape), res,
-                                          jnp.float64))
+    def data(maps):
+        return ((jnp.asarray(normal) @ maps[0].reshape(-1)).reshape(maps[0].shape),)
+    operator = stencil_operator(block_stencil(data, (res,), jnp.float64), 1)
     t = np.random.default_rng(1).normal(size=(res, res, 3))
-    np.testing.assert_allclose(operator(jnp.asarray(t)).reshape(-1), normal @ t.reshape(-1),
-                               rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(operator((jnp.asarray(t),))[0].reshape(-1),
+                               normal @ t.reshape(-1), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("res", [3, 8])
+def test_the_block_stencil_of_two_maps_is_their_joint_operator(res, x64):
+    """Pixels that read a bilinear cell of a kd map and of a ks map at the same place: the
+    probed block stencil is the joint normal matrix, the couplings between the maps
+    included, and its preconditioner inverts each texel's 2 x 2 block."""
+    from fitting.solve.texture_stencil import (
+        block_preconditioner,
+        block_stencil,
+        stencil_operator,
+    )
+
+    rng = np.random.default_rng(res)
+    rows = []
+    for _ in range(6 * res * res):
+        row, col = rng.integers(res, size=2)
+        read = np.zeros((2, res, res))
+        for dr in range(2):
+            for dc in range(2):
+                read[:, (row + dr) % res, (col + dc) % res] += rng.uniform(0.1, 1.0, 2)
+        rows.append(read.reshape(-1))
+    a = np.array(rows)
+    normal = a.T @ a  # [kd texels, ks texels] per channel
+    n = res * res
+
+    def data(maps):
+        flat = jnp.stack([m.reshape(n, 3) for m in maps]).reshape(2 * n, 3)
+        out = (jnp.asarray(normal) @ flat).reshape(2, res, res, 3)
+        return out[0], out[1]
+    stencil = block_stencil(data, (res, res), jnp.float64)
+    maps = tuple(jnp.asarray(rng.normal(size=(res, res, 3))) for _ in range(2))
+    got = stencil_operator(stencil, 2)(maps)
+    np.testing.assert_allclose(np.stack(got), np.stack(data(maps)), rtol=1e-12, atol=1e-12)
+    z = block_preconditioner(stencil, (0.0, 0.0), 1e-30)(maps)
+    for i in range(n):
+        block = normal[np.ix_([i, n + i], [i, n + i])]
+        r = np.stack([m.reshape(n, 3)[i] for m in maps])
+        np.testing.assert_allclose(np.stack([x.reshape(n, 3)[i] for x in z]),
+                                   np.linalg.solve(block, r), rtol=1e-9)
 
 
 @pytest.mark.parametrize("res", [9])
 def test_probed_diagonal_is_exact_for_couplings_shorter_than_the_stride(res, x64):
-    from fitting.solve.texture import _stencil
+    from fitting.solve.texture_stencil import block_stencil
 
     normal = bilinear_normal_matrix(res, np.random.default_rng(res), reach=3)
-    stencil = _stencil(lambda t: (jnp.asarray(normal) @ t.reshape(-1)).reshape(t.shape), res,
-                       jnp.float64)
-    np.testing.assert_allclose(stencil[(0, 0)].reshape(-1), np.diag(normal), rtol=1e-12)
+    stencil = block_stencil(
+        lambda maps: ((jnp.asarray(normal) @ maps[0].reshape(-1)).reshape(maps[0].shape),),
+        (res,), jnp.float64)
+    np.testing.assert_allclose(stencil[(0, 0, (0, 0))].reshape(-1), np.diag(normal),
+                               rtol=1e-12)
 
 
 def test_the_material_fit_refuses_a_textured_truth_pointing_at_texture(tmp_path, capsys):

@@ -39,7 +39,7 @@ import numba
 import numpy as np
 from numba import carray, cfunc, types
 
-from diffshade.host import active_kernel, candidates, xla_ffi
+from diffshade.host import active_kernel, candidates, texture_kernels, xla_ffi
 from diffshade.host import fragment_kernels as kernels
 from diffshade.host.ffi_check import (
     ANY,
@@ -62,6 +62,7 @@ from diffshade.host.xla_ffi import (
     FRAME_ARGS,
     FRAME_RETS,
     PRED,
+    S8,
     S32,
     S64,
     address_of,
@@ -113,8 +114,9 @@ def _flat(frame, which, index, dtype):
 # -- fragment geometry (raster.fragment_geometry) ------------------------------------------
 # arguments: ids [R, W, K] int32, corner_w [F, 3], corner_z [F, 3], coeffs [F, 3, 3], scr
 # [F, 3, 2]; attributes: width, height, soft. Forward results: bary [R, W, K, 3], depth
-# and dist [R, W, K]; backward: cotangents of those three follow the arguments, results
-# are the gradients of the four per-face arrays.
+# and dist [R, W, K], the nearest edges [R, W, K] int8; backward: the nearest edges, then
+# the cotangents of bary, depth and dist follow the arguments, results are the gradients
+# of the four per-face arrays.
 
 @numba.njit(cache=True, nogil=True)
 def _geometry_inputs(frame, values, dtype):
@@ -134,7 +136,8 @@ def _geometry_forward(frame, values, dtype, tiny):
     kernels.geometry_forward_into(
         ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny,
         values[3], _array3(frame, FRAME_RETS, 0, k, 3, dtype),
-        _array2(frame, FRAME_RETS, 1, k, dtype), _array2(frame, FRAME_RETS, 2, k, dtype))
+        _array2(frame, FRAME_RETS, 1, k, dtype), _array2(frame, FRAME_RETS, 2, k, dtype),
+        _array2(frame, FRAME_RETS, 3, k, np.int8))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -144,8 +147,9 @@ def _geometry_backward(frame, values, dtype, tiny):
     k = ids.shape[1]
     kernels.geometry_backward_into(
         ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny,
-        values[3], _array3(frame, FRAME_ARGS, 5, k, 3, dtype),
-        _array2(frame, FRAME_ARGS, 6, k, dtype), _array2(frame, FRAME_ARGS, 7, k, dtype),
+        values[3], _array2(frame, FRAME_ARGS, 5, k, np.int8),
+        _array3(frame, FRAME_ARGS, 6, k, 3, dtype), _array2(frame, FRAME_ARGS, 7, k, dtype),
+        _array2(frame, FRAME_ARGS, 8, k, dtype),
         _array2(frame, FRAME_RETS, 0, 3, dtype), _array2(frame, FRAME_RETS, 1, 3, dtype),
         _array3(frame, FRAME_RETS, 2, 3, 3, dtype), _array3(frame, FRAME_RETS, 3, 3, 2, dtype))
 
@@ -173,6 +177,30 @@ def _interpolate_backward(frame, values, dtype):
         _array3(frame, FRAME_ARGS, 2, 3, c, dtype), _array3(frame, FRAME_ARGS, 3, k, c, dtype),
         values[0], _array3(frame, FRAME_RETS, 0, k, 3, dtype),
         _array3(frame, FRAME_RETS, 1, 3, c, dtype))
+
+
+# -- texture lookup (texturing.sample_texels) ------------------------------------------------
+# arguments: ids [M] int32 (texture offsets), uv [M, 2], texels [T, C]; attributes: height,
+# width, clamp, uv_grad (read by the backward). Forward result [M, C]; backward: the
+# cotangent [M, C] follows, results g_uv and g_texels.
+
+@numba.njit(cache=True, nogil=True)
+def _texture_forward(frame, values, dtype):
+    c = buffer_dim(item(frame, FRAME_ARGS, 2), -1)
+    texture_kernels.sample_forward_into(
+        _flat(frame, FRAME_ARGS, 0, np.int32), _array2(frame, FRAME_ARGS, 1, 2, dtype),
+        _array2(frame, FRAME_ARGS, 2, c, dtype), values[0], values[1], values[2] != 0,
+        values[4], _array2(frame, FRAME_RETS, 0, c, dtype))
+
+
+@numba.njit(cache=True, nogil=True)
+def _texture_backward(frame, values, dtype):
+    c = buffer_dim(item(frame, FRAME_ARGS, 2), -1)
+    texture_kernels.sample_backward_into(
+        _flat(frame, FRAME_ARGS, 0, np.int32), _array2(frame, FRAME_ARGS, 1, 2, dtype),
+        _array2(frame, FRAME_ARGS, 2, c, dtype), _array2(frame, FRAME_ARGS, 3, c, dtype),
+        values[0], values[1], values[2] != 0, values[3] != 0, values[4],
+        _array2(frame, FRAME_RETS, 0, 2, dtype), _array2(frame, FRAME_RETS, 1, c, dtype))
 
 
 # -- active slots (compact.active_indices) --------------------------------------------------
@@ -303,7 +331,8 @@ def _search_hard(frame, values, dtype, face_dtype):
 
 #: the handlers' bodies, by the number a handler is made with (_handler)
 _BODIES = ("active", "geometry_forward", "geometry_backward", "interpolate_forward",
-           "interpolate_backward", "search_soft", "search_hard")
+           "interpolate_backward", "search_soft", "search_hard", "texture_forward",
+           "texture_backward")
 
 
 class Target(NamedTuple):
@@ -326,9 +355,10 @@ def _geometry(body, f, dtype, tiny_value):
     faces = (spec(f, 2, (3,)), spec(f, 2, (3,)), spec(f, 3, (3, 3)), spec(f, 3, (2, 3)))
     per_id = (spec(f, (2, ANY), (3,), TIMES, 0, 3), spec(f, (1, ANY), (), TIMES, 0, 1),
               spec(f, (1, ANY), (), TIMES, 0, 1))
-    args, rets = (ids, *faces), per_id
+    edge = spec(S8, (1, ANY), (), TIMES, 0, 1)
+    args, rets = (ids, *faces), (*per_id, edge)
     if body == 2:
-        args = (*args, *per_id)
+        args = (*args, edge, *per_id)
         rets = tuple(s[:6] + (TIMES, i + 1, 1) for i, s in enumerate(faces))
     return Target(body, dtype, tiny_value, args, rets, ("width", "height", "soft", THREADS))
 
@@ -353,6 +383,17 @@ def _search(body, f, dtype, i, ints):
     rets = (spec(S32, (3, ANY), (), IMAGES, 1), spec(S32, (0, ANY)))
     attrs = ("width", "height", "k", "cull_backfaces", "perspective", THREADS)
     return Target(body, dtype, ints, args, rets, attrs)
+
+
+def _texture(body, f, dtype):
+    """The texture lookup's target (body 7: forward, 8: backward) of float code f."""
+    ids, uv, texels = spec(S32, (1, ANY)), spec(f, (2, ANY), (2,), TIMES, 0, 2), spec(f, 2)
+    out = spec(f, (2, ANY), (), PER_LAST, 0, 2)
+    attrs = ("height", "width", "clamp", "uv_grad", THREADS)
+    if body == 7:
+        return Target(body, dtype, 0, (ids, uv, texels), (out,), attrs)
+    return Target(body, dtype, 0, (ids, uv, texels, out), (uv, texels[:6] + (TIMES, 2, 1)),
+                  attrs)
 
 
 def _handler(name, target):
@@ -384,8 +425,12 @@ def _handler(name, target):
             _interpolate_backward(frame, values, dtype)
         elif body == 5:
             _search_soft(frame, values, dtype, other)
-        else:
+        elif body == 6:
             _search_hard(frame, values, dtype, other)
+        elif body == 7:
+            _texture_forward(frame, values, dtype)
+        else:
+            _texture_backward(frame, values, dtype)
         return pointer(0)
     handler.__name__ = handler.__qualname__ = f"_handler_{name}"
     return handler
@@ -401,6 +446,8 @@ for _width, _f, _dtype, _tiny in (("f32", F32, np.float32, _TINY32),
         TARGETS[f"diffshade_{_BODIES[_body]}_{_width}"] = _geometry(_body, _f, _dtype, _tiny)
     for _body in (3, 4):
         TARGETS[f"diffshade_{_BODIES[_body]}_{_width}"] = _interpolation(_body, _f, _dtype)
+    for _body in (7, 8):
+        TARGETS[f"diffshade_{_BODIES[_body]}_{_width}"] = _texture(_body, _f, _dtype)
     for _ints, _i, _int in (("i32", S32, np.int32), ("i64", S64, np.int64)):
         for _body in (5, 6):
             TARGETS[f"diffshade_{_BODIES[_body]}_{_width}_{_ints}"] = _search(
@@ -430,8 +477,8 @@ def unavailable():
 def target_for(base, args):
     """The target of `base` (geometry_forward, search, ...) for operands `args`, or None
     where no handler takes their dtypes: float32 or float64 (one of them for all of a
-    call's float operands, but the search's per-view scalars), int32 face ids, bool masks,
-    the search's faces int32 or int64."""
+    call's float operands, but the search's per-view scalars), int32 face ids, int8
+    nearest edges, bool masks, the search's faces int32 or int64."""
     dtypes = [np.dtype(a.dtype) for a in args]
     floats = {d for d in dtypes if d.kind == "f"}
     width = {np.dtype(np.float32): "f32", np.dtype(np.float64): "f64"}
@@ -444,7 +491,7 @@ def target_for(base, args):
         return f"diffshade_{base}_{width[dtypes[0]]}_{ints[dtypes[1]]}"
     if base == "active":
         return "diffshade_active" if dtypes == [np.dtype(np.bool_)] else None
-    if len(floats) != 1 or not all(d.kind == "f" or d == np.int32 for d in dtypes):
+    if len(floats) != 1 or not all(d.kind == "f" or d in (np.int32, np.int8) for d in dtypes):
         return None
     return f"diffshade_{base}_{width[floats.pop()]}"
 

@@ -41,6 +41,7 @@ from diffshade.host.xla_ffi import (
     LIST_SIZE,
     LIST_TYPES,
     PRED,
+    S8,
     S32,
     S64,
     STAGE_EXECUTE,
@@ -134,6 +135,8 @@ def _number(out, value):
 def _dtype_name(out, code):
     if code == PRED:
         _put(out, b"bool (PRED)")
+    elif code == S8:
+        _put(out, b"int8 (S8)")
     elif code == S32:
         _put(out, b"int32 (S32)")
     elif code == S64:

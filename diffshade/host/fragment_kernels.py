@@ -11,7 +11,11 @@ Conventions: P pixels (row-major, H x W; the geometry kernels take whole rows, P
 K slots per pixel, F faces. `ids` [P, K] int32 face ids (-1 = empty). Empty slots produce
 zeros and receive no gradient. The geometry kernels compute in float64 (the pixel
 coordinates are float64 and float32 inputs are widened exactly) and return the inputs'
-dtype; the interpolation kernels compute in the inputs' dtype. Kernels split the pixels
+dtype; the interpolation kernels compute in the inputs' dtype. The geometry forward also
+returns each fragment's nearest edge (int8), which its backward takes back: the backward
+recomputes the distance's gradient from that one edge instead of measuring all three
+again, and the barycentrics only where their cotangent is not 0 (a fragment of weight 0
+still counts in the coverage, through its distance). Kernels split the pixels
 into `chunks` parts run in parallel (`chunks()`); backward kernels accumulate per-face
 gradients in one buffer per part (no races), summed at the end.
 
@@ -43,12 +47,12 @@ def _inv(den, tiny):
 #: a row of _face_table: the edge coefficients [3, 3] (row-major) at _COEFFS, the corners'
 #: clip W [3] at _CW and their reciprocals [3] at _INV_W, then per edge i (from corner i to
 #: corner i+1 mod 3) _EDGE_WIDTH values from _EDGES + i * _EDGE_WIDTH: its start (ax, ay),
-#: its vector (ex, ey) = b - a and 1 / |e|^2
-_COEFFS, _CW, _INV_W, _EDGES, _EDGE_WIDTH, _TABLE_WIDTH = 0, 9, 12, 15, 5, 30
+#: its vector (ex, ey) = b - a and 1 / |e|^2; then the corners' eye-space depth [3] at _CZ
+_COEFFS, _CW, _INV_W, _EDGES, _EDGE_WIDTH, _CZ, _TABLE_WIDTH = 0, 9, 12, 15, 5, 30, 33
 
 
 @numba.njit(cache=True, nogil=True)
-def _face_table(corner_w, coeffs, scr, tiny):
+def _face_table(corner_w, corner_z, coeffs, scr, tiny):
     """Per face, what the kernels read of it, in one float64 row (see _TABLE_WIDTH): [F,
     _TABLE_WIDTH]. Reciprocals by _inv; (ex, ey) computed in the dtype of scr, as the
     kernels once did per fragment. A fragment reads one row instead of four arrays, with
@@ -60,6 +64,7 @@ def _face_table(corner_w, coeffs, scr, tiny):
             for j in range(3):
                 table[f, _COEFFS + 3 * i + j] = coeffs[f, i, j]
             table[f, _CW + i] = corner_w[f, i]
+            table[f, _CZ + i] = corner_z[f, i]
             table[f, _INV_W + i] = _inv(corner_w[f, i], tiny)
             j = (i + 1) % 3
             ex, ey = scr[f, j, 0] - scr[f, i, 0], scr[f, j, 1] - scr[f, i, 1]
@@ -145,8 +150,11 @@ def _chunk(chunk, chunks, npix):
 
 @numba.njit(cache=True, nogil=True)
 def geometry_forward(ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny, chunks):
-    """bary [P, K, 3], depth [P, K] = bary . corner_z and the signed squared pixel distance
-    [P, K] (soft; zeros in hard mode).
+    """bary [P, K, 3], depth [P, K] = bary . corner_z, the signed squared pixel distance
+    [P, K] (soft; zeros in hard mode) and the nearest edge [P, K] int8 (soft; zeros in hard
+    mode and empty slots), which the backward reads instead of searching the three edges
+    again: its index i (the edge from corner i to corner i+1 mod 3), plus OUTSIDE where
+    the distance was negated.
 
     corner_w: [F, 3] clip W per corner; corner_z: [F, 3] eye-space depth per corner;
     coeffs: [F, 3, 3]; scr: [F, 3, 2] pixel positions. Hard: b = e / sum(e). Soft: see
@@ -158,18 +166,23 @@ def geometry_forward(ids, corner_w, corner_z, coeffs, scr, width, height, soft, 
     bary = np.empty((npix, k, 3), dtype)
     depth = np.empty((npix, k), dtype)
     dist = np.empty((npix, k), dtype)
+    edge = np.empty((npix, k), np.int8)
     geometry_forward_into(ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny,
-                          chunks, bary, depth, dist)
-    return bary, depth, dist
+                          chunks, bary, depth, dist, edge)
+    return bary, depth, dist, edge
+
+
+#: geometry_forward's edge code of a pixel outside its triangle (added to the edge index)
+OUTSIDE = 4
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def geometry_forward_into(ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny,
-                          chunks, bary, depth, dist):
-    """geometry_forward writing every element of bary, depth and dist (as XLA's buffers
-    given by an FFI call, ffi.py)."""
+                          chunks, bary, depth, dist, edge):
+    """geometry_forward writing every element of bary, depth, dist and edge (as XLA's
+    buffers given by an FFI call, ffi.py)."""
     npix, k = ids.shape
-    table = _face_table(corner_w, coeffs, scr, tiny)
+    table = _face_table(corner_w, corner_z, coeffs, scr, tiny)
     xs, pxs, ys, pys = _pixel_coords(width, height)
     for chunk in prange(chunks):
         start, stop = _chunk(chunk, chunks, npix // width)  # whole rows
@@ -185,18 +198,23 @@ def geometry_forward_into(ids, corner_w, corner_z, coeffs, scr, width, height, s
                 if f < 0:
                     bary[pixel, slot, 0] = bary[pixel, slot, 1] = bary[pixel, slot, 2] = 0.0
                     depth[pixel, slot] = dist[pixel, slot] = 0.0
+                    edge[pixel, slot] = 0
                     continue
                 e0, e1, e2, w0, w1, w2 = _face(table, f, x, y)
                 if not soft:
                     dist[pixel, slot] = 0.0
+                    edge[pixel, slot] = 0
                     b0, b1, b2, _ = _hard_bary(e0, e1, e2, tiny)
                 else:
                     s0, s1, s2, _, _, _, b0, b1, b2, _, _ = _soft_bary(e0, e1, e2, w0, w1, w2,
                                                                        table, f, tiny)
-                    d2 = _nearest_edge(px, py, table, f)[1]
-                    dist[pixel, slot] = d2 if s0 >= 0.0 and s1 >= 0.0 and s2 >= 0.0 else -d2
+                    i, d2, _, _, _ = _nearest_edge(px, py, table, f)
+                    inside = s0 >= 0.0 and s1 >= 0.0 and s2 >= 0.0
+                    dist[pixel, slot] = d2 if inside else -d2
+                    edge[pixel, slot] = i if inside else i + OUTSIDE
                 bary[pixel, slot, 0], bary[pixel, slot, 1], bary[pixel, slot, 2] = b0, b1, b2
-                depth[pixel, slot] = b0 * corner_z[f, 0] + b1 * corner_z[f, 1] + b2 * corner_z[f, 2]
+                depth[pixel, slot] = (b0 * table[f, _CZ] + b1 * table[f, _CZ + 1]
+                                      + b2 * table[f, _CZ + 2])
 
 
 #: geometry_backward's per-face accumulator row: the gradients of corner_w [3] at _W,
@@ -213,38 +231,43 @@ def _softmax_like_grad(g0, g1, g2, v0, v1, v2, inv_den):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _dist_grad(acc, chunk, f, px, py, table, g_m):
-    """Accumulate the gradient g_m of the nearest edge's squared distance |d|^2 into the
-    corners' screen positions: d |d|^2 = -2 d . ((1 - t) da + t db); t drops out (it
-    minimizes |d|^2 inside [0, 1] and is constant where clamped)."""
-    i, _, t, dx, dy = _nearest_edge(px, py, table, f)
+def _dist_grad(acc, chunk, f, px, py, table, g_m, code):
+    """Accumulate the gradient g_m of the signed squared distance (geometry_forward's
+    `dist`, of nearest edge `code`) into the corners' screen positions:
+    d |d|^2 = -2 d . ((1 - t) da + t db); t drops out (it minimizes |d|^2 inside [0, 1] and
+    is constant where clamped)."""
+    i = code % OUTSIDE
+    _, t, dx, dy = _segment(px, py, table, f, i)
     j = (i + 1) % 3
-    acc[chunk, f, _S + 2 * i] -= 2.0 * g_m * (1.0 - t) * dx
-    acc[chunk, f, _S + 1 + 2 * i] -= 2.0 * g_m * (1.0 - t) * dy
-    acc[chunk, f, _S + 2 * j] -= 2.0 * g_m * t * dx
-    acc[chunk, f, _S + 1 + 2 * j] -= 2.0 * g_m * t * dy
+    g_m = -2.0 * g_m if code < OUTSIDE else 2.0 * g_m
+    acc[chunk, f, _S + 2 * i] += g_m * (1.0 - t) * dx
+    acc[chunk, f, _S + 1 + 2 * i] += g_m * (1.0 - t) * dy
+    acc[chunk, f, _S + 2 * j] += g_m * t * dx
+    acc[chunk, f, _S + 1 + 2 * j] += g_m * t * dy
 
 
 @numba.njit(cache=True, nogil=True)
 def geometry_backward(ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny, chunks,
-                      g_bary, g_depth, g_dist):
+                      edge, g_bary, g_depth, g_dist):
     """Gradients of geometry_forward: (g_w [F, 3], g_z [F, 3], g_coeffs [F, 3, 3],
-    g_scr [F, 3, 2])."""
+    g_scr [F, 3, 2]); edge: geometry_forward's nearest edges [P, K] (read in soft mode)."""
     nfaces, dtype = coeffs.shape[0], coeffs.dtype
     out_w, out_z = np.empty((nfaces, 3), dtype), np.empty((nfaces, 3), dtype)
     out_coeffs, out_scr = np.empty((nfaces, 3, 3), dtype), np.empty((nfaces, 3, 2), dtype)
     geometry_backward_into(ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny,
-                           chunks, g_bary, g_depth, g_dist, out_w, out_z, out_coeffs, out_scr)
+                           chunks, edge, g_bary, g_depth, g_dist, out_w, out_z, out_coeffs,
+                           out_scr)
     return out_w, out_z, out_coeffs, out_scr
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def geometry_backward_into(ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny,
-                           chunks, g_bary, g_depth, g_dist, out_w, out_z, out_coeffs, out_scr):
+                           chunks, edge, g_bary, g_depth, g_dist, out_w, out_z, out_coeffs,
+                           out_scr):
     """geometry_backward writing its gradients into out_w, out_z, out_coeffs and out_scr."""
     npix, k = ids.shape
     nfaces = coeffs.shape[0]
-    table = _face_table(corner_w, coeffs, scr, tiny)
+    table = _face_table(corner_w, corner_z, coeffs, scr, tiny)
     # float64 accumulators: more accurate, and no conversion per fragment; a face's sums
     # side by side in one row (_ACC_WIDTH), not in four arrays: a fragment's accumulation
     # writes one contiguous row
@@ -264,21 +287,16 @@ def geometry_backward_into(ids, corner_w, corner_z, coeffs, scr, width, height, 
                 if f < 0:
                     continue
                 g_z, g_d = g_depth[pixel, slot], g_dist[pixel, slot]
+                if soft and g_d != 0.0:
+                    # the distance's gradient needs only the edge the forward found
+                    _dist_grad(acc, chunk, f, px, py, table, g_d, edge[pixel, slot])
                 # depth = b . corner_z: its gradient joins the barycentrics'
-                gb0 = g_bary[pixel, slot, 0] + g_z * corner_z[f, 0]
-                gb1 = g_bary[pixel, slot, 1] + g_z * corner_z[f, 1]
-                gb2 = g_bary[pixel, slot, 2] + g_z * corner_z[f, 2]
-                needs_bary = not (gb0 == 0.0 and gb1 == 0.0 and gb2 == 0.0 and g_z == 0.0)
-                if not needs_bary and (g_d == 0.0 or not soft):
+                gb0 = g_bary[pixel, slot, 0] + g_z * table[f, _CZ]
+                gb1 = g_bary[pixel, slot, 1] + g_z * table[f, _CZ + 1]
+                gb2 = g_bary[pixel, slot, 2] + g_z * table[f, _CZ + 2]
+                if gb0 == 0.0 and gb1 == 0.0 and gb2 == 0.0 and g_z == 0.0:
                     continue  # e.g. a fragment whose blend weight underflows to 0
                 e0, e1, e2, w0, w1, w2 = _face(table, f, x, y)
-                if not needs_bary:
-                    # only the distance's gradient (the fragment still counts in alpha)
-                    inv_s = _inv(e0 * w0 + e1 * w1 + e2 * w2, tiny)
-                    inside = (e0 * w0 * inv_s >= 0.0 and e1 * w1 * inv_s >= 0.0
-                              and e2 * w2 * inv_s >= 0.0)
-                    _dist_grad(acc, chunk, f, px, py, table, g_d if inside else -g_d)
-                    continue
                 if not soft:
                     b0, b1, b2, inv_e = _hard_bary(e0, e1, e2, tiny)
                     ge0, ge1, ge2 = _softmax_like_grad(gb0, gb1, gb2, b0, b1, b2, inv_e)
@@ -289,18 +307,14 @@ def geometry_backward_into(ids, corner_w, corner_z, coeffs, scr, width, height, 
                     gq0, gq1, gq2 = _softmax_like_grad(gb0, gb1, gb2, b0, b1, b2, inv_q)
                     gs0, gs1, gs2 = (gq0 * table[f, _INV_W], gq1 * table[f, _INV_W + 1],
                                       gq2 * table[f, _INV_W + 2])
-                    acc[chunk, f, _W + 0] -= gs0 * q0
-                    acc[chunk, f, _W + 1] -= gs1 * q1
-                    acc[chunk, f, _W + 2] -= gs2 * q2
                     gt0, gt1, gt2 = _softmax_like_grad(gs0 if s0 > 0.0 else 0.0,
                                                        gs1 if s1 > 0.0 else 0.0,
                                                        gs2 if s2 > 0.0 else 0.0, s0, s1, s2, inv_s)
                     ge0, ge1, ge2 = gt0 * w0, gt1 * w1, gt2 * w2
-                    acc[chunk, f, _W + 0] += gt0 * e0
-                    acc[chunk, f, _W + 1] += gt1 * e1
-                    acc[chunk, f, _W + 2] += gt2 * e2
-                    inside = s0 >= 0.0 and s1 >= 0.0 and s2 >= 0.0
-                    _dist_grad(acc, chunk, f, px, py, table, g_d if inside else -g_d)
+                    # w enters through q (q_i = max(s_i, 0) / w_i) and through e w
+                    acc[chunk, f, _W + 0] += gt0 * e0 - gs0 * q0
+                    acc[chunk, f, _W + 1] += gt1 * e1 - gs1 * q1
+                    acc[chunk, f, _W + 2] += gt2 * e2 - gs2 * q2
                 acc[chunk, f, _Z + 0] += b0 * g_z
                 acc[chunk, f, _Z + 1] += b1 * g_z
                 acc[chunk, f, _Z + 2] += b2 * g_z

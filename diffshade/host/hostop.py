@@ -23,6 +23,13 @@ they are CPU code, which is why render picks host=True only on the CPU backend.
 Argument kinds: the first argument is always `ids` [H, W, K] int32 (-1 = empty); each
 float argument is 'pixel' ([H, W, K, ...], like ids) or 'face' ([F, ...], indexed by ids);
 every output is 'pixel'. Static parameters (Python values) go as keyword arguments.
+
+Saved values: the forward kernel may return, after the op's outputs, `saved` more
+per-pixel arrays (of any dtype) that only its backward reads, so that the backward does
+not redo work the forward did (the geometry's nearest edges). op_p returns them too, and
+jvp_p and vjp_p take them after the args, as primal (non-linear) arguments: reverse mode
+keeps them as residuals of the forward. They have no tangent, the native maps never see
+them, and FragmentOp.__call__ does not return them.
 """
 
 import dataclasses
@@ -40,9 +47,10 @@ from diffshade.host.hostcall import host_call
 class FragmentOp:
     """name; kinds: tuple of 'pixel' / 'face', one per float argument; native(ids, *args,
     **params) -> tuple of arrays (jax.numpy); forward(ids, *args, **params) -> tuple of
-    numpy arrays, and backward(ids, *args, *cotangents, **params) -> tuple of numpy arrays
-    shaped like args (host kernels, given numpy arrays); out_avals(ids, *args, **params)
-    -> tuple of jax.ShapeDtypeStruct."""
+    numpy arrays (the outputs, then the `saved` values), and backward(ids, *args, *saved,
+    *cotangents, **params) -> tuple of numpy arrays shaped like args (host kernels, given
+    numpy arrays); out_avals(ids, *args, **params) -> tuple of jax.ShapeDtypeStruct of
+    the forward kernel's results (the outputs, then the saved values)."""
 
     name: str
     kinds: tuple
@@ -54,21 +62,24 @@ class FragmentOp:
     #: prefix_forward and prefix_backward, given those params as attributes; None: the
     #: host callback only
     ffi: tuple = None
+    #: how many of the forward kernel's last results are saved values for its backward,
+    #: not outputs of the op (module docstring)
+    saved: int = 0
 
     def __post_init__(self):
         prims = {p: Primitive(f"{self.name}_{p}") for p in ("op", "jvp", "vjp")}
         object.__setattr__(self, "prims", prims)
         for prim in prims.values():
             prim.multiple_results = True
-        n = len(self.kinds)
+        n = len(self.kinds) + self.saved
         _define(prims["op"], self._forward_host, self._forward_avals,
                 self._fold_batch(prims["op"], self.kinds))
         _define(prims["jvp"], self._jvp_native, self._jvp_avals, self._jvp_batch)
         _define(prims["vjp"], self._backward_host, self._vjp_avals,
                 self._fold_batch(prims["vjp"], self.kinds))
         ad.primitive_jvps[prims["op"]] = self._op_jvp
-        ad.primitive_jvps[prims["jvp"]] = partial(_native_jvp, self._jvp_native)
-        ad.primitive_jvps[prims["vjp"]] = partial(_native_jvp, self._vjp_native)
+        ad.primitive_jvps[prims["jvp"]] = partial(self._native_jvp, self._jvp_native)
+        ad.primitive_jvps[prims["vjp"]] = partial(self._native_jvp, self._vjp_native)
         ad.primitive_transposes[prims["jvp"]] = partial(self._transpose, prims["vjp"], n)
         ad.primitive_transposes[prims["vjp"]] = partial(self._transpose, prims["jvp"], n)
 
@@ -76,7 +87,8 @@ class FragmentOp:
         """The op's outputs (a tuple), by the host kernels or by `native`."""
         if not host:
             return tuple(self.native(ids, *args, **params))
-        return tuple(self.prims["op"].bind(ids, *args, **params))
+        out = self.prims["op"].bind(ids, *args, **params)
+        return tuple(out[:len(out) - self.saved])
 
     # -- evaluation ---------------------------------------------------------------------
 
@@ -95,13 +107,18 @@ class FragmentOp:
                                                                               **params),
                          ids, *args, ffi=self._ffi("forward", params))
 
+    def _output_avals(self, ids, *args, **params):
+        """The avals of the op's outputs (not the saved values), args: the float args."""
+        avals = self._forward_avals(ids, *args, **params)
+        return avals[:len(avals) - self.saved]
+
     def _jvp_avals(self, ids, *args, **params):
-        return self._forward_avals(ids, *args[:len(self.kinds)], **params)
+        return self._output_avals(ids, *args[:len(self.kinds)], **params)
 
     def _jvp_native(self, ids, *args, **params):
         n = len(self.kinds)
         fn = lambda *primals: tuple(self.native(ids, *primals, **params))
-        return jax.jvp(fn, tuple(args[:n]), tuple(args[n:]))[1]
+        return jax.jvp(fn, tuple(args[:n]), tuple(args[n + self.saved:]))[1]
 
     def _vjp_avals(self, ids, *args, **params):
         return tuple(jax.ShapeDtypeStruct(a.shape, a.dtype) for a in args[:len(self.kinds)])
@@ -114,19 +131,22 @@ class FragmentOp:
     def _vjp_native(self, ids, *args, **params):
         n = len(self.kinds)
         fn = lambda *primals: tuple(self.native(ids, *primals, **params))
-        return jax.vjp(fn, *args[:n])[1](tuple(args[n:]))
+        return jax.vjp(fn, *args[:n])[1](tuple(args[n + self.saved:]))
 
     # -- differentiation ----------------------------------------------------------------
 
     def _op_jvp(self, primals, tangents, **params):
         ids, *args = primals
         out = self.prims["op"].bind(ids, *args, **params)
+        saved = out[len(out) - self.saved:]
         tangents = [ad.instantiate_zeros(t) for t in tangents[1:]]
-        return out, self.prims["jvp"].bind(ids, *args, *tangents, **params)
+        out_tangents = self.prims["jvp"].bind(ids, *args, *saved, *tangents, **params)
+        return out, [*out_tangents, *(ad.Zero(jax.typeof(v).to_tangent_aval()) for v in saved)]
 
     def _transpose(self, other, n, cotangents, ids, *args, **params):
         """jvp_p and vjp_p are each other's transpose in their last arguments (tangents of
-        the args, or cotangents of the outputs); the first n args are primal values."""
+        the args, or cotangents of the outputs); the first n args are primal values (the
+        float args, then the saved values)."""
         primals = args[:n]
         if any(ad.is_undefined_primal(a) for a in (ids, *primals)):
             raise NotImplementedError(f"{self.name}: transposed in a non-linear argument")
@@ -137,9 +157,20 @@ class FragmentOp:
 
     def _avals_of(self, other, ids, primals, params):
         """The avals of `other`'s linear inputs: the outputs of the primitive transposed."""
+        primals = primals[:len(self.kinds)]
         if other is self.prims["vjp"]:
-            return self.out_avals(ids, *primals, **params)
+            return self._output_avals(ids, *primals, **params)
         return tuple(jax.ShapeDtypeStruct(p.shape, p.dtype) for p in primals)
+
+    def _native_jvp(self, native_fn, primals, tangents, **params):
+        """A jvp rule of jvp_p or vjp_p from jax.jvp of its native map (used for
+        second-order derivatives); the saved values are constants there."""
+        ids, *args = primals
+        n, end = len(self.kinds), len(self.kinds) + self.saved
+        saved = args[n:end]
+        fn = lambda *a: tuple(native_fn(ids, *a[:n], *saved, *a[n:], **params))
+        tangents = [ad.instantiate_zeros(t) for t in tangents[1:]]
+        return jax.jvp(fn, (*args[:n], *args[end:]), (*tangents[:n], *tangents[end:]))
 
     # -- batching -----------------------------------------------------------------------
 
@@ -172,13 +203,6 @@ def _define(prim, impl, avals, batch_rule):
         jax.core.ShapedArray(s.shape, s.dtype) for s in avals(*args, **params)))
     mlir.register_lowering(prim, mlir.lower_fun(impl, multiple_results=True))
     batching.primitive_batchers[prim] = batch_rule
-
-
-def _native_jvp(native_fn, primals, tangents, **params):
-    """A jvp rule from jax.jvp of a native map (used for second-order derivatives)."""
-    ids, *args = primals
-    fn = lambda *a: tuple(native_fn(ids, *a, **params))
-    return jax.jvp(fn, tuple(args), tuple(ad.instantiate_zeros(t) for t in tangents[1:]))
 
 
 def _zeros_if_symbolic(ct, aval):

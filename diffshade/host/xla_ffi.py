@@ -76,7 +76,7 @@ BUFFER_DTYPE, BUFFER_DATA, BUFFER_RANK, BUFFER_DIMS = 16, 24, 32, 40
 BUFFER_SIZE = 48  # XLA_FFI_Buffer_STRUCT_SIZE
 
 # XLA_FFI_DataType (xla::PrimitiveType)
-PRED, S32, S64, F32, F64 = 1, 4, 5, 11, 12
+PRED, S8, S32, S64, F32, F64 = 1, 2, 4, 5, 11, 12
 
 # XLA_FFI_Metadata_Extension: extension_base, metadata (XLA_FFI_Metadata*); XLA_FFI_Metadata:
 # struct_size, api_version (XLA_FFI_Api_Version), traits (uint32)

@@ -6,7 +6,8 @@ by full module path).
 
 from diffshade.io.colmap import colmap_text, read_colmap
 from diffshade.io.color import COLOR_SPACES, decode, encode, linear_to_srgb, srgb_to_linear
-from diffshade.io.compile_cache import FAST_COMPILE, LIGHT_COMPILE, stored_jit
+from diffshade.io.compile_cache import FAST_COMPILE, LIGHT_COMPILE, store_dir, stored_jit
+from diffshade.io.compile_cache import enable as enable_compile_cache
 from diffshade.io.image_formats import header as image_header
 from diffshade.io.images import (
     check_color_space,
@@ -44,7 +45,7 @@ from diffshade.io.undistort import (
 __all__ = [
     "colmap_text", "read_colmap", "read_transforms", "transforms_dict",
     "COLOR_SPACES", "decode", "encode", "linear_to_srgb", "srgb_to_linear",
-    "FAST_COMPILE", "LIGHT_COMPILE", "stored_jit",
+    "FAST_COMPILE", "LIGHT_COMPILE", "enable_compile_cache", "store_dir", "stored_jit",
     "check_color_space", "check_writable", "image_header", "read_image", "write_json",
     "write_npy", "write_png", "write_text",
     "SceneFileError", "camera_to_dict", "load_material", "load_scene", "load_scenes",

@@ -74,13 +74,14 @@ def _fill_absent(material, other):
     return dataclasses.replace(material, shininess=shininess, **changes)
 
 
-def _material_at(scene, front, objects=None, uv=None):
+def _material_at(scene, front, objects=None, uv=None, valid=None, host=None):
     """The material of each sample: the front one, or the back material where `front` is
     False when the scene has one; front: [...] bool; objects: [...] int32 object ids in a
     scene of several objects (its materials are stacked), else None; uv: [..., 2] where
-    the scene has textures (read here: diffshade.shading.texturing), else None."""
-    material = textured_material(scene.material, uv)
-    back_material = textured_material(scene.back_material, uv)
+    the scene has textures (read here, where valid, by host kernels or not:
+    diffshade.shading.texturing), else None."""
+    material = textured_material(scene.material, uv, host, valid)
+    back_material = textured_material(scene.back_material, uv, host, valid)
     if objects is not None:
         material = take_material(material, objects)
     if not scene.two_sided or back_material is None:
@@ -104,7 +105,8 @@ def _material_at(scene, front, objects=None, uv=None):
 def shade_samples(scene, samples: Samples, settings, maps=None):
     """(ShadingParts, colour) of each sample, [..., 3] each; colour clamped as OpenGL
     clamps (per sample) when settings.clamp. maps: the scene's shadow_maps (None: none)."""
-    material = _material_at(scene, samples.front, samples.objects, samples.uv)
+    material = _material_at(scene, samples.front, samples.objects, samples.uv, samples.valid,
+                            settings.use_host_kernels())
     parts = shade(material, scene.lights, scene.global_ambient,
                   samples.points, samples.normals, view_dirs(scene, samples.points), settings,
                   maps)

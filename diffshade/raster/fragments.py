@@ -121,9 +121,10 @@ def _geometry_native(ids, corner_w, corner_z, coeffs, scr, *, width, height, sof
 
 
 def _geometry_avals(ids, corner_w, corner_z, coeffs, scr, **params):
+    """bary, depth and dist, then the saved nearest edges (int8)."""
     dtype = coeffs.dtype
     return (jax.ShapeDtypeStruct(ids.shape + (3,), dtype), jax.ShapeDtypeStruct(ids.shape, dtype),
-            jax.ShapeDtypeStruct(ids.shape, dtype))
+            jax.ShapeDtypeStruct(ids.shape, dtype), jax.ShapeDtypeStruct(ids.shape, jnp.int8))
 
 
 def _kernel_args(corner_w, corner_z, coeffs, scr, width, height, soft):
@@ -138,12 +139,13 @@ def _geometry_forward(ids, *per_face, width, height, soft):
                                     *_kernel_args(*per_face, width, height, soft))
 
 
-def _geometry_backward(ids, corner_w, corner_z, coeffs, scr, g_bary, g_depth, g_dist, *,
+def _geometry_backward(ids, corner_w, corner_z, coeffs, scr, edge, g_bary, g_depth, g_dist, *,
                        width, height, soft):
     k = ids.shape[-1]
     args = _kernel_args(corner_w, corner_z, coeffs, scr, width, height, soft)
-    return kernels.geometry_backward(ids.reshape(-1, k), *args, g_bary.reshape(-1, k, 3),
-                                     g_depth.reshape(-1, k), g_dist.reshape(-1, k))
+    return kernels.geometry_backward(ids.reshape(-1, k), *args, edge.reshape(-1, k),
+                                     g_bary.reshape(-1, k, 3), g_depth.reshape(-1, k),
+                                     g_dist.reshape(-1, k))
 
 
 #: Per fragment: barycentrics [H, W, K, 3] (clamped to the triangle in soft mode), the
@@ -151,10 +153,11 @@ def _geometry_backward(ids, corner_w, corner_z, coeffs, scr, g_bary, g_depth, g_
 #: the triangle's boundary [H, W, K] (soft; zeros in hard mode), from the face ids
 #: [H, W, K] and per-face inputs: corner_w [F, 3] clip W and corner_z [F, 3] eye-space
 #: depth of the corners, coeffs [F, 3, 3] edge coefficients (face_edge_coefficients), scr
-#: [F, 3, 2] corner pixel positions. Static: width, height, soft.
+#: [F, 3, 2] corner pixel positions. Static: width, height, soft. The forward kernel hands
+#: each fragment's nearest edge to the backward (a saved value, hostop.py).
 fragment_geometry = FragmentOp("fragment_geometry", ("face",) * 4, _geometry_native,
                                _geometry_forward, _geometry_backward, _geometry_avals,
-                               ffi=("geometry", ("width", "height", "soft")))
+                               ffi=("geometry", ("width", "height", "soft")), saved=1)
 
 
 def fragments_from_ids(proj: Projected, faces, face_ids, dropped, soft=False,

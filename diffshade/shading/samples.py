@@ -37,18 +37,21 @@ class Samples:
     """points: [..., 3] world space; normals: [..., 3] unit, reversed on back sides under
     two-sided lighting; front: [...] bool, lit with the front material; objects: [...]
     int32 object ids in a scene of several objects, else None; uv: [..., 2] texture
-    coordinates where the scene has textures, else None."""
+    coordinates where the scene has textures, else None; valid: [...] bool, the samples
+    that hold a fragment, where the scene has textures and some samples may hold none
+    (Phong's), else None: textures are read only there."""
 
     points: jax.Array
     normals: jax.Array
     front: jax.Array
     objects: jax.Array | None = None
     uv: jax.Array | None = None
+    valid: jax.Array | None = None
 
     def leaves(self):
-        """The arrays, in field order, without the absent ones (objects, uv)."""
-        return tuple(a for a in (self.points, self.normals, self.front, self.objects, self.uv)
-                     if a is not None)
+        """The arrays, in field order, without the absent ones (objects, uv, valid)."""
+        return tuple(a for a in (self.points, self.normals, self.front, self.objects, self.uv,
+                                 self.valid) if a is not None)
 
     def with_leaves(self, leaves):
         """Samples of the same structure holding `leaves` (as `leaves()` lists them)."""
@@ -99,10 +102,12 @@ def phong_samples(scene, proj, face_ids, bary, front, host=None):
     """Phong's samples of fragments given by their face ids [N, K] (-1 = empty),
     barycentrics [N, K, 3] and sides [N, K]: interpolated points and renormalized normals
     (render lights only the fragments that count this way, diffshade.render)."""
-    attrs = (proj.world, proj.normals) + ((scene.mesh.uv,) if uses_uv(scene) else ())
+    textured = uses_uv(scene)
+    attrs = (proj.world, proj.normals) + ((scene.mesh.uv,) if textured else ())
     points, normals, *uv = interpolate_rows(attrs, scene.mesh.faces, face_ids, bary, host)
     normals = _oriented(safe_normalize(normals), front, scene.two_sided)
-    return Samples(points, normals, front, object_ids(scene, True, face_ids), *uv)
+    return Samples(points, normals, front, object_ids(scene, True, face_ids), *uv,
+                   valid=face_ids >= 0 if textured else None)
 
 
 def _phong(scene, proj, frags, host):

@@ -47,7 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffshade.composite import layer_weights, layers_needed
-from diffshade.io import FAST_COMPILE, stored_jit
+from diffshade.io import FAST_COMPILE, LIGHT_COMPILE, stored_jit
 from diffshade.numerics import clamp01, float_dtype
 from diffshade.pipeline import slot_samples, view_dirs
 from diffshade.raster import fragments_from_ids, project, search_depth, search_faces
@@ -135,18 +135,28 @@ def erode(mask, margin: int):
     return mask
 
 
-# Each view's geometry is rasterized once per fit: these programs compile without LLVM's
-# optimizations (FAST_COMPILE), which takes about half their compile time off and costs
-# nothing measurable at run time (benchmarks/fit_compile.py).
+# Each view's geometry is rasterized once per fit (and once more for the report's
+# panels): these programs compile without LLVM's optimizations (FAST_COMPILE), which takes
+# about half their compile time off and costs nothing measurable at run time
+# (benchmarks/fit_compile.py) ...
 _project = stored_jit(project, compiler_options=FAST_COMPILE)
 
 
-@stored_jit(static_argnames=("depth",), compiler_options=FAST_COMPILE)
 def _fragments(proj, faces, camera, settings, found, depth):
     soft = settings.raster == "soft"
     if found is None:  # JAX's tile search (settings.kernels)
         found = search_faces(proj.clip, faces, camera, depth, settings, soft)
     return fragments_from_ids(proj, faces, *found, soft=soft, host=False)
+
+
+_host_searched = stored_jit(_fragments, static_argnames=("depth",),
+                            compiler_options=FAST_COMPILE)
+# ... except JAX's tile search (settings.kernels 'jax', as on a fresh install's first
+# runs, diffshade.host.warmup): without LLVM's optimizations it runs 5x slower (0.25 s of
+# CPU against 0.05 s for a 128x128 view of the README's sphere, twice per view and fit),
+# with LIGHT_COMPILE it compiles in about 1.3x the time.
+_jax_searched = stored_jit(_fragments, static_argnames=("depth",),
+                           compiler_options=LIGHT_COMPILE)
 
 
 def geometry_scene(dataset: Dataset, index: int, layered=False, textured=False):
@@ -170,11 +180,11 @@ def fixed_fragments(scene, settings, layers=1):
     (diffshade.host.hostcall), and the per-fragment geometry is computed in jax.numpy."""
     proj = _project(scene)
     depth = search_depth(settings, layers)
-    found = None
-    if settings.use_host_kernels():
-        found = search_faces(proj.clip, scene.mesh.faces, scene.camera, depth, settings,
-                             settings.raster == "soft")
-    return proj, _fragments(proj, scene.mesh.faces, scene.camera, settings, found, depth)
+    if not settings.use_host_kernels():
+        return proj, _jax_searched(proj, scene.mesh.faces, scene.camera, settings, None, depth)
+    found = search_faces(proj.clip, scene.mesh.faces, scene.camera, depth, settings,
+                         settings.raster == "soft")
+    return proj, _host_searched(proj, scene.mesh.faces, scene.camera, settings, found, depth)
 
 
 # Not FAST_COMPILE: the samples' normals and view directions compiled so round

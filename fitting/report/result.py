@@ -460,6 +460,22 @@ def counted_mask(shape, kept):
     return mask.reshape(shape[:2])
 
 
+def panel_renders(dataset, result, init, indices) -> tuple:
+    """(fitted, initial): the renders of the views `indices` with the fitted material and
+    lights and with the initial material and the given lights (render_rgb), as their
+    panels show them (the initial ones in the dataset's float dtype)."""
+    count = len(dataset.views)
+    materials = view_materials(result.material, result.values, count)  # per-view gains
+    lights, given = panel_lights(result.lights), panel_lights([v.lights for v in dataset.views])
+    fitted, initial = [], []
+    for i in indices:  # each view rasterized once for both of its renders
+        fragments = {}
+        fitted.append(render_rgb(dataset, i, materials[i], lights[i], fragments))
+        # kept until its panel in the dtype it was rendered in (float64 adds nothing)
+        initial.append(render_rgb(dataset, i, init, given[i], fragments).astype(float_dtype()))
+    return fitted, initial
+
+
 def write_result(out_dir, dataset, result, init, extra=None, title="", kept=None,
                  ids=None, maps=None, truth_maps=None) -> list:
     """Write the result files (module docstring) into out_dir; returns their paths.
@@ -471,14 +487,7 @@ def write_result(out_dir, dataset, result, init, extra=None, title="", kept=None
     out_dir = os.fspath(out_dir)
     count = len(dataset.views)
     ids = list(range(count)) if ids is None else list(ids)
-    materials = view_materials(result.material, result.values, count)  # per-view gains
-    lights, given = panel_lights(result.lights), panel_lights([v.lights for v in dataset.views])
-    fitted, initial = [], []
-    for i in range(count):  # each view rasterized once for both of its renders
-        fragments = {}
-        fitted.append(render_rgb(dataset, i, materials[i], lights[i], fragments))
-        # kept until its panel in the dtype it was rendered in (float64 adds nothing)
-        initial.append(render_rgb(dataset, i, init, given[i], fragments).astype(float_dtype()))
+    fitted, initial = panel_renders(dataset, result, init, range(count))
     residuals = [f - v.target for f, v in zip(fitted, dataset.views, strict=True)]
     kept = kept or [np.arange(v.target.shape[0] * v.target.shape[1]) for v in dataset.views]
     scale = residual_scale(residuals, kept)

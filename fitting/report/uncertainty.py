@@ -265,14 +265,18 @@ def _embedded(block, free):
 
 def uncertainty(values: dict, data, spec: FitSpec, *, widths=None, rounding=None,
                 highlight_threshold=0.01, min_pixels=10, max_condition=1e6,
-                warn=True) -> UncertaintyReport:
+                warn=True, eliminated=None) -> UncertaintyReport:
     """Standard errors of the physical `values` (the optimum of a fit on `data`, a
     FitData or its ShardedViews: then J^T J and the rounding bound are summed a chunk of
     views at a time), Gauss-Newton and robust, and identifiability warnings (see module
     docstring). widths: each view's image width, for the robust estimate's pixel tiles
     (None: runs of consecutive pixels, fitting.report.robust.tile_ids). rounding: each
     view's full-image Rounding for the rounding bound (kept_rounding; None: from the
-    targets' codes)."""
+    targets' codes). eliminated: (share [p, p], unknowns) of unknowns fitted beside the
+    values and marginalised (a fit's map texels: fitting.report.texel_share): share is
+    subtracted from J^T J (its Schur complement) and unknowns from the degrees of
+    freedom; the robust estimate and the rounding bound use that inverse with J's rows
+    (the texels held there)."""
     fold = rows_fold(values, data, spec)
     names = tuple(value_names(values))
     free = ~at_bound(values, spec)
@@ -280,6 +284,8 @@ def uncertainty(values: dict, data, spec: FitSpec, *, widths=None, rounding=None
     full, rss, n, meat, tiles = _sums(fold, len(names), pixels, widths)
     p = int(free.sum())
     dof = max(n - p, 1)
+    if eliminated is not None:
+        full, dof = full - eliminated[0], max(n - p - int(eliminated[1]), 1)
     sigma2 = rss / dof
     jtj = full[np.ix_(free, free)]
     inverse, condition, weak = _scaled_inverse(jtj, max_condition)

@@ -1,5 +1,5 @@
-"""A kd or ks texture in closed form: the texels that best explain the views, by least
-squares.
+"""A kd or ks texture (or both) in closed form: the texels that best explain the views, by
+least squares.
 
 With geometry, cameras, lights and every other material parameter fixed (the shininess
 included), an unclamped render is affine in the kd texels t (and in the ks texels):
@@ -43,11 +43,20 @@ texel's error were its neighbours known, without the prior (the unregularized so
 marginal error is at least this; the prior lowers it).
 
 The diagonal (A'MA)_ii and the stencil come from PROBE_STRIDE^2 probes (and a few more
-when RES is not a multiple of it): each probe holds texels PROBE_STRIDE apart, and A'MA
-applied to it gives, at each texel, its coupling to the probe's texel nearest to it. So
-the diagonal is exact wherever no pixel reads two texels PROBE_STRIDE apart (a texel not
-much smaller than a pixel), and the stencil wherever none reads two texels more than one
-apart.
+when RES is not a multiple of it; fitting.solve.texture_stencil): each probe holds texels
+PROBE_STRIDE apart, and A'MA applied to it gives, at each texel, its coupling to the
+probe's texel nearest to it. So the diagonal is exact wherever no pixel reads two texels
+PROBE_STRIDE apart (a texel not much smaller than a pixel), and the stencil wherever none
+reads two texels more than one apart.
+
+Several maps at once (`solve_maps`: kd and ks): for a fixed shininess the image is affine
+in the kd and the ks texels together, so t above is both maps' texels and the normal
+equations one system, each map with its own prior weight (the rule above, per map) and
+coverage; the stencil holds the couplings between the two maps' texels at one place (the
+same pixels read both), and the preconditioner inverts, per texel and channel, the 2 x 2
+block of the kd and the ks texel there. `solve_maps` also solves several right-hand sides
+on one operator (the probes and the stencil are paid once), as fitting.solve.texture_joint
+needs, and returns each one's render A t.
 """
 
 from functools import partial
@@ -65,12 +74,17 @@ from fitting.solve.texture_descent import (
     DESCENT_METHODS,
     descend,
 )
+from fitting.solve.texture_stencil import (
+    PROBE_STRIDE,
+    block_preconditioner,
+    block_stencil,
+    stencil_operator,
+)
 
-__all__ = ["DEFAULT_SMOOTHNESS", "TEXTURE_FIELDS", "TextureSolution", "solve_kd_texture",
-           "solve_texture"]
+__all__ = ["DEFAULT_SMOOTHNESS", "TEXTURE_FIELDS", "MapSolve", "TextureSolution",
+           "solve_kd_texture", "solve_maps", "solve_texture"]
 
 DEFAULT_SMOOTHNESS = 1e-3
-PROBE_STRIDE = 4
 #: the material fields a map may be solved for (the image is linear in their texels)
 TEXTURE_FIELDS = ("kd", "ks")
 
@@ -93,15 +107,54 @@ class TextureSolution(NamedTuple):
     stencil_iterations: int = 0
 
 
-def _view_scene(scene, texels, field="kd"):
-    """The view's scene with `texels` as its `field` texture's texels."""
-    texture = replace(getattr(scene.material, field), texels=texels)
-    return replace(scene, material=replace(scene.material, **{field: texture}))
+class MapSolve(NamedTuple):
+    """solve_maps' answer for K right-hand sides. Per map field: texels {field: [K, R, R,
+    3]} (NaN where unseen), coverage {field: [R, R]}, diagonal {field: [R, R, 3]} (the
+    probed (A'MA)_ii), lam {field: float}; per right-hand side: iterations, stencil
+    iterations and relative residual [K] and sigma [K] (the residual standard deviation,
+    module docstring); images: per view [K, H, W, 3], the masked render A t_k of the
+    solution; values: the counted pixel-channels; smoothness: the prior's setting."""
+
+    texels: dict
+    coverage: dict
+    diagonal: dict
+    lam: dict
+    iterations: np.ndarray
+    stencil_iterations: np.ndarray
+    residual: np.ndarray
+    sigma: np.ndarray
+    images: list
+    values: int
+    smoothness: float
+
+    def seen(self, field):
+        """[R, R] bool: the texels of `field` that some view sees."""
+        return np.asarray(self.coverage[field]) > 0
+
+    def solution(self, field, k=0, texels=None, sigma=None) -> TextureSolution:
+        """The TextureSolution of map `field` for right-hand side k (or of `texels` [R, R,
+        3], with residual deviation `sigma`: a combination of the right-hand sides')."""
+        texels = self.texels[field][k] if texels is None else texels
+        sigma = self.sigma[k] if sigma is None else sigma
+        diagonal = np.asarray(self.diagonal[field])
+        seen = self.seen(field)[..., None] & (diagonal > 0)
+        std_error = np.where(seen, sigma / np.sqrt(np.where(seen, diagonal, 1.0)), np.nan)
+        return TextureSolution(texels, self.coverage[field], int(np.max(self.iterations)),
+                               float(self.smoothness), float(self.lam[field]),
+                               float(np.max(self.residual)), std_error,
+                               int(np.max(self.stencil_iterations)))
 
 
-def _view_map(scene, settings, field="kd"):
-    """t [R, R, 3] -> the view's [H, W, 3] render with t as its `field` texels."""
-    return lambda texels: render(_view_scene(scene, texels, field), settings)[..., :3]
+def _view_scene(scene, maps, fields):
+    """The view's scene with maps[i] as its fields[i] texture's texels."""
+    textures = {field: replace(getattr(scene.material, field), texels=texels)
+                for field, texels in zip(fields, maps, strict=True)}
+    return replace(scene, material=replace(scene.material, **textures))
+
+
+def _view_map(scene, settings, fields):
+    """(t [R, R, 3] per field) -> the view's [H, W, 3] render with t as its maps."""
+    return lambda maps: render(_view_scene(scene, maps, fields), settings)[..., :3]
 
 
 def _laplacian(t):
@@ -109,12 +162,13 @@ def _laplacian(t):
     return 4.0 * t - sum(jnp.roll(t, shift, axis) for axis in (0, 1) for shift in (1, -1))
 
 
-def _pcg(operator, rhs, inverse_diagonal, tol, maxiter, start=None):
-    """Conjugate gradients preconditioned by the inverse diagonal (Jacobi) for
-    operator(x) = rhs, from `start` (or from 0 when that is closer, by the residual; from
-    0 without a start): (x, iterations, relative residual). Jacobi evens out texels seen
-    by many pixels and by few (at a grazing angle, near a pole), whose scales differ by
-    orders of magnitude and would otherwise cost most iterations."""
+def _pcg(operator, rhs, precondition, tol, maxiter, start=None):
+    """Conjugate gradients preconditioned by `precondition` (the inverse of the system's
+    per-texel blocks) for operator(x) = rhs, from `start` (or from 0 when that is closer,
+    by the residual; from 0 without a start): (x, iterations, relative residual). The
+    preconditioner evens out texels seen by many pixels and by few (at a grazing angle,
+    near a pole), whose scales differ by orders of magnitude and would otherwise cost
+    most iterations."""
     norm_rhs = jnp.sqrt(jnp.vdot(rhs, rhs))
     x, r = jnp.zeros_like(rhs), rhs
     if start is not None:
@@ -131,97 +185,42 @@ def _pcg(operator, rhs, inverse_diagonal, tol, maxiter, start=None):
         ap = operator(p)
         alpha = rz / jnp.vdot(p, ap)
         x, r = x + alpha * p, r - alpha * ap
-        z = inverse_diagonal * r
+        z = precondition(r)
         rz_new = jnp.vdot(r, z)
         return x, r, z + (rz_new / rz) * p, rz_new, k + 1
-    z = inverse_diagonal * r
+    z = precondition(r)
     x, r, _, _, k = jax.lax.while_loop(more, step, (x, r, z, jnp.vdot(r, z), 0))
     return x, k, jnp.sqrt(jnp.vdot(r, r)) / jnp.maximum(norm_rhs, jnp.finfo(rhs.dtype).tiny)
 
 
-def _linear_parts(scenes, settings, masks, res, dtype, field="kd"):
-    """Per view (b_v [H, W, 3], A_v, A_v') of the affine render in the texels."""
-    zero = jnp.zeros((res, res, 3), dtype)
+def _linear_parts(scenes, settings, masks, res, dtype, fields):
+    """Per view (b_v [H, W, 3], A_v, A_v') of the affine render in the maps' texels (a
+    tuple of [R_f, R_f, 3])."""
+    zero = tuple(jnp.zeros((r, r, 3), dtype) for r in res)
     parts = []
     for scene, mask in zip(scenes, masks, strict=True):
-        b, apply = jax.linearize(_view_map(scene, settings, field), zero)
+        b, apply = jax.linearize(_view_map(scene, settings, fields), zero)
         weight = mask[..., None].astype(dtype)
         masked = lambda t, apply=apply, weight=weight: weight * apply(t)  # noqa: E731
         parts.append((b, masked, jax.linear_transpose(masked, zero)))
     return parts
 
 
-def _probe_colours(res, stride):
-    """[res] int: texel index -> probe colour along an axis: i mod stride, except the
-    last res mod stride texels, which get colours of their own, so that texels of one
-    colour are at least `stride` apart, across the wrap too."""
-    full = res - res % stride
-    index = np.arange(res)
-    return np.where(index < full, index % stride, stride + index - full)
+def _add(a, b):
+    return tuple(x + y for x, y in zip(a, b, strict=True))
 
 
-def _probes(res, dtype, stride):
-    """(probes [P, R, R, 3], which [R, R] int: the probe holding each texel): probe p
-    holds the texels of one colour pair (_probe_colours)."""
-    colours = _probe_colours(res, stride)
-    count = int(colours.max()) + 1
-    which = colours[:, None] * count + colours[None, :]
-    probes = which[None] == np.arange(count * count)[:, None, None]
-    return jnp.broadcast_to(jnp.asarray(probes, dtype)[..., None], probes.shape + (3,)), which
+def _flat(maps):
+    """tuple of [R_f, R_f, 3] -> [sum 3 R_f^2]: the solvers' vector."""
+    return jnp.concatenate([m.reshape(-1) for m in maps])
 
 
-def _offsets(res):
-    """The stencil's offsets along an axis of res texels: 0, -1 and +1, those that name
-    distinct texels (with 2 texels -1 and +1 are one neighbour, with 1 there is none)."""
-    offsets = []
-    for d in (0, -1, 1):
-        if all((d - e) % res for e in offsets):
-            offsets.append(d)
-    return offsets
-
-
-def _shifted(t, offset):
-    """[i] = t[i + offset] over the wrapped texel grid."""
-    return jnp.roll(t, (-offset[0], -offset[1]), (0, 1))
-
-
-def _stencil(data, res, dtype, stride=PROBE_STRIDE):
-    """{(dr, dc): [R, R, 3]}: each texel's coupling in the data operator to its neighbour
-    (dr, dc) (wrapped), by probes (module docstring); (0, 0) is the diagonal."""
-    probes, which = _probes(res, dtype, min(stride, res))
-    responses = jnp.stack([data(probe) for probe in probes])
-    rows, cols = np.indices((res, res))
-    # texel i's coupling to i + offset: what the probe holding i + offset gives at i, one
-    # gather per offset (as sums of responses times shifted probe masks, XLA's fused
-    # loops over 16 responses and constant masks took seconds at 256^2)
-    stencil = {(dr, dc): responses[np.roll(which, (-dr, -dc), (0, 1)), rows, cols]
-               for dr in _offsets(res) for dc in _offsets(res)}
-    return _symmetric(stencil, res)
-
-
-def _symmetric(stencil, res):
-    """The stencil made symmetric, each coupling the mean of its two probed values (they
-    agree where the stencil is exact), so that conjugate gradients may run on it."""
-    def opposite(offset):
-        return next(o for o in stencil if (o[0] + offset[0]) % res == (o[1] + offset[1]) % res
-                    == 0)
-    return {offset: 0.5 * (values + _shifted(stencil[opposite(offset)], offset))
-            for offset, values in stencil.items()}
-
-
-def _stencil_operator(stencil):
-    """t [R, R, 3] -> S t, S the probed stencil."""
-    return lambda t: sum(values * _shifted(t, offset) for offset, values in stencil.items())
-
-
-def _std_error(parts, targets, masks, texels, seen, diagonal):
-    """sigma / sqrt(diag(A'MA)) per texel, NaN where unseen (module docstring)."""
-    rss = sum(jnp.sum(jnp.where(mask[..., None], forward(texels) + b - y, 0.0) ** 2)
-              for (b, forward, _), y, mask in zip(parts, targets, masks, strict=True))
-    values = 3 * sum(jnp.sum(mask) for mask in masks)
-    sigma = jnp.sqrt(rss / jnp.maximum(values - 3 * jnp.sum(seen), 1))
-    safe = jnp.where(seen[..., None], diagonal, 1.0)
-    return jnp.where(seen[..., None] & (diagonal > 0), sigma / jnp.sqrt(safe), jnp.nan)
+def _unflat(x, res):
+    out, start = [], 0
+    for r in res:
+        out.append(x[start:start + r * r * 3].reshape(r, r, 3))
+        start += r * r * 3
+    return tuple(out)
 
 
 def _check_arguments(scenes, res, field):
@@ -234,6 +233,50 @@ def _check_arguments(scenes, res, field):
         if not isinstance(value, Texture):
             raise ValueError(f"scenes[{i}].material.{field}: got {type(value).__name__}; "
                              "expected a Texture (diffshade.texture), whose texels are solved")
+
+
+def _check_options(field_names, method, smoothness):
+    for field in field_names:
+        if field not in TEXTURE_FIELDS:
+            raise ValueError(f"field: got {field!r}; expected one of {TEXTURE_FIELDS}")
+    if method not in ("linear", *DESCENT_METHODS):
+        raise ValueError(f"method: got {method!r}; expected one of "
+                         f"{('linear', *DESCENT_METHODS)}")
+    if not (isinstance(smoothness, (int, float)) and smoothness >= 0):
+        raise ValueError(f"smoothness: got {smoothness!r}; expected a number >= 0")
+
+
+def solve_maps(scenes, targets, masks, maps, settings=None, *, method="linear",
+               smoothness=DEFAULT_SMOOTHNESS, tol=1e-6, maxiter=None,
+               lr=DEFAULT_TEXEL_LR, affine=True) -> MapSolve:
+    """The maps ({field: RES}, fields among kd and ks) that explain each of K sets of
+    targets, together, on one operator (module docstring).
+
+    scenes: one Scene per view whose material's fields in `maps` are Textures (their
+    texels are ignored; their wraps kept); targets: per view [K, H, W, 3] (or [H, W, 3]:
+    K = 1) linear images; masks, settings, method, smoothness, tol, maxiter, lr: as
+    solve_texture's. affine=False: each target is an image d itself, not less the render
+    with the maps at 0 (the normal equations' right-hand side is A'Md: the solve is
+    H^-1 A'Md, its sigma meaningless)."""
+    settings = replace(RenderSettings() if settings is None else settings, clamp=False)
+    fields = tuple(maps)
+    _check_options(fields, method, smoothness)
+    scenes = list(scenes)
+    for field in fields:
+        _check_arguments(scenes, maps[field], field)
+    maxiter = DEFAULT_MAXITER.get(method, 1000) if maxiter is None else maxiter
+    targets = [jnp.asarray(y) for y in targets]
+    targets = [y[None] if y.ndim == 3 else y for y in targets]
+    masks = [jnp.asarray(m, bool) for m in masks]
+    out = _solve(scenes, targets, masks, smoothness, tol, maxiter, lr, affine,
+                 res=tuple(maps[f] for f in fields), settings=settings, fields=fields,
+                 method=method)
+    texels, coverage, diagonal, lam, iterations, residual, sigma, warm, images = out
+    host = lambda values: dict(zip(fields, (np.asarray(v) for v in values), strict=True))  # noqa: E731
+    return MapSolve(host(texels), host(coverage), host(diagonal), host(lam),
+                    np.asarray(iterations), np.asarray(warm), np.asarray(residual),
+                    np.asarray(sigma), [np.asarray(a) for a in images],
+                    3 * int(sum(np.sum(np.asarray(m)) for m in masks)), float(smoothness))
 
 
 def solve_texture(scenes, targets, masks, res, settings=None, *, field="kd",
@@ -250,25 +293,9 @@ def solve_texture(scenes, targets, masks, res, settings=None, *, field="kd",
     same objective; lr: Adam's learning rate, in texel units); maxiter: the most
     iterations (default 1000; fitting.solve.texture_descent.DEFAULT_MAXITER for descent).
     smoothness >= 0: the prior's unitless weight. Raises ValueError for a bad argument."""
-    settings = RenderSettings() if settings is None else settings
-    settings = replace(settings, clamp=False)
-    if field not in TEXTURE_FIELDS:
-        raise ValueError(f"field: got {field!r}; expected one of {TEXTURE_FIELDS}")
-    if method not in ("linear", *DESCENT_METHODS):
-        raise ValueError(f"method: got {method!r}; expected one of "
-                         f"{('linear', *DESCENT_METHODS)}")
-    if not (isinstance(smoothness, (int, float)) and smoothness >= 0):
-        raise ValueError(f"smoothness: got {smoothness!r}; expected a number >= 0")
-    scenes = list(scenes)
-    _check_arguments(scenes, res, field)
-    maxiter = DEFAULT_MAXITER.get(method, 1000) if maxiter is None else maxiter
-    targets = [jnp.asarray(y) for y in targets]
-    masks = [jnp.asarray(m, bool) for m in masks]
-    texels, coverage, iterations, lam, residual, std_error, warm = _solve(
-        scenes, targets, masks, smoothness, tol, maxiter, lr, res=res,
-        settings=settings, field=field, method=method)
-    return TextureSolution(texels, coverage, int(iterations), float(smoothness), float(lam),
-                           float(residual), std_error, int(warm))
+    return solve_maps(scenes, [jnp.asarray(y)[None] for y in targets], masks, {field: res},
+                      settings, method=method, smoothness=smoothness, tol=tol,
+                      maxiter=maxiter, lr=lr).solution(field)
 
 
 def solve_kd_texture(scenes, targets, masks, res, settings=None, **options) -> TextureSolution:
@@ -276,43 +303,106 @@ def solve_kd_texture(scenes, targets, masks, res, settings=None, **options) -> T
     return solve_texture(scenes, targets, masks, res, settings, field="kd", **options)
 
 
-def _minimize(method, operator, probed, rhs, inverse, tol, maxiter, lr):
+def _minimize(method, operator, probed, rhs, precondition, inverse, tol, maxiter, lr):
     """(texels, iterations, relative residual, stencil iterations) of operator(t) = rhs by
     `method`; 'linear' starts from the solution of probed(t) = rhs (module docstring)."""
     if method == "linear":
-        start, warm, _ = _pcg(probed, rhs, inverse, tol, maxiter)
-        return (*_pcg(operator, rhs, inverse, tol, maxiter, start), warm)
+        start, warm, _ = _pcg(probed, rhs, precondition, tol, maxiter)
+        return (*_pcg(operator, rhs, precondition, tol, maxiter, start), warm)
     return (*descend(method, operator, rhs, inverse, tol, maxiter, lr), 0)
 
 
-@partial(jax.jit, static_argnames=("res", "settings", "field", "method"))
-def _solve(scenes, targets, masks, smoothness, tol, maxiter, lr, *, res, settings, field,
-           method):
-    """solve_texture's arrays, as one compiled program (the views unrolled)."""
-    dtype = targets[0].dtype
-    parts = _linear_parts(scenes, settings, masks, res, dtype, field)
+def _weights(parts, res, dtype):
+    """Per view the data weight of every texel of each map f, (A_f'MA_f 1) (a tuple over
+    the maps): what the views pin it by, the other maps aside."""
+    zeros = tuple(jnp.zeros((r, r, 3), dtype) for r in res)
 
-    def data(t):
-        return sum(transpose(forward(t))[0] for _, forward, transpose in parts)
-    per_view = [transpose(forward(jnp.ones((res, res, 3), dtype)))[0]
-                for _, forward, transpose in parts]
-    weights = sum(per_view)
-    mean_weight = jnp.mean(weights)
-    seen = weights.max(-1) > 1e-9 * mean_weight
-    lam = smoothness * jnp.sum(jnp.where(seen[..., None], weights, 0.0)) / jnp.maximum(
+    def unit(f):
+        return tuple(jnp.ones_like(z) if g == f else z for g, z in enumerate(zeros))
+    return [tuple(transpose(forward(unit(f)))[0][f] for f in range(len(res)))
+            for _, forward, transpose in parts]
+
+
+def _prior_weight(smoothness, weights, seen):
+    """lam = smoothness * the mean data weight of a seen texel (module docstring)."""
+    return smoothness * jnp.sum(jnp.where(seen[..., None], weights, 0.0)) / jnp.maximum(
         3 * jnp.sum(seen), 1)
-    rhs = sum(transpose(jnp.where(mask[..., None], y - b, 0.0).astype(dtype))[0]
-              for (b, _, transpose), y, mask in zip(parts, targets, masks, strict=True))
+
+
+def _sigma(parts, targets, masks, images, seen_count):
+    """sigma of one right-hand side's solution (images: its A t per view): sqrt(RSS /
+    (counted values less the seen unknowns))."""
+    rss = sum(jnp.sum(jnp.where(mask[..., None], image + b - y, 0.0) ** 2)
+              for (b, _, _), image, y, mask in zip(parts, images, targets, masks, strict=True))
+    values = 3 * sum(jnp.sum(mask) for mask in masks)
+    return jnp.sqrt(rss / jnp.maximum(values - 3 * seen_count, 1))
+
+
+@partial(jax.jit, static_argnames=("res", "settings", "fields", "method"))
+def _solve(scenes, targets, masks, smoothness, tol, maxiter, lr, affine, *, res, settings,
+           fields, method):
+    """solve_maps' arrays, as one compiled program (the views unrolled, the right-hand
+    sides and the probes looped)."""
+    dtype = targets[0].dtype
+    parts = _linear_parts(scenes, settings, masks, res, dtype, fields)
+
+    def data_op(t):
+        out = None
+        for _, forward, transpose in parts:
+            term = transpose(forward(t))[0]
+            out = term if out is None else _add(out, term)
+        return out
+    per_view = _weights(parts, res, dtype)
+    weights = per_view[0]
+    for more in per_view[1:]:
+        weights = _add(weights, more)
+    means = [jnp.mean(w) for w in weights]
+    seen = [w.max(-1) > 1e-9 * m for w, m in zip(weights, means, strict=True)]
+    lam = [_prior_weight(smoothness, w, s) for w, s in zip(weights, seen, strict=True)]
     # a texel no view sees is pinned by the prior alone (lam > 0) or by a tiny ridge
-    ridge = jnp.where(seen, 0.0, 1e-6 * mean_weight)[..., None]
-    stencil = _stencil(data, res, dtype)
-    diagonal = stencil[(0, 0)]
-    inverse = 1.0 / jnp.maximum(diagonal + 4.0 * lam + ridge, 1e-12 * mean_weight)
-    probed = _stencil_operator(stencil)
-    texels, iterations, residual, warm = _minimize(
-        method, lambda t: data(t) + lam * _laplacian(t) + ridge * t,
-        lambda t: probed(t) + lam * _laplacian(t) + ridge * t, rhs, inverse, tol, maxiter, lr)
-    coverage = sum((w.max(-1) > 1e-9 * mean_weight).astype(jnp.int32) for w in per_view)
-    std_error = _std_error(parts, targets, masks, texels, seen, diagonal)
-    return (jnp.where(seen[..., None], texels, jnp.nan), coverage, iterations, lam, residual,
-            std_error, warm)
+    ridge = [jnp.where(s, 0.0, 1e-6 * m)[..., None] for s, m in zip(seen, means, strict=True)]
+    stencil = block_stencil(data_op, res, dtype, PROBE_STRIDE)
+    count = len(res)
+    extra = [4.0 * weight + r for weight, r in zip(lam, ridge, strict=True)]
+    tiny = 1e-12 * sum(means) / count
+    block = block_preconditioner(stencil, extra, tiny)
+    probed_op = stencil_operator(stencil, count)
+
+    def regular(t):
+        return tuple(weight * _laplacian(x) + r * x
+                     for weight, r, x in zip(lam, ridge, t, strict=True))
+
+    def operator(x):
+        t = _unflat(x, res)
+        return _flat(_add(data_op(t), regular(t)))
+
+    def probed(x):
+        t = _unflat(x, res)
+        return _flat(_add(probed_op(t), regular(t)))
+
+    def precondition(x):
+        return _flat(block(_unflat(x, res)))
+    inverse = _flat(tuple(jnp.broadcast_to(1.0 / jnp.maximum(stencil[(f, f, (0, 0))] + e,
+                                                             tiny), (r, r, 3))
+                          for f, (e, r) in enumerate(zip(extra, res, strict=True))))
+
+    def one(target_k):
+        rhs = None
+        for (b, _, transpose), y, mask in zip(parts, target_k, masks, strict=True):
+            # affine is traced: the texel share's solves (affine=False) share this program
+            term = transpose(jnp.where(mask[..., None], jnp.where(affine, y - b, y),
+                                       0.0).astype(dtype))[0]
+            rhs = term if rhs is None else _add(rhs, term)
+        x, iterations, residual, warm = _minimize(method, operator, probed, _flat(rhs),
+                                                  precondition, inverse, tol, maxiter, lr)
+        maps = _unflat(x, res)
+        images = [forward(maps) for _, forward, _ in parts]
+        sigma = _sigma(parts, target_k, masks, images, sum(jnp.sum(s) for s in seen))
+        return maps, iterations, residual, warm, sigma, images
+    maps, iterations, residual, warm, sigma, images = jax.lax.map(
+        one, [jnp.asarray(y) for y in targets])
+    coverage = [sum((w.max(-1) > 1e-9 * m).astype(jnp.int32) for w in view)
+                for view, m in zip(zip(*per_view, strict=True), means, strict=True)]
+    texels = [jnp.where(s[..., None], t, jnp.nan) for s, t in zip(seen, maps, strict=True)]
+    diagonal = [stencil[(f, f, (0, 0))] for f in range(count)]
+    return (texels, coverage, diagonal, lam, iterations, residual, sigma, warm, images)
