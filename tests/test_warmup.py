@@ -98,3 +98,21 @@ def test_a_run_while_a_warmup_compiles_starts_no_second(tmp_path):
         fcntl.flock(lock, fcntl.LOCK_EX)
         assert _run(_COLD_START, env) == [targets, "jax", []]
     assert _run(_COLD_START, env) == [targets, "jax", targets]
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/autogroup"),
+                    reason="no autogroup scheduling on this kernel: niceness is all there is")
+def test_warmup_lowers_its_sessions_priority():
+    """In a session of its own (as `start` runs it), lower_priority sets both the process's
+    niceness and its session's autogroup niceness to NICENESS (what decides its share of
+    the CPU against the command's session under autogroup scheduling)."""
+    code = ("import os; from diffshade.host import warmup; warmup.lower_priority(); "
+            "print(os.nice(0), open('/proc/self/autogroup').read().split()[-1])")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, start_new_session=True).stdout.split()
+    assert out == [str(warmup.NICENESS), str(warmup.NICENESS)]
+    # not the leader of its session (run from a terminal): the session keeps its own
+    mine = open("/proc/self/autogroup").read().split()[-1]
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert out == [str(warmup.NICENESS), mine]

@@ -141,6 +141,29 @@ def compile_targets(targets):
         return True
 
 
+def lower_priority():
+    """Run this process at NICENESS, and its session too where Linux groups by session.
+
+    Under the kernel's autogroup scheduling (on by default in desktop distributions), the
+    CPU is shared between sessions first and a process's niceness ranks it only within its
+    own. The warm-up runs in a session of its own (`start`), so its niceness alone would
+    still give it a core that the command's session wanted: with a second process there
+    (synth's background compilation of its fit, data_synth.background) the two commands'
+    processes shared one core while the warm-up had the other. So it also sets its
+    session's autogroup niceness (/proc/self/autogroup, which any process may raise) —
+    only where it leads its session, so that `python -m diffshade.host.warmup` typed in a
+    terminal does not slow the terminal's other work. Where that file is absent or
+    refuses, its own niceness is all there is."""
+    os.nice(NICENESS)
+    if os.getsid(0) != os.getpid():
+        return
+    try:
+        with open("/proc/self/autogroup", "w") as autogroup:
+            autogroup.write(str(NICENESS))
+    except OSError:
+        pass
+
+
 def main(argv):
     """python -m diffshade.host.warmup [TARGET ...] (default: COMMAND_TARGETS)."""
     from diffshade.host import ffi
@@ -149,7 +172,7 @@ def main(argv):
     if unknown:
         raise SystemExit(f"diffshade.host.warmup: got targets {unknown}; expected names of "
                          "diffshade.host.ffi.TARGETS")
-    os.nice(NICENESS)
+    lower_priority()
     compile_targets(argv or COMMAND_TARGETS)
 
 
