@@ -1,12 +1,14 @@
 """diffshade.shading.compact.on_active: values and gradients at the active entries equal a plain
-evaluation, whether the active entries fit the capacity (compacted) or not (everywhere)."""
+evaluation, whether the active entries fit the capacity (compacted) or not (everywhere);
+take_rows and put_rows (each the other's transpose; host: the compiled kernel) against
+NumPy loops."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffshade.shading.compact import active_indices, on_active
+from diffshade.shading.compact import active_indices, on_active, put_rows, take_rows
 
 pytestmark = pytest.mark.usefixtures("x64")
 
@@ -99,3 +101,68 @@ def test_tiers_under_vmap_with_an_axis_name(capacity):
         np.testing.assert_allclose(np.asarray(batched[member])[mask],
                                    np.asarray(_plain(scale * x, y, flag)["a"])[mask],
                                    rtol=1e-14)
+
+
+def _rows_case(dtype, tail, seed=0):
+    """x [12, *tail], idx [9]: distinct indices in range in random order, then padding
+    out of range at both ends (clipped), and a cotangent of the gathered rows."""
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(12,) + tail).astype(dtype)
+    idx = np.concatenate([rng.permutation(12)[:6], [12, 15, -1]]).astype(np.int32)
+    ct = rng.normal(size=(9,) + tail).astype(dtype)
+    return x, idx, ct
+
+
+def _put_loop(ct, idx, count, clip=True):
+    """The transpose of a gather (clip: clipped indices; else out of range reads 0), one
+    row at a time."""
+    out = np.zeros((count,) + ct.shape[1:], ct.dtype)
+    for i, j in enumerate(idx):
+        if clip or 0 <= j < count:
+            out[min(max(j, 0), count - 1)] += ct[i]
+    return out
+
+
+def _take_loop(x, idx, clip=True):
+    return np.stack([x[min(max(j, 0), len(x) - 1)] if clip or 0 <= j < len(x)
+                     else np.zeros_like(x[0]) for j in idx])
+
+
+@pytest.mark.parametrize("host", [True, False])
+@pytest.mark.parametrize("clip", [True, False])
+@pytest.mark.parametrize("tail", [(3,), (2,), (1, 3), ()])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_take_rows_and_put_rows_equal_loops(dtype, tail, clip, host):
+    x, idx, ct = _rows_case(dtype, tail)
+    out, pull = jax.vjp(lambda x: take_rows(x, idx, host, clip), x)
+    np.testing.assert_array_equal(np.asarray(out), _take_loop(x, idx, clip))
+    tol = 1e-6 if dtype == np.float32 else 1e-15
+    np.testing.assert_allclose(np.asarray(jax.jit(pull)(ct)[0]), _put_loop(ct, idx, 12, clip),
+                               rtol=tol, atol=tol)
+    # put_rows itself, and its transpose: <put(ct), t> = <ct, take(t)>
+    t = np.random.default_rng(2).normal(size=x.shape).astype(dtype)
+    put, pull_back = jax.vjp(lambda c: put_rows(c, idx, 12, host, clip), ct)
+    np.testing.assert_allclose(np.asarray(put), _put_loop(ct, idx, 12, clip), rtol=tol,
+                               atol=tol)
+    np.testing.assert_array_equal(np.asarray(pull_back(t)[0]), _take_loop(t, idx, clip))
+    _, tangent = jax.jvp(lambda x: take_rows(x, idx, host, clip), (x,), (t,))
+    np.testing.assert_array_equal(np.asarray(tangent), _take_loop(t, idx, clip))
+
+
+@pytest.mark.parametrize("batched_idx", [False, True])
+def test_take_rows_under_vmap(batched_idx):
+    x, idx, ct = _rows_case(np.float64, (3,))
+    xs = np.stack([x, 2.0 * x + 1.0])
+    idxs = np.stack([idx, idx[::-1]]) if batched_idx else idx
+    cts = np.stack([ct, -ct])
+
+    def grad(x, idx, ct):
+        return jax.vjp(lambda x: take_rows(x, idx, True), x)[1](ct)[0]
+    got = jax.jit(jax.vmap(grad, in_axes=(0, 0 if batched_idx else None, 0)))(xs, idxs, cts)
+    for b in range(2):
+        member = idxs[b] if batched_idx else idx
+        np.testing.assert_allclose(np.asarray(got[b]), _put_loop(cts[b], member, 12),
+                                   rtol=1e-15, atol=1e-15)
+    jac = jax.jacfwd(lambda x: take_rows(x, idx, True))(x)
+    np.testing.assert_array_equal(np.asarray(jac), np.asarray(jax.jacrev(
+        lambda x: take_rows(x, idx, False))(x)))

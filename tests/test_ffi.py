@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffshade.host import candidates, hostcall, texture_kernels, xla_ffi
+from diffshade.host import active_kernel, candidates, hostcall, texture_kernels, xla_ffi
 from diffshade.host import fragment_kernels as kernels
 from diffshade.numerics import tiny
 from diffshade.raster.fragments import fragment_geometry
@@ -163,6 +163,27 @@ def test_texture_targets_equal_the_kernels(x64, clamp):
                     np.testing.assert_allclose(np.asarray(a), b, rtol=1e-12 if x64 else 1e-5,
                                                atol=1e-12 if x64 else 1e-5)
             assert uv_grad or not np.any(want[0])
+
+
+@pytest.mark.parametrize("x64", [False, True])
+def test_put_rows_target_equals_the_kernel(x64):
+    """compact.put_rows and the transpose of compact.take_rows (rows of 3 floats) are the
+    put_rows target, dropping or clipping the indices out of range."""
+    with jax.enable_x64(x64):
+        dtype = np.float64 if x64 else np.float32
+        rng = np.random.default_rng(4)
+        x = rng.normal(size=(40, 3)).astype(dtype)
+        idx = np.concatenate([rng.permutation(40)[:25], [40] * 5, [-3]]).astype(np.int32)
+        ct = rng.normal(size=(31, 3)).astype(dtype)
+        fn = lambda x, ct: jax.vjp(lambda x: compact.take_rows(x, idx, True), x)[1](ct)[0]
+        assert _targets(fn, x, ct) == {f"diffshade_put_rows_{'f64' if x64 else 'f32'}"}
+        want = active_kernel.put_rows(idx, ct, 40, True, kernels.chunks())
+        np.testing.assert_array_equal(np.asarray(jax.jit(fn)(x, ct)), want)
+        # put_rows of on_active's outputs: the padding dropped
+        put = lambda ct: compact.put_rows(ct, idx, 40, True)
+        assert _targets(put, ct) == {f"diffshade_put_rows_{'f64' if x64 else 'f32'}"}
+        want = active_kernel.put_rows(idx, ct, 40, False, kernels.chunks())
+        np.testing.assert_array_equal(np.asarray(jax.jit(put)(ct)), want)
 
 
 @pytest.mark.parametrize("capacity", [1, 10, 40])

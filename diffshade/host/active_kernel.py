@@ -1,14 +1,19 @@
-"""The compiled kernel behind diffshade.shading.compact.active_indices: the positions of the
-first `capacity` True entries of a boolean mask, and how many there are.
+"""The compiled kernels of diffshade.shading.compact: the positions of the first `capacity`
+True entries of a boolean mask and how many there are (`first_active`, behind
+compact.active_indices), and the scatter of gathered rows back into a zeroed array
+(`put_rows`, the transpose of compact.take_rows).
 
-One pass over the mask, written for numba: XLA's own `jnp.nonzero` (a cumulative sum and a
-scatter) costs more than lighting the active slots it finds. Called from NumPy
-(`first_active`) on the callback path and through the FFI handler (`first_active_into`,
-writing into XLA's buffers) under jit.
+`first_active` is one pass over the mask, written for numba: XLA's own `jnp.nonzero` (a
+cumulative sum and a scatter) costs more than lighting the active slots it finds.
+`put_rows` zeroes and scatters in parallel chunks, where XLA on CPU runs the transpose of
+a gather (a zero fill and a scatter-add) in one thread. Each is called from NumPy on the
+callback path and through its FFI handler (the `_into` form, writing into XLA's buffers)
+under jit.
 """
 
 import numba
 import numpy as np
+from numba import prange
 
 
 @numba.njit(cache=True, nogil=True)
@@ -33,3 +38,48 @@ def first_active_into(mask, idx, count):
     for i in range(min(found, idx.shape[0]), idx.shape[0]):
         idx[i] = n
     count[0] = found
+
+
+@numba.njit(cache=True, nogil=True)
+def put_rows(idx, rows, count, clip, chunks):
+    """out [count, D]: rows [C, D] put at out[idx[i]] (indices in [0, count) distinct),
+    zeros elsewhere. A row whose index is out of range is dropped, or with `clip` added to
+    the nearest end row (out[0] or out[count - 1]), as the transpose of a gather with
+    clipped indices."""
+    out = np.empty((count, rows.shape[1]), rows.dtype)
+    put_rows_into(idx, rows, clip, chunks, out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _part(chunk, chunks, n):
+    """The range [start, stop) of one of `chunks` equal parts of n."""
+    step = (n + chunks - 1) // chunks
+    return chunk * step, min(n, (chunk + 1) * step)
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def put_rows_into(idx, rows, clip, chunks, out):
+    """put_rows writing every element of out [N, D], in `chunks` parallel parts."""
+    n, width = out.shape
+    for chunk in prange(chunks):
+        start, stop = _part(chunk, chunks, n)
+        out[start:stop] = 0.0
+    # the rows of clipped indices, summed per part: they may share their end row
+    ends = np.zeros((chunks, 2, width), rows.dtype)
+    for chunk in prange(chunks):
+        start, stop = _part(chunk, chunks, idx.shape[0])
+        for i in range(start, stop):
+            j = idx[i]
+            if 0 <= j < n:
+                for c in range(width):
+                    out[j, c] = rows[i, c]
+            elif clip:
+                for c in range(width):
+                    ends[chunk, 0 if j < 0 else 1, c] += rows[i, c]
+    if n == 0 or not clip:
+        return
+    for chunk in range(chunks):
+        for c in range(width):
+            out[0, c] += ends[chunk, 0, c]
+            out[n - 1, c] += ends[chunk, 1, c]

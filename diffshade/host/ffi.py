@@ -213,6 +213,16 @@ def _active(frame):
                                     _flat(frame, FRAME_RETS, 1, np.int32))
 
 
+# -- rows put back (compact.take_rows' transpose) --------------------------------------------
+# arguments: idx [C] int32, rows [C, 3]; result out [N, 3]; attribute: clip
+
+@numba.njit(cache=True, nogil=True)
+def _put_rows(frame, values, dtype):
+    active_kernel.put_rows_into(_flat(frame, FRAME_ARGS, 0, np.int32),
+                                _array2(frame, FRAME_ARGS, 1, 3, dtype), values[0] != 0,
+                                values[1], _array2(frame, FRAME_RETS, 0, 3, dtype))
+
+
 # -- candidate search (raster.search.search_faces) ------------------------------------------
 # arguments: clip [*B, V, 4], faces [*B, F, 3] int32 or int64, near, far, radius, sigma and
 # gamma [*B] (each broadcast against the batch shape B); attributes: width, height, k,
@@ -332,7 +342,7 @@ def _search_hard(frame, values, dtype, face_dtype):
 #: the handlers' bodies, by the number a handler is made with (_handler)
 _BODIES = ("active", "geometry_forward", "geometry_backward", "interpolate_forward",
            "interpolate_backward", "search_soft", "search_hard", "texture_forward",
-           "texture_backward")
+           "texture_backward", "put_rows")
 
 
 class Target(NamedTuple):
@@ -429,8 +439,10 @@ def _handler(name, target):
             _search_hard(frame, values, dtype, other)
         elif body == 7:
             _texture_forward(frame, values, dtype)
-        else:
+        elif body == 8:
             _texture_backward(frame, values, dtype)
+        else:
+            _put_rows(frame, values, dtype)
         return pointer(0)
     handler.__name__ = handler.__qualname__ = f"_handler_{name}"
     return handler
@@ -448,6 +460,9 @@ for _width, _f, _dtype, _tiny in (("f32", F32, np.float32, _TINY32),
         TARGETS[f"diffshade_{_BODIES[_body]}_{_width}"] = _interpolation(_body, _f, _dtype)
     for _body in (7, 8):
         TARGETS[f"diffshade_{_BODIES[_body]}_{_width}"] = _texture(_body, _f, _dtype)
+    TARGETS[f"diffshade_put_rows_{_width}"] = Target(
+        9, _dtype, 0, (spec(S32, 1), spec(_f, 2, (3,), TIMES, 0, 3)), (spec(_f, 2, (3,)),),
+        ("clip", THREADS))
     for _ints, _i, _int in (("i32", S32, np.int32), ("i64", S64, np.int64)):
         for _body in (5, 6):
             TARGETS[f"diffshade_{_BODIES[_body]}_{_width}_{_ints}"] = _search(

@@ -12,17 +12,24 @@ The indices of the active slots come from a compiled host kernel on the CPU back
 (`host=True`; diffshade.host.active_kernel through diffshade.host.hostcall): XLA on CPU
 runs `jnp.nonzero` as a cumulative sum and a scatter over all the slots (524,288 in a
 256^2, K = 8 render), which costs more than lighting the active slots; the kernel is one
-pass over the mask.
+pass over the mask. There too, the gather of the active slots' barycentrics is `take_rows`,
+whose transpose (reverse mode puts the cotangents back into all the slots) runs as a
+compiled kernel in parallel; XLA's own is a zero fill and a scatter-add in one thread.
 """
 
 import functools
+import math
+from functools import partial
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.extend import core as jex_core
+from jax.interpreters import ad, batching, mlir
 
+from diffshade.host import active_kernel
 from diffshade.host.active_kernel import first_active
+from diffshade.host.fragment_kernels import chunks
 from diffshade.host.hostcall import host_call
 
 
@@ -39,6 +46,104 @@ def active_indices(mask, capacity, host=None):
                      ffi=("active", ()))
 
 
+def take_rows(x, idx, host=False, clip=True):
+    """x[idx]: [C, ...] for x [N, ...] and idx [C] int32 whose entries in [0, N) are
+    distinct; the others are clipped to 0 or N - 1 (jnp.take's mode="clip"), or with
+    clip=False read as 0 (the transpose of put_rows). host: a primitive whose transpose
+    (reverse mode) is the compiled kernel active_kernel.put_rows where the rows are 3
+    floats (the barycentrics), else jax.numpy's scatter, whatever the transform."""
+    if not host:
+        return _take(x, idx, clip=clip)
+    return _take_p.bind(x, idx, clip=clip)
+
+
+def put_rows(rows, idx, count, host=False, clip=False):
+    """[count, ...]: rows [C, ...] set at idx [C] int32 (entries in [0, count) distinct),
+    zeros elsewhere; the rows of other entries are dropped, or with clip=True added to
+    row 0 or count - 1 (the transpose of take_rows). host: by the compiled kernel where
+    the rows are 3 floats, else jax.numpy's scatter; its transpose is take_rows."""
+    if not host:
+        return _put(rows, idx, count=count, clip=clip, host=False)
+    return _put_p.bind(rows, idx, count=count, clip=clip)
+
+
+def _take(x, idx, *, clip):
+    if clip:
+        return jnp.take(x, idx, axis=0, mode="clip")
+    return jnp.take(x, jnp.where(idx < 0, x.shape[0], idx), axis=0, mode="fill", fill_value=0)
+
+
+def _put(rows, idx, *, count, clip, host=True):
+    shape = (count,) + rows.shape[1:]
+    if not host or math.prod(rows.shape[1:]) != 3 or rows.dtype not in _KERNEL_DTYPES:
+        if clip:
+            return jnp.zeros(shape, rows.dtype).at[jnp.clip(idx, 0, count - 1)].add(rows)
+        # unique_indices: the indices in range are distinct (without it, the derivative
+        # of the scatter is two more scatters and a gather: how JAX handles repeats)
+        return jnp.zeros(shape, rows.dtype).at[jnp.where(idx < 0, count, idx)].set(
+            rows, mode="drop", unique_indices=True)
+    put = lambda i, r: (active_kernel.put_rows(i, r, count, clip, chunks()),)
+    out, = host_call(put, (jax.ShapeDtypeStruct((count, 3), rows.dtype),), idx,
+                     rows.reshape(-1, 3), ffi=("put_rows", (int(clip),)))
+    return out.reshape(shape)
+
+
+#: the float dtypes of the put_rows kernel's FFI targets
+_KERNEL_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
+_take_p = jex_core.Primitive("take_rows")
+_put_p = jex_core.Primitive("put_rows")
+
+
+def _linear_jvp(prim, primals, tangents, **params):
+    out = prim.bind(*primals, **params)
+    tangent = tangents[0]
+    if type(tangent) is ad.Zero:
+        return out, ad.Zero.from_primal_value(out)
+    return out, prim.bind(tangent, primals[1], **params)
+
+
+def _take_transpose(ct, x, idx, *, clip):
+    if type(ct) is ad.Zero:
+        return ad.Zero(x.aval), None
+    return _put_p.bind(ct, idx, count=x.aval.shape[0], clip=clip), None
+
+
+def _put_transpose(ct, rows, idx, *, count, clip):
+    if type(ct) is ad.Zero:
+        return ad.Zero(rows.aval), None
+    return _take_p.bind(ct, idx, clip=clip), None
+
+
+def _take_batch(args, dims, *, clip):
+    (x, idx), (x_dim, idx_dim) = args, dims
+    if idx_dim is None:  # one set of indices: the batch rides along as an axis of the rows
+        return _take_p.bind(jnp.moveaxis(x, x_dim, 1), idx, clip=clip), 1
+    take = partial(_take, clip=clip)
+    return jax.vmap(take, in_axes=(x_dim, idx_dim))(x, idx), 0
+
+
+def _put_batch(args, dims, *, count, clip):
+    (rows, idx), (rows_dim, idx_dim) = args, dims
+    if idx_dim is None:
+        return _put_p.bind(jnp.moveaxis(rows, rows_dim, 1), idx, count=count, clip=clip), 1
+    put = partial(_put, count=count, clip=clip, host=False)
+    return jax.vmap(put, in_axes=(rows_dim, idx_dim))(rows, idx), 0
+
+
+for _prim, _impl, _shape, _transpose, _batch in (
+        (_take_p, _take, lambda x, idx, clip: (idx.shape[0],) + x.shape[1:], _take_transpose,
+         _take_batch),
+        (_put_p, _put, lambda rows, idx, count, clip: (count,) + rows.shape[1:],
+         _put_transpose, _put_batch)):
+    _prim.def_impl(_impl)
+    _prim.def_abstract_eval(lambda *args, _shape=_shape, **params: jax.core.ShapedArray(
+        _shape(*args, **params), args[0].dtype))
+    mlir.register_lowering(_prim, mlir.lower_fun(_impl, multiple_results=False))
+    ad.primitive_jvps[_prim] = partial(_linear_jvp, _prim)
+    ad.primitive_transposes[_prim] = _transpose
+    batching.primitive_batchers[_prim] = _batch
+
+
 def on_active(fn, active, capacity, *arrays, axis_name=None, host=None):
     """fn(*arrays) -> pytree of [N, ...] arrays, for arrays [*S, ...] and active [*S] bool
     (N = prod(S)); returns the pytree reshaped to [*S, ...]. Entries where `active` is
@@ -50,7 +155,9 @@ def on_active(fn, active, capacity, *arrays, axis_name=None, host=None):
     (or everywhere) only (_forward_tiers). axis_name: the name of an enclosing `vmap` axis
     (a batch of views): the branch is then chosen once for the whole batch (the smallest
     tier every member fits), so that vmap keeps the `lax.switch` instead of running every
-    branch. host: find the active entries with the compiled kernel (active_indices)."""
+    branch. host: find the active entries with the compiled kernel (active_indices), and
+    gather with take_rows' primitive (default: on the CPU backend)."""
+    host = jax.default_backend() == "cpu" if host is None else host
     shape = active.shape
     n = active.size
     flat = [a.reshape((n,) + a.shape[len(shape):]) for a in arrays]
@@ -60,27 +167,27 @@ def on_active(fn, active, capacity, *arrays, axis_name=None, host=None):
         return jax.tree.map(lambda o: o.reshape(shape + o.shape[1:]), fn(*flat))
     idx, count = active_indices(jax.lax.stop_gradient(active).reshape(n), tiers[-1], host)
     if len(tiers) == 1:
-        out = _on_tiers(lambda size: fn, tiers, axis_name, idx, count, flat)
+        out = _on_tiers(lambda size: fn, tiers, axis_name, idx, count, flat, host)
     else:
-        out = _forward_tiers(fn, tiers, axis_name, idx, count, flat)
+        out = _forward_tiers(fn, tiers, axis_name, idx, count, flat, host)
     return jax.tree.map(lambda o: o.reshape(shape + o.shape[1:]), out)
 
 
-def _on_tiers(fn, tiers, axis_name, idx, count, flat):
+def _on_tiers(fn, tiers, axis_name, idx, count, flat, host):
     """fn on the first `size` of the active entries' indices idx (padded with N) for the
     smallest size in tiers that holds all `count`, scattered back to N rows; or on every
-    row when none does. fn(size): the function for `size` rows (N: every row)."""
+    row when none does. fn(size): the function for `size` rows (N: every row). host: the
+    float arrays are gathered by take_rows' primitive."""
     n = flat[0].shape[0]
 
     def compacted(size):
         def branch(flat):
             part = idx[:size]
-            out = fn(size)(*[jnp.take(a, part, axis=0, mode="clip") for a in flat])
-            # unique_indices: the indices in range are distinct, and the padding (N) is
-            # dropped; without it, the derivative of the scatter is two more scatters and
-            # a gather over the N entries (how JAX handles repeated indices)
-            return jax.tree.map(lambda o: jnp.zeros((n,) + o.shape[1:], o.dtype).at[part].set(
-                o, mode="drop", unique_indices=True), out)
+            out = fn(size)(*[take_rows(a, part, host and jnp.issubdtype(a.dtype, jnp.inexact))
+                             for a in flat])
+            # the padding (N) is dropped. XLA's scatter-set (its zero fill apart) costs
+            # no more than the kernel here, and the forward pass then compiles no kernel
+            return jax.tree.map(lambda o: put_rows(o, part, n), out)
         return branch
 
     def everywhere(flat):
@@ -97,7 +204,7 @@ def _on_tiers(fn, tiers, axis_name, idx, count, flat):
     return jax.lax.switch(tier, [compacted(size) for size in tiers] + [everywhere], flat)
 
 
-def _forward_tiers(fn, tiers, axis_name, idx, count, flat):
+def _forward_tiers(fn, tiers, axis_name, idx, count, flat, host):
     """_on_tiers with every tier in the forward pass, and only the largest (and
     everywhere) in a derivative: under reverse mode a `lax.switch` keeps the residuals of
     every branch (zeros for those that did not run), and the tiers' residuals differ in
@@ -115,7 +222,7 @@ def _forward_tiers(fn, tiers, axis_name, idx, count, flat):
             call = jex_core.jaxpr_as_fun(jex_core.ClosedJaxpr(program.jaxpr, consts[size]))
             return lambda *arrays: jax.tree.unflatten(jax.tree.structure(shapes),
                                                       call(*arrays))
-        return _on_tiers(rows, tiers, axis_name, idx, count, flat)
+        return _on_tiers(rows, tiers, axis_name, idx, count, flat, host)
 
     @jax.custom_jvp
     def tiered(consts, idx, count, flat):
