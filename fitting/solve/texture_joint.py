@@ -38,9 +38,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffshade import render, replace
-from fitting.model.batch import common_lights
 from fitting.solve.linear import box_least_squares
-from fitting.solve.texture import solve_maps
+from fitting.solve.texture import common_layout, solve_maps
 
 __all__ = ["JointSolution", "solve_texture_jointly"]
 
@@ -66,20 +65,8 @@ def _image(scene, settings):
     return render(scene, settings)[..., :3]
 
 
-def _common(scenes):
-    """The scenes with their lights padded to one layout (fitting.model.batch
-    .common_lights: lights of colour 0, which add exactly 0), so that every view's render
-    is one compiled program, not one per light setup; the scenes as they are where a
-    static setting (shadow flags, area-light samples) still differs."""
-    try:
-        lights = common_lights([s.lights for s in scenes])
-    except ValueError:
-        return scenes
-    return [replace(s, lights=g) for s, g in zip(scenes, lights, strict=True)]
-
-
 def _images(scenes, settings):
-    return [np.asarray(_image(s, settings), np.float64) for s in _common(scenes)]
+    return [np.asarray(_image(s, settings), np.float64) for s in common_layout(scenes)]
 
 
 def _laplacian(t):
