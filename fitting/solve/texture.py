@@ -57,6 +57,11 @@ same pixels read both), and the preconditioner inverts, per texel and channel, t
 block of the kd and the ks texel there. `solve_maps` also solves several right-hand sides
 on one operator (the probes and the stencil are paid once), as fitting.solve.texture_joint
 needs, and returns each one's render A t.
+
+The views' lights are padded to one layout (`common_layout`: lights of colour 0), and the
+views of one layout and camera size are rendered by one vmapped render: the compiled
+program holds a copy of the render per such group, not per view, which keeps its
+compilation short.
 """
 
 from functools import partial
@@ -395,8 +400,8 @@ def _sigma(bases, targets, masks, images, seen_count):
 @partial(jax.jit, static_argnames=("res", "settings", "fields", "method"))
 def _solve(scenes, targets, masks, smoothness, tol, maxiter, lr, affine, *, res, settings,
            fields, method):
-    """solve_maps' arrays, as one compiled program (the views unrolled, the right-hand
-    sides and the probes looped)."""
+    """solve_maps' arrays, as one compiled program (the views of one layout vmapped, the
+    right-hand sides and the probes looped)."""
     dtype = targets[0].dtype
     parts = _linear_parts(scenes, settings, masks, res, dtype, fields)
     bases = _per_view(parts, [g.b for g in parts], len(scenes))
