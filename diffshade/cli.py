@@ -33,6 +33,7 @@ from diffshade.io.scenefile import load_material, load_scenes
 from diffshade.pipeline.rendering import render, render_parts
 from diffshade.scene.builtin import BUILTIN_SCENES, builtin_scene
 from diffshade.scene.camera import MAX_IMAGE_SIZE
+from diffshade.scene.materials import has_textures
 from diffshade.scene.scene import replace
 from diffshade.settings import SHADING_MODES, RenderSettings
 
@@ -143,6 +144,8 @@ def _run_render(args):
                           f"{' or '.join(_OUTPUT_KINDS)}")
     check_writable(args.output, "--output")
     scene, settings = _scene_and_settings(args)
+    if has_textures(scene.material):
+        warmup.cold_start(warmup.TEXTURE_TARGETS)
     if args.shading:
         settings = dataclasses.replace(settings, shading=args.shading)
     # Render everything before writing anything, so that a failure leaves no output.
@@ -202,7 +205,7 @@ def program() -> int:
     process's arguments, after the cold start of a fresh install (diffshade.host.warmup:
     where numba has not compiled the host kernels yet, this run uses the JAX kernels while
     they compile in the background)."""
-    warmup.cold_start()
+    warmup.cold_start(warmup.command_targets(sys.argv[1:]))
     return main()
 
 

@@ -17,9 +17,10 @@ from diffshade.settings import AUTO_KERNELS, RenderSettings
 _COLD_START = """
 import json, os
 from diffshade.host import warmup
+import sys
 started = []
 warmup.start = started.extend
-missing = warmup.cold_start()
+missing = warmup.cold_start(warmup.command_targets(sys.argv[1:]))
 print(json.dumps([missing, os.environ.get("DIFFSHADE_KERNELS"), started]))
 """
 
@@ -65,6 +66,18 @@ def test_cold_start_on_an_empty_numba_cache(tmp_path):
     # switched off, or the kernels chosen by the user: nothing changes
     assert _run(_COLD_START, _env(tmp_path, DIFFSHADE_WARMUP="0")) == [[], None, []]
     assert _run(_COLD_START, _env(tmp_path, DIFFSHADE_KERNELS="host")) == [[], "host", []]
+
+
+def test_a_textured_command_warms_the_texture_lookup_too(tmp_path):
+    """fit/synth --texture add the texture lookup's handlers; other commands do not."""
+    plain, textures = list(warmup.COMMAND_TARGETS), list(warmup.TEXTURE_TARGETS)
+    for argv in (["fit", "data", "-o", "out", "--texture", "kd=32"],
+                 ["synth", "--texture=16", "-o", "out"]):
+        assert _run(_COLD_START, _env(tmp_path), *argv) == [plain + textures, "jax",
+                                                            plain + textures]
+    assert _run(_COLD_START, _env(tmp_path), "fit", "data", "-o", "out") == [
+        plain, "jax", plain]
+    assert _run(_PENDING, _env(tmp_path), *textures) == textures
 
 
 @pytest.mark.cost(15)

@@ -5,7 +5,8 @@ in its cache. On a fresh install that cache is empty, and compiling the handlers
 render (the hard search, the fragment geometry, the interpolation: COMMAND_TARGETS) costs
 tens of seconds of CPU; the same render through the jax.numpy kernels (RenderSettings
 kernels='jax') compiles in a few. So the command line (diffshade.cli.program) calls
-`cold_start()` first: where numba's cache lacks one of those handlers (`pending`), it sets
+`cold_start()` first: where numba's cache lacks one of those handlers (`pending`; a textured
+command's also the texture lookup's, TEXTURE_TARGETS), it sets
 DIFFSHADE_KERNELS=jax in its own environment (settings.AUTO_KERNELS: kernels='auto' then
 means 'jax' in that process) and starts `python -m diffshade.host.warmup TARGET ...`, a
 detached process of low priority that compiles the pending handlers into numba's cache
@@ -37,6 +38,10 @@ SWITCH = "DIFFSHADE_WARMUP"
 #: hard raster)
 COMMAND_TARGETS = ("diffshade_search_hard_f32_i32", "diffshade_geometry_forward_f32",
                    "diffshade_interpolate_forward_f32")
+#: the texture lookup's targets, which only a textured command uses (fit --texture, synth
+#: --texture, render of a scene with a texture): the others neither wait for them nor
+#: compile them
+TEXTURE_TARGETS = ("diffshade_texture_forward_f32", "diffshade_texture_backward_f32")
 #: the warm-up process's niceness, the lowest priority: where it shares a core with the run
 #: it was started by, it takes ~1.5 % of it (niceness 10: ~10 %); not the idle scheduling
 #: policy, under which a busy machine would starve it for hours
@@ -76,13 +81,22 @@ def applies():
     return RenderSettings().use_host_kernels() and ffi.unavailable() is None
 
 
-def cold_start():
-    """For a command run: where the host kernels it uses are not compiled yet, run this
-    process on the JAX kernels and start compiling them in the background. Returns the
-    targets being compiled (empty: nothing changed)."""
+def command_targets(argv):
+    """The targets a command line (argv, less the program) uses: COMMAND_TARGETS, and
+    TEXTURE_TARGETS where it asks for a texture (--texture: fit, synth). A render of a
+    scene file with textures finds them when it has read the scene (cold_start there)."""
+    textured = any(a == "--texture" or a.startswith("--texture=") for a in argv)
+    return COMMAND_TARGETS + (TEXTURE_TARGETS if textured else ())
+
+
+def cold_start(targets=COMMAND_TARGETS):
+    """For a command run: where the host kernels it uses (`targets`) are not compiled
+    yet, run this process on the JAX kernels and start compiling them in the background
+    (unless a warm-up of this cache is compiling already: a later run compiles the rest).
+    Returns the targets not compiled yet (empty: nothing changed)."""
     if not applies():
         return []
-    missing = pending()
+    missing = pending(targets)
     if missing:
         os.environ[AUTO_KERNELS] = "jax"
         if not running():

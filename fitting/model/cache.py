@@ -342,7 +342,7 @@ def _shade_samples(material, lights: LightGroups, global_ambient, samples, setti
     if samples.objects is not None:
         material = take_material(material, samples.objects)
     if samples.uv is not None:
-        material = textured_material(material, samples.uv)
+        material = textured_material(material, samples.uv, settings.use_host_kernels())
     return shade(material, lights, global_ambient, samples.points, samples.normals,
                  samples.view_dirs, settings, samples.shadows)
 

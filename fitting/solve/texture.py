@@ -57,6 +57,11 @@ same pixels read both), and the preconditioner inverts, per texel and channel, t
 block of the kd and the ks texel there. `solve_maps` also solves several right-hand sides
 on one operator (the probes and the stencil are paid once), as fitting.solve.texture_joint
 needs, and returns each one's render A t.
+
+The views' lights are padded to one layout (`common_layout`: lights of colour 0), and the
+views of one layout and camera size are rendered by one vmapped render: the compiled
+program holds a copy of the render per such group, not per view, which keeps its
+compilation short.
 """
 
 from functools import partial
@@ -68,6 +73,7 @@ import numpy as np
 
 from diffshade import RenderSettings, render, replace
 from diffshade.scene import Texture
+from fitting.model.batch import common_lights
 from fitting.solve.texture_descent import (
     DEFAULT_MAXITER,
     DEFAULT_TEXEL_LR,
@@ -82,7 +88,7 @@ from fitting.solve.texture_stencil import (
 )
 
 __all__ = ["DEFAULT_SMOOTHNESS", "TEXTURE_FIELDS", "MapSolve", "TextureSolution",
-           "solve_kd_texture", "solve_maps", "solve_texture"]
+           "common_layout", "solve_kd_texture", "solve_maps", "solve_texture"]
 
 DEFAULT_SMOOTHNESS = 1e-3
 #: the material fields a map may be solved for (the image is linear in their texels)
@@ -193,17 +199,69 @@ def _pcg(operator, rhs, precondition, tol, maxiter, start=None):
     return x, k, jnp.sqrt(jnp.vdot(r, r)) / jnp.maximum(norm_rhs, jnp.finfo(rhs.dtype).tiny)
 
 
+def common_layout(scenes):
+    """The scenes with their lights padded to one layout (fitting.model.batch
+    .common_lights: lights of colour 0, which add exactly 0), so that views of one
+    camera size share one compiled render; the scenes as they are where a static
+    setting (shadow flags, area-light samples) still differs."""
+    try:
+        lights = common_lights([s.lights for s in scenes])
+    except ValueError:
+        return list(scenes)
+    return [replace(s, lights=g) for s, g in zip(scenes, lights, strict=True)]
+
+
+def _layout_groups(scenes):
+    """The view indices grouped by pytree structure and leaf shapes (the views one
+    vmapped render serves), in order of first appearance."""
+    groups = {}
+    for i, scene in enumerate(scenes):
+        key = (jax.tree.structure(scene), tuple(jnp.shape(x) for x in jax.tree.leaves(scene)))
+        groups.setdefault(key, []).append(i)
+    return tuple(tuple(g) for g in groups.values())
+
+
+class _Group(NamedTuple):
+    """Views rendered by one vmapped program: index (their view indices), b [V_g, H, W,
+    3], forward (per view maps, a tuple of [V_g, R_f, R_f, 3] -> the masked renders A_v t_v
+    [V_g, H, W, 3]) and its transpose."""
+
+    index: tuple
+    b: jax.Array
+    forward: object
+    transpose: object
+
+    def stack(self, per_view):
+        return jnp.stack([per_view[i] for i in self.index])
+
+    def spread(self, maps):
+        """tuple of [R_f, R_f, 3] -> the same maps for every view of the group."""
+        return tuple(jnp.broadcast_to(m, (len(self.index), *m.shape)) for m in maps)
+
+
 def _linear_parts(scenes, settings, masks, res, dtype, fields):
-    """Per view (b_v [H, W, 3], A_v, A_v') of the affine render in the maps' texels (a
-    tuple of [R_f, R_f, 3])."""
-    zero = tuple(jnp.zeros((r, r, 3), dtype) for r in res)
+    """The views' groups (_Group) of the affine render in the maps' texels (a tuple of
+    [R_f, R_f, 3]): one vmapped render per group of views alike, so the program holds one
+    copy of the render per group, not per view."""
     parts = []
-    for scene, mask in zip(scenes, masks, strict=True):
-        b, apply = jax.linearize(_view_map(scene, settings, fields), zero)
-        weight = mask[..., None].astype(dtype)
+    for index in _layout_groups(scenes):
+        stacked = jax.tree.map(lambda *x: jnp.stack(x), *[scenes[i] for i in index])
+        zero = tuple(jnp.zeros((len(index), r, r, 3), dtype) for r in res)
+        images = jax.vmap(lambda scene, maps: _view_map(scene, settings, fields)(maps))
+        b, apply = jax.linearize(partial(images, stacked), zero)
+        weight = jnp.stack([masks[i] for i in index])[..., None].astype(dtype)
         masked = lambda t, apply=apply, weight=weight: weight * apply(t)  # noqa: E731
-        parts.append((b, masked, jax.linear_transpose(masked, zero)))
+        parts.append(_Group(index, b, masked, jax.linear_transpose(masked, zero)))
     return parts
+
+
+def _per_view(parts, grouped, count):
+    """Per-group results with a leading [V_g] axis (pytrees) -> a list per view."""
+    out = [None] * count
+    for group, values in zip(parts, grouped, strict=True):
+        for j, i in enumerate(group.index):
+            out[i] = jax.tree.map(lambda a, j=j: a[j], values)
+    return out
 
 
 def _add(a, b):
@@ -268,7 +326,7 @@ def solve_maps(scenes, targets, masks, maps, settings=None, *, method="linear",
     targets = [jnp.asarray(y) for y in targets]
     targets = [y[None] if y.ndim == 3 else y for y in targets]
     masks = [jnp.asarray(m, bool) for m in masks]
-    out = _solve(scenes, targets, masks, smoothness, tol, maxiter, lr, affine,
+    out = _solve(common_layout(scenes), targets, masks, smoothness, tol, maxiter, lr, affine,
                  res=tuple(maps[f] for f in fields), settings=settings, fields=fields,
                  method=method)
     texels, coverage, diagonal, lam, iterations, residual, sigma, warm, images = out
@@ -312,15 +370,16 @@ def _minimize(method, operator, probed, rhs, precondition, inverse, tol, maxiter
     return (*descend(method, operator, rhs, inverse, tol, maxiter, lr), 0)
 
 
-def _weights(parts, res, dtype):
+def _weights(parts, res, dtype, count):
     """Per view the data weight of every texel of each map f, (A_f'MA_f 1) (a tuple over
     the maps): what the views pin it by, the other maps aside."""
     zeros = tuple(jnp.zeros((r, r, 3), dtype) for r in res)
 
     def unit(f):
         return tuple(jnp.ones_like(z) if g == f else z for g, z in enumerate(zeros))
-    return [tuple(transpose(forward(unit(f)))[0][f] for f in range(len(res)))
-            for _, forward, transpose in parts]
+    grouped = [tuple(g.transpose(g.forward(g.spread(unit(f))))[0][f] for f in range(len(res)))
+               for g in parts]
+    return _per_view(parts, grouped, count)
 
 
 def _prior_weight(smoothness, weights, seen):
@@ -329,11 +388,11 @@ def _prior_weight(smoothness, weights, seen):
         3 * jnp.sum(seen), 1)
 
 
-def _sigma(parts, targets, masks, images, seen_count):
-    """sigma of one right-hand side's solution (images: its A t per view): sqrt(RSS /
-    (counted values less the seen unknowns))."""
+def _sigma(bases, targets, masks, images, seen_count):
+    """sigma of one right-hand side's solution (images: its A t per view; bases: b per
+    view): sqrt(RSS / (counted values less the seen unknowns))."""
     rss = sum(jnp.sum(jnp.where(mask[..., None], image + b - y, 0.0) ** 2)
-              for (b, _, _), image, y, mask in zip(parts, images, targets, masks, strict=True))
+              for b, image, y, mask in zip(bases, images, targets, masks, strict=True))
     values = 3 * sum(jnp.sum(mask) for mask in masks)
     return jnp.sqrt(rss / jnp.maximum(values - 3 * seen_count, 1))
 
@@ -341,18 +400,20 @@ def _sigma(parts, targets, masks, images, seen_count):
 @partial(jax.jit, static_argnames=("res", "settings", "fields", "method"))
 def _solve(scenes, targets, masks, smoothness, tol, maxiter, lr, affine, *, res, settings,
            fields, method):
-    """solve_maps' arrays, as one compiled program (the views unrolled, the right-hand
-    sides and the probes looped)."""
+    """solve_maps' arrays, as one compiled program (the views of one layout vmapped, the
+    right-hand sides and the probes looped)."""
     dtype = targets[0].dtype
     parts = _linear_parts(scenes, settings, masks, res, dtype, fields)
+    bases = _per_view(parts, [g.b for g in parts], len(scenes))
 
     def data_op(t):
         out = None
-        for _, forward, transpose in parts:
-            term = transpose(forward(t))[0]
+        for group in parts:
+            term = tuple(jnp.sum(x, 0) for x in group.transpose(group.forward(
+                group.spread(t)))[0])
             out = term if out is None else _add(out, term)
         return out
-    per_view = _weights(parts, res, dtype)
+    per_view = _weights(parts, res, dtype, len(scenes))
     weights = per_view[0]
     for more in per_view[1:]:
         weights = _add(weights, more)
@@ -388,16 +449,17 @@ def _solve(scenes, targets, masks, smoothness, tol, maxiter, lr, affine, *, res,
 
     def one(target_k):
         rhs = None
-        for (b, _, transpose), y, mask in zip(parts, target_k, masks, strict=True):
+        for group in parts:
+            y, mask = group.stack(target_k), group.stack(masks)
             # affine is traced: the texel share's solves (affine=False) share this program
-            term = transpose(jnp.where(mask[..., None], jnp.where(affine, y - b, y),
-                                       0.0).astype(dtype))[0]
+            term = tuple(jnp.sum(x, 0) for x in group.transpose(jnp.where(
+                mask[..., None], jnp.where(affine, y - group.b, y), 0.0).astype(dtype))[0])
             rhs = term if rhs is None else _add(rhs, term)
         x, iterations, residual, warm = _minimize(method, operator, probed, _flat(rhs),
                                                   precondition, inverse, tol, maxiter, lr)
         maps = _unflat(x, res)
-        images = [forward(maps) for _, forward, _ in parts]
-        sigma = _sigma(parts, target_k, masks, images, sum(jnp.sum(s) for s in seen))
+        images = _per_view(parts, [g.forward(g.spread(maps)) for g in parts], len(scenes))
+        sigma = _sigma(bases, target_k, masks, images, sum(jnp.sum(s) for s in seen))
         return maps, iterations, residual, warm, sigma, images
     maps, iterations, residual, warm, sigma, images = jax.lax.map(
         one, [jnp.asarray(y) for y in targets])

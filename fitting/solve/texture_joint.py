@@ -39,7 +39,7 @@ import numpy as np
 
 from diffshade import render, replace
 from fitting.solve.linear import box_least_squares
-from fitting.solve.texture import solve_maps
+from fitting.solve.texture import common_layout, solve_maps
 
 __all__ = ["JointSolution", "solve_texture_jointly"]
 
@@ -66,7 +66,7 @@ def _image(scene, settings):
 
 
 def _images(scenes, settings):
-    return [np.asarray(_image(s, settings), np.float64) for s in scenes]
+    return [np.asarray(_image(s, settings), np.float64) for s in common_layout(scenes)]
 
 
 def _laplacian(t):
