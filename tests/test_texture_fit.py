@@ -12,6 +12,7 @@ References are independent of the code under test:
 """
 
 import dataclasses
+import functools
 import json
 
 import jax
@@ -192,6 +193,26 @@ def test_the_cache_reads_a_held_map_as_render_does_and_the_closed_form_holds_it(
     for name in ("ka", "ks", "shininess"):
         np.testing.assert_allclose(values[name], getattr(data.truth, name), rtol=2e-3,
                                    err_msg=name)
+
+
+def test_the_caches_texture_lookup_follows_the_kernels_setting():
+    """The cache's shading reads the map with the host texture op only where the settings
+    choose the host kernels (a fresh install's first runs choose 'jax' while numba
+    compiles them: diffshade.host.warmup), and both read the same values."""
+    from fitting.model.cache import build_cache, predict
+
+    data = make_dataset("icosphere", n_views=1, n_lights=1, size=12, texture=4, seed=1)
+    cache = build_cache(data, data.truth)
+    samples, lights = cache.views[0], cache.lights[0]
+    values = {}
+    for kernels in ("jax", "host"):
+        settings = dataclasses.replace(data.settings, kernels=kernels)
+        fn = functools.partial(predict, lights=lights, global_ambient=cache.global_ambient,
+                               samples=samples, settings=settings)
+        program = str(jax.make_jaxpr(fn)(data.truth))
+        assert ("sample_texture_op" in program) == (kernels == "host"), kernels
+        values[kernels] = np.asarray(fn(data.truth))
+    np.testing.assert_allclose(values["jax"], values["host"], atol=1e-6)
 
 
 # ------------------------------------------------------------------- the ks map
