@@ -119,13 +119,18 @@ def test_warmup_lowers_its_sessions_priority():
     """In a session of its own (as `start` runs it), lower_priority sets both the process's
     niceness and its session's autogroup niceness to NICENESS (what decides its share of
     the CPU against the command's session under autogroup scheduling)."""
-    code = ("import os; from diffshade.host import warmup; warmup.lower_priority(); "
-            "print(os.nice(0), open('/proc/self/autogroup').read().split()[-1])")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True, start_new_session=True).stdout.split()
-    assert out == [str(warmup.NICENESS), str(warmup.NICENESS)]
-    # not the leader of its session (run from a terminal): the session keeps its own
-    mine = open("/proc/self/autogroup").read().split()[-1]
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True).stdout.split()
-    assert out == [str(warmup.NICENESS), mine]
+    code = ("import json, os; from diffshade.host import warmup; warmup.lower_priority(); "
+            "print(json.dumps([os.nice(0), open('/proc/self/autogroup').read()]))")
+    nice, group = json.loads(subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True,
+        start_new_session=True).stdout)
+    assert nice == warmup.NICENESS
+    assert group.split()[-1] == str(warmup.NICENESS)
+    # not the leader of its session (run from a terminal): the session keeps its own. A
+    # process in the kernel's root autogroup (one whose ancestors never started a session,
+    # as in some containers) reads that file as empty.
+    mine = open("/proc/self/autogroup").read()
+    nice, group = json.loads(subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout)
+    assert nice == warmup.NICENESS
+    assert group == mine
