@@ -291,6 +291,17 @@ def _segment_dist2(px, py, ax, ay, ex, ey, inv_len2):
     return dx * dx + dy * dy
 
 
+@intrinsic
+def _fma(typingctx, a, b, c):
+    """a * b + c with one rounding (LLVM's fma: an instruction where the CPU has one)."""
+    if not (a == b == c == types.float64):
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.fma(*args)
+    return types.float64(a, b, c), codegen
+
+
 @numba.njit(cache=True, nogil=True)
 def _depth_logit(z_ndc, soft):
     """zt / gamma of soft_blend from NDC depth: the depth part of a fragment's blend logit.
@@ -370,41 +381,36 @@ def _softplus_neg(a):
     Taylor polynomial of degree 13 (truncation < 5e-18 relative); log(z) for z = 1 + exp(-a)
     in [1, 2], halved above sqrt(2), as 2 atanh(s), s = (z - 1) / (z + 1), |s| <= 0.172,
     by the series to s^19 (truncation < 1e-17). a is clamped to 36 (log1p(exp(-36)) <
-    2.4e-16)."""
+    2.4e-16). Both polynomials by Estrin's scheme with FMAs: a chain of 4 or 5 steps
+    instead of Horner's 13 and 10, whose latency (not the arithmetic) bounded the keys'
+    loop."""
     a = min(a, 36.0)
     k = np.floor(a * 1.4426950408889634 + 0.5)
     r = (a - k * 6.93147180369123816490e-01) - k * 1.90821492927058770002e-10
     m = -r
-    p = 1.0 / 6227020800.0
-    p = p * m + 1.0 / 479001600.0
-    p = p * m + 1.0 / 39916800.0
-    p = p * m + 1.0 / 3628800.0
-    p = p * m + 1.0 / 362880.0
-    p = p * m + 1.0 / 40320.0
-    p = p * m + 1.0 / 5040.0
-    p = p * m + 1.0 / 720.0
-    p = p * m + 1.0 / 120.0
-    p = p * m + 1.0 / 24.0
-    p = p * m + 1.0 / 6.0
-    p = p * m + 0.5
-    p = p * m + 1.0
-    p = p * m + 1.0
-    z = 1.0 + p * _two_pow_neg(int(k))
+    m2 = m * m
+    m4 = m2 * m2
+    # the terms up to m^5 (low) and, over m^6, those from m^6 (high)
+    low = _fma(_fma(m, 1.0 / 120.0, 1.0 / 24.0), m2, _fma(m, 1.0 / 6.0, 0.5))
+    low = _fma(low, m2, _fma(m, 1.0, 1.0))
+    high = _fma(_fma(m, 1.0 / 362880.0, 1.0 / 40320.0), m2,
+                _fma(m, 1.0 / 5040.0, 1.0 / 720.0))
+    high = _fma(_fma(_fma(m, 1.0 / 6227020800.0, 1.0 / 479001600.0), m2,
+                     _fma(m, 1.0 / 39916800.0, 1.0 / 3628800.0)), m4, high)
+    p = _fma(high, m4 * m2, low)
+    z = _fma(p, _two_pow_neg(int(k)), 1.0)
     big = z > 1.4142135623730951
     z = z * 0.5 if big else z
     t = (z - 1.0) / (z + 1.0)
     t2 = t * t
-    q = 1.0 / 19.0
-    q = q * t2 + 1.0 / 17.0
-    q = q * t2 + 1.0 / 15.0
-    q = q * t2 + 1.0 / 13.0
-    q = q * t2 + 1.0 / 11.0
-    q = q * t2 + 1.0 / 9.0
-    q = q * t2 + 1.0 / 7.0
-    q = q * t2 + 1.0 / 5.0
-    q = q * t2 + 1.0 / 3.0
-    q = q * t2 + 1.0
-    return 2.0 * t * q + (0.6931471805599453 if big else 0.0)
+    t4 = t2 * t2
+    # the series' terms from t^8, over t^8, then those below
+    q = _fma(_fma(_fma(t2, 1.0 / 19.0, 1.0 / 17.0), t4,
+                  _fma(t2, 1.0 / 15.0, 1.0 / 13.0)), t4,
+             _fma(t2, 1.0 / 11.0, 1.0 / 9.0))
+    q = _fma(q, t4 * t4, _fma(_fma(t2, 1.0 / 7.0, 1.0 / 5.0), t4,
+                              _fma(t2, 1.0 / 3.0, 1.0)))
+    return _fma(2.0 * t, q, 0.6931471805599453 if big else 0.0)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -563,7 +569,7 @@ def _bin_faces(box, reach, zndc, width, height):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _soft_block(face, tile_c0, r0, c0, c1, radius_px, out, lanes):
+def _soft_block(face, tile_c0, r0, c0, c1, radius_px, out, lanes, lowest, worst):
     """The fragments of one face at the pixels of `lanes` // TILE_W rows from row r0,
     TILE_W columns from tile_c0 each, without branches (LLVM vectorizes the loop): per
     pixel out[0] = the NDC depth z (+inf where the pixel is out of reach, the depth outside
@@ -579,6 +585,7 @@ def _soft_block(face, tile_c0, r0, c0, c1, radius_px, out, lanes):
     (s00, s01, s10, s11, s20, s21, e00, e01, e10, e11, e20, e21,
      inv0, inv1, inv2, z0, z1, z2) = face
     inv0_2, inv1_2, inv2_2 = inv0 ** 2, inv1 ** 2, inv2 ** 2
+    dropped = 0
     for lane in range(lanes):
         col = tile_c0 + lane % TILE_W
         px, py = col + 0.5, r0 + lane // TILE_W + 0.5
@@ -595,8 +602,45 @@ def _soft_block(face, tile_c0, r0, c0, c1, radius_px, out, lanes):
         z = (w0 * z0 + w1 * z1 + w2 * z2) / (w0 + w1 + w2)
         reach = ((col >= c0) & (col <= c1) & near & (inside | (not d2 > radius_px * radius_px))
                  & (-1.0 <= z) & (z <= 1.0))
-        out[0, lane] = z if reach else np.inf
+        beaten = lowest > worst[lane]
+        out[0, lane] = z if reach & (not beaten) else np.inf
         out[1, lane] = d2 if inside else -d2
+        dropped += reach & beaten
+    return dropped
+
+
+#: how far below its corners' least NDC depth _face_key_bound places a face's fragments:
+#: far above the rounding of _soft_block's depth, a convex combination of the corners'
+#: depths in [-1, 1] (a few 1e-16)
+DEPTH_MARGIN = 1e-9
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _face_key_bound(zndc, soft):
+    """A lower bound of the ranking key of every fragment of a face (zndc [3]: its
+    corners' NDC depths): the key is at least its depth part -_depth_logit(z) (log D <= 0,
+    and rounding is monotonic), which grows with z, and a fragment's z (at clamped
+    barycentrics, in [-1, 1] where in reach) is at least the corners' least, less the
+    margin for rounding. NaN (no bound) where a depth is not a number."""
+    lowest = min(zndc[0], zndc[1], zndc[2]) - DEPTH_MARGIN
+    if not lowest == lowest:
+        return np.nan
+    return -_depth_logit(max(lowest, -1.0), soft)
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _face_key_bounds(zndc, params, perspective):
+    """_face_key_bound of every face of every view: [B, F] (zndc [B, F, 3]; params [B, 4]
+    = sigma, gamma, near, far), in parallel over chunks of SETUP_CHUNK faces."""
+    views, count = zndc.shape[0], zndc.shape[1]
+    lowest = np.empty((views, count))
+    chunks = (count + SETUP_CHUNK - 1) // SETUP_CHUNK
+    for item in prange(views * chunks):
+        view, chunk = item // chunks, item % chunks
+        soft = (params[view, 0], params[view, 1], params[view, 2], params[view, 3], perspective)
+        for f in range(chunk * SETUP_CHUNK, min(count, (chunk + 1) * SETUP_CHUNK)):
+            lowest[view, f] = _face_key_bound(zndc[view, f], soft)
+    return lowest
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -670,8 +714,8 @@ GROUP = 1024
 
 
 @numba.njit(cache=True, nogil=True)
-def _insert_group8(ids, keys, fragments, depth, signed_d2, bound, key_lo, key_hi, count,
-                   sigma):
+def _insert_group8(ids, keys, worst_key, fragments, depth, signed_d2, bound, key_lo, key_hi,
+                   count, sigma):
     """_insert_group for lists of 8 (the soft search's default), without branches: the
     keys that need libm (where the bracket straddles a rounding boundary) are computed
     first, in a loop of their own (so the insertions' loop has no branch and no call),
@@ -681,11 +725,19 @@ def _insert_group8(ids, keys, fragments, depth, signed_d2, bound, key_lo, key_hi
     depth_bits = depth.view(np.int64)
     for i in range(count):
         if key_lo[i] != key_hi[i]:
-            key_lo[i] = _fragment_key(depth[i], signed_d2[i], bound[i], depth_bits[i], sigma)
+            lowest = max(bound[i], key_lo[i])
+            if lowest > worst_key[fragments[i] % (TILE_H * TILE_W)]:
+                # its list, full before the group, already holds 8 better: it falls off
+                key_lo[i] = lowest
+            else:
+                key_lo[i] = _fragment_key(depth[i], signed_d2[i], bound[i], depth_bits[i],
+                                          sigma)
     dropped = 0
     for i in range(count):
         pixel, f = fragments[i] % (TILE_H * TILE_W), fragments[i] // (TILE_H * TILE_W)
         dropped += _insert8(keys, ids, pixel, key_lo[i], f)
+    for pixel in range(keys.shape[0]):
+        worst_key[pixel] = keys[pixel, 7]
     return dropped
 
 
@@ -703,8 +755,8 @@ def _insert_group(ids, keys, filled, worst_key, worst_id, fragments, depth, sign
     _insert; the others are sorted at the end of the tile."""
     k = ids.shape[1]
     if k == 8:
-        return _insert_group8(ids, keys, fragments, depth, signed_d2, bound, key_lo, key_hi,
-                              count, sigma)
+        return _insert_group8(ids, keys, worst_key, fragments, depth, signed_d2, bound, key_lo,
+                              key_hi, count, sigma)
     dropped = 0
     depth_bits = depth.view(np.int64)
     for i in range(count):
@@ -865,6 +917,7 @@ def _search_soft_into(clips, faces, width, height, k, cull_backfaces, radii, par
     # then rejects most of the rest without the logarithm (the lists are ordered by
     # (key, face), so the result does not depend on this order)
     start, binned = _bin_faces(box, reach, zndc, width, height)
+    lowest_key = _face_key_bounds(zndc, params, perspective)
     tiles_x, tiles_y = (width + TILE_W - 1) // TILE_W, (height + TILE_H - 1) // TILE_H
     all_dropped = np.zeros((views, tiles_x * tiles_y), np.int64)
     # one item per (view, tile): the views of a batch share one parallel loop; a tile's
@@ -902,8 +955,11 @@ def _search_soft_into(clips, faces, width, height, k, cull_backfaces, radii, par
             if r0 <= r1:
                 face = _face_scalars(scr[view, f], edge[view, f], inv_len[view, f],
                                      zndc[view, f])
-                _soft_block(face, tile_c0, r0, c0, c1, radius_px, out, (r1 - r0 + 1) * TILE_W)
-                first = f * (TILE_H * TILE_W) + (r0 - tile_r0) * TILE_W
+                lane0 = (r0 - tile_r0) * TILE_W
+                dropped += _soft_block(face, tile_c0, r0, c0, c1, radius_px, out,
+                                       (r1 - r0 + 1) * TILE_W, lowest_key[view, f],
+                                       worst_key[lane0:])
+                first = f * (TILE_H * TILE_W) + lane0
                 for lane in range((r1 - r0 + 1) * TILE_W):  # the pixels in reach, no branches
                     fragments[count] = first + lane
                     depth[count], signed_d2[count] = out[0, lane], out[1, lane]
