@@ -28,7 +28,9 @@ depths within DEPTH_TIE tied and ordered by face id (_depth_after); soft mode so
 (blend weight key, face id). Every candidate fragment that does not fit is counted in
 `dropped`. The soft key is a float64 sum with libm's log1p and exp; the soft search
 brackets it first without libm (_key_bracket) and calls libm only where the bracket does
-not decide its bits.
+not decide its bits. A soft fragment that cannot beat its pixel's full list (by a lower
+bound of its key: its face's nearest corner, _face_key_bound) is dropped before its key
+is computed.
 """
 
 import numba
@@ -576,6 +578,11 @@ def _soft_block(face, tile_c0, r0, c0, c1, radius_px, out, lanes, lowest, worst)
     [-1, 1] or the column outside c0..c1) and out[1] = the signed squared distance to the
     triangle in pixels^2 (positive inside; -0.0 at a point outside on an edge, so its sign
     bit tells inside from outside). _soft_keys turns the lanes in reach into keys.
+    lowest: _face_key_bound of the face; worst [lanes]: the last key of each pixel's list
+    (+inf until it is full). A fragment in reach whose pixel's list already holds k better
+    ones (lowest > worst) is dropped here, before its key is computed: out[0] is +inf
+    there too, and the count of those is returned (lists only get better, so it would fall
+    off when inserted).
 
     face: _soft_face's scr, edge, inv_len and zndc as 18 scalars (so no load in the loop
     may alias out). Inside, depth is taken at the barycentrics (NDC z is affine in screen
