@@ -379,6 +379,48 @@ def test_host_soft_key_bracket_holds_the_libm_key():
     assert exact >= 0.9 * far > 0
 
 
+def test_host_face_key_bound_is_below_every_fragment_key():
+    """The host soft search drops a fragment before its key when its face's key bound
+    (candidates._face_key_bound) ranks after its pixel's full list; that is exact only if
+    the bound is at most the key of every fragment of the face: checked against the keys
+    computed as the search does (_soft_block, _soft_keys, _fragment_key) of every pixel in
+    reach of every face of two scenes, perspective and orthographic, at three settings."""
+    from diffshade.host import candidates as c
+
+    checked = 0
+    for scene in (sphere(), orthographic()):
+        cam = scene.camera
+        clip = np.asarray(project(scene).clip, np.float64)[None]
+        faces = np.asarray(scene.mesh.faces, np.int64)
+        for radius, sigma, gamma in SOFT:
+            scr, edge, inv_len, zndc, box, reach = c._soft_setup(
+                clip, faces, cam.width, cam.height, False, np.array([radius]))
+            soft = (sigma, gamma, float(cam.near), float(cam.far),
+                    cam.projection == "perspective")
+            out = np.empty((2, c.TILE_H * c.TILE_W))
+            never = np.full(c.TILE_H * c.TILE_W, np.inf)
+            for f in np.flatnonzero(reach[0]):
+                face = c._face_scalars(scr[0, f], edge[0, f], inv_len[0, f], zndc[0, f])
+                bound = c._face_key_bound(zndc[0, f], soft)
+                r0, r1 = max(int(box[0, f, 0]), 0), min(int(box[0, f, 1]), cam.height - 1)
+                for row in range(r0, r1 + 1):
+                    for tile_c0 in range(0, cam.width, c.TILE_W):
+                        c._soft_block(face, tile_c0, row, int(box[0, f, 2]),
+                                      int(box[0, f, 3]), radius, out, c.TILE_W, np.nan, never)
+                        lanes = np.flatnonzero(out[0, :c.TILE_W] < np.inf)
+                        if lanes.size == 0:
+                            continue
+                        depth, signed_d2 = out[0, lanes].copy(), out[1, lanes].copy()
+                        lo, hi, low = (np.empty(lanes.size) for _ in range(3))
+                        c._soft_keys(depth, signed_d2, low, lo, hi, lanes.size, soft)
+                        for i in range(lanes.size):
+                            key = c._fragment_key(depth[i], signed_d2[i], low[i],
+                                                  depth[i:i + 1].view(np.int64)[0], sigma)
+                            assert bound <= key, (f, row, tile_c0 + lanes[i], bound, key)
+                            checked += 1
+    assert checked > 10_000
+
+
 def test_host_sort_network_orders_lists_by_key_then_face():
     """The host soft search sorts a full list of 8 by a network of compare-exchanges
     (candidates._sort_full): against Python's sorted() by (key, face), on every list of
