@@ -474,24 +474,29 @@ def interpolate_backward_into(ids, bary, corners, g_out, chunks, g_bary, g_corne
     npix, k = ids.shape
     nfaces, _, nc = corners.shape
     dtype = corners.dtype
+    # one loop over the fragments, not one over pixels and one over their slots: the
+    # compacted active slots arrive as pixels of one slot each (shading.compact)
+    count = npix * k
+    fids, b, g = ids.reshape(count), bary.reshape(count, 3), g_out.reshape(count, nc)
+    g_b = g_bary.reshape(count, 3)
     acc = np.zeros((chunks, nfaces, 3, nc), dtype)
     for chunk in prange(chunks):
-        start, stop = _chunk(chunk, chunks, npix)
-        for pixel in range(start, stop):
-            for slot in range(k):
-                f = ids[pixel, slot]
-                if f < 0:
-                    g_bary[pixel, slot, 0] = g_bary[pixel, slot, 1] = g_bary[pixel, slot, 2] = 0.0
-                    continue
-                b0, b1, b2 = bary[pixel, slot, 0], bary[pixel, slot, 1], bary[pixel, slot, 2]
-                t0 = t1 = t2 = 0.0
-                for ch in range(nc):
-                    g = g_out[pixel, slot, ch]
-                    t0 += g * corners[f, 0, ch]
-                    t1 += g * corners[f, 1, ch]
-                    t2 += g * corners[f, 2, ch]
-                    acc[chunk, f, 0, ch] += b0 * g
-                    acc[chunk, f, 1, ch] += b1 * g
-                    acc[chunk, f, 2, ch] += b2 * g
-                g_bary[pixel, slot, 0], g_bary[pixel, slot, 1], g_bary[pixel, slot, 2] = t0, t1, t2
+        start, stop = _chunk(chunk, chunks, npix)  # whole pixels
+        part = acc[chunk]
+        for i in range(start * k, stop * k):
+            f = fids[i]
+            if f < 0:
+                g_b[i, 0] = g_b[i, 1] = g_b[i, 2] = 0.0
+                continue
+            b0, b1, b2 = b[i, 0], b[i, 1], b[i, 2]
+            t0 = t1 = t2 = 0.0
+            for ch in range(nc):
+                v = g[i, ch]
+                t0 += v * corners[f, 0, ch]
+                t1 += v * corners[f, 1, ch]
+                t2 += v * corners[f, 2, ch]
+                part[f, 0, ch] += b0 * v
+                part[f, 1, ch] += b1 * v
+                part[f, 2, ch] += b2 * v
+            g_b[i, 0], g_b[i, 1], g_b[i, 2] = t0, t1, t2
     g_corners[:] = acc.sum(0)
