@@ -255,8 +255,10 @@ def geometry_backward(ids, corner_w, corner_z, coeffs, scr, width, height, soft,
 #: geometry_backward gathers the fragments whose barycentrics (or depth) have a cotangent
 #: into blocks of up to _BLOCK, and computes their gradients in one loop over the block
 #: (_bary_block), which LLVM vectorizes: several fragments per instruction, where one
-#: fragment at a time is a chain of dependent operations (two divisions among them)
-_BLOCK = 256
+#: fragment at a time is a chain of dependent operations (two divisions among them). A
+#: block's rows (_ROWS of them, float64) take 22 KB: they stay in a 32 KB L1 data cache
+#: (blocks of 512 ran a third slower than 128 or 256 on a 48 KB one)
+_BLOCK = 128
 #: the rows of a block, each _BLOCK long, in one flat float64 buffer (so that their
 #: offsets are constants, which LLVM tells apart without run-time overlap checks): per
 #: fragment the edge functions e [3] at _E, the corners' clip W [3] at _BW and their
