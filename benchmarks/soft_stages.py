@@ -8,13 +8,15 @@ it: the whole soft forward (render), the hard forward, the rasterization
 before its parallel loop over tiles), the geometry and interpolation kernels alone
 (fragment_kernels), forward and backward (given cotangents where a reverse pass has them:
 barycentrics and depth where the blend weight is not 0, the distance wherever a face
-is), the blend weights, the active-slot compaction (compact.active_indices)
-and what follows the rasterization (render_fragments); everything after the search (the
-fragment geometry from fixed face ids, then render_fragments), forward and forward +
-backward with respect to the material and the vertices; then forward + backward with
-respect to the material, and to the material and the vertices; and the cached material
-steps (value_and_grad w.r.t. the material through render_fragments on cached fragments,
-and through render_cached on cache_shading).
+is), the interpolation backward also on the active slots gathered as a forward +
+backward runs it (compact.on_active's largest size), the blend weights, the active-slot
+compaction (compact.active_indices) and what follows the rasterization
+(render_fragments); everything after the search (the fragment geometry from fixed face
+ids, then render_fragments), forward and forward + backward with respect to the material
+and the vertices; then forward + backward with respect to the material, and to the
+material and the vertices; and the cached material steps (value_and_grad w.r.t. the
+material through render_fragments on cached fragments, and through render_cached on
+cache_shading).
 
 Printed per stage: the median wall time and the median and minimum CPU time (all
 threads) of --repeats calls after a warm-up call, and the stage's memory-traffic floor:
@@ -79,7 +81,9 @@ def traffic(frags, capacity, image_bytes):
     the ids, barycentrics and the cotangents of its 6 floats and writes the barycentrics'
     (52N). A forward + backward reads and
     writes at least as much again (each array the forward reads has a cotangent of its
-    size). Per-face inputs and the image are small next to these."""
+    size). The interpolation backward on the compacted active slots reads and writes as
+    much per slot, for `capacity` slots of one fragment each. Per-face inputs and the
+    image are small next to these."""
     nbytes = lambda name: getattr(frags, name).nbytes
     ids, slots = nbytes("face_ids"), frags.face_ids.size
     geometry_out = nbytes("bary") + nbytes("depth") + nbytes("dist")
@@ -94,6 +98,7 @@ def traffic(frags, capacity, image_bytes):
             "raster": search + geometry, "search": search, "geometry": geometry,
             "geometry_backward": ids + slots + geometry_out,
             "interpolation_backward": ids + 2 * nbytes("bary") + 6 * 4 * slots,
+            "interpolation_backward_active": capacity * (4 + 2 * 12 + 6 * 4),
             "shading": shading, "interpolation": ids + nbytes("bary") + 6 * 4 * slots,
             "weights": ids + nbytes("depth") + nbytes("dist") + 4 * slots,
             "compaction": slots + 4 * capacity, "after_search": geometry + shading,
@@ -157,6 +162,14 @@ def stages(size):
     # the indices are found for the largest tier (compact.on_active)
     capacity = size * size * max(render_module.ACTIVE_SLOTS_PER_PIXEL)
     compaction = jax.jit(lambda m: active_indices(m, capacity))
+    # the active slots as on_active gathers them: pixels of one slot each, the padding
+    # (index N) with face id -1
+    idx = np.asarray(compaction(active)[0])
+    inside = idx < ids.size
+    rows = np.minimum(idx, ids.size - 1)
+    ids_active = np.where(inside, ids.reshape(-1)[rows], -1).astype(np.int32)[:, None]
+    bary_active = bary.reshape(-1, 3)[rows][:, None]
+    g_active = g_values.reshape(-1, 6)[rows][:, None] * inside[:, None, None]
     after_raster = jax.jit(lambda s, f: ds.render_fragments(s, f, soft))
     target = jnp.full((size, size, 4), 0.5, jnp.float32)
     fb_material = jax.jit(mse_grad(scene, soft, target)[0])
@@ -212,6 +225,9 @@ def stages(size):
             ids, bary, corners, kernels.chunks()), "interpolation"),
         ("  interpolation backward, all slots", lambda: kernels.interpolate_backward(
             ids, bary, corners, g_values, kernels.chunks()), "interpolation_backward"),
+        ("  interp. backward, active slots", lambda: kernels.interpolate_backward(
+            ids_active, bary_active, corners, g_active, kernels.chunks()),
+         "interpolation_backward_active"),
         ("  blend weights", lambda: weights(scene, frags), "weights"),
         ("  active slots (compaction)", lambda: compaction(active), "compaction"),
         ("after the search, forward", lambda: after_search_fwd(*material_vertices),

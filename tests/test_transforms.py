@@ -183,6 +183,34 @@ def test_jax_path_equals_host_path(shading):
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9)
 
 
+@pytest.mark.parametrize("soft", [False, True])
+def test_geometry_backward_kernel_equals_reverse_mode_of_the_jax_geometry(soft):
+    """fragment_geometry's backward kernel against jax.vjp of its jax.numpy form on random
+    fragments, with a cotangent of the barycentrics and depth on about half of them (the
+    distance's on all): more per part than the kernel gathers in one block
+    (fragment_kernels._BLOCK), so that full blocks and the last partial one all count."""
+    from diffshade.host.fragment_kernels import _BLOCK
+    from diffshade.raster.fragments import fragment_geometry
+
+    height, width, k, faces = 24, 20, 4, 7
+    rng = np.random.default_rng(5)
+    ids = rng.integers(-1, faces, (height, width, k)).astype(np.int32)
+    assert np.sum(ids >= 0) > 4 * _BLOCK
+    per_face = (rng.uniform(0.5, 2.0, (faces, 3)), rng.uniform(-5.0, -1.0, (faces, 3)),
+                rng.normal(size=(faces, 3, 3)), rng.uniform(0.0, width, (faces, 3, 2)))
+    on = rng.random((height, width, k)) < 0.5
+    cot = (rng.normal(size=(height, width, k, 3)) * on[..., None],
+           rng.normal(size=(height, width, k)) * on, rng.normal(size=(height, width, k)))
+    grads = []
+    for host in (True, False):
+        op = lambda *a, host=host: fragment_geometry(ids, *a, host=host, width=width,
+                                                     height=height, soft=soft)
+        grads.append(jax.jit(lambda *a, op=op: jax.vjp(op, *a)[1](cot))(*per_face))
+    for got, want in zip(*grads, strict=True):
+        assert np.abs(want).max() > 0.0 or not soft
+        np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9)
+
+
 @pytest.mark.parametrize("raster", ["soft"])
 def test_jacfwd_equals_jacrev_on_the_default_path(raster):
     scene = scene_for_gradients()
