@@ -22,7 +22,8 @@ Each target is `diffshade.render`'s image, computed by its two public halves: ev
 fragments by `rasterize_scene` of the view without its lights, then `render_fragments`
 with the lights. The images are the same bit for bit (tests/test_data_synth.py), and the
 rasterization, the larger part of a render's compilation, compiles once for all views
-instead of once per light layout (a directional and a point light: two programs).
+instead of once per light layout (a directional and a point light: two programs). It
+also runs once per camera: the images of one camera (one per light) share its fragments.
 """
 
 import dataclasses
@@ -167,13 +168,17 @@ def _check_gains(gains, n_images):
 _render_fragments = jax.jit(ds.render_fragments)
 
 
-def _render_target(dataset, index, gain):
+def _render_target(dataset, index, gain, fragments):
     """The float render of view `index` with the truth (module docstring: rasterized
-    without the view's lights); with a gain, the unclamped render times the gain (the
-    clip to [0, 1] is degrade's, as a sensor's after its gain)."""
+    without the view's lights, once per camera: `fragments` holds them by camera); with a
+    gain, the unclamped render times the gain (the clip to [0, 1] is degrade's, as a
+    sensor's after its gain)."""
     settings = dataset.settings
-    frags = ds.rasterize_scene(view_scene(dataset, index, dataset.truth, LightGroups()),
-                               settings)
+    camera = dataset.views[index].camera
+    if id(camera) not in fragments:  # the views of one camera share its Camera (_layout)
+        fragments[id(camera)] = ds.rasterize_scene(
+            view_scene(dataset, index, dataset.truth, LightGroups()), settings)
+    frags = fragments[id(camera)]
     scene = view_scene(dataset, index, dataset.truth)
     if gain is None:
         return np.asarray(_render_fragments(scene, frags, settings))[..., :3]
@@ -270,7 +275,8 @@ def make_dataset(shape="icosphere", material=None, *, n_views=3, n_lights=2, siz
     rng = np.random.default_rng(seed)
     dataset, info = _layout(shape, material, rng, n_views, n_lights, size, shading, settings,
                             texture)
-    images = [_render_target(dataset, i, None if gains is None else gains[i])
+    fragments = {}  # by camera
+    images = [_render_target(dataset, i, None if gains is None else gains[i], fragments)
               for i in range(len(dataset.views))]
     views = [View(v.camera, v.lights, degrade(img, rng, noise_std, quantize_8bit,
                                               dataset.settings.clamp))

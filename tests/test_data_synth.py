@@ -149,6 +149,25 @@ def test_targets_are_the_renders_bit_for_bit():
         np.testing.assert_array_equal(view.target, image)
 
 
+def test_each_camera_is_rasterized_once_for_all_its_lights(monkeypatch):
+    """The images of one camera (one per light) share its fragments: a dataset of 2
+    cameras and 3 lights each rasterizes twice, not 6 times, and each image is still
+    diffshade.render's."""
+    calls = []
+    rasterize = ds.rasterize_scene
+
+    def counted(scene, settings):
+        calls.append(np.asarray(scene.camera.eye))
+        return rasterize(scene, settings)
+
+    monkeypatch.setattr(ds, "rasterize_scene", counted)
+    dataset = make_dataset(SPHERE, MAT, n_views=2, n_lights=3, size=16, seed=2)
+    assert len(calls) == 2 and not np.allclose(calls[0], calls[1])
+    for i, view in enumerate(dataset.views):
+        image = np.asarray(ds.render(view_scene(dataset, i, MAT), dataset.settings))[..., :3]
+        np.testing.assert_array_equal(view.target, image)
+
+
 def test_saved_scene_files_render_the_targets(sphere_data, tmp_path):
     save_dataset(sphere_data, tmp_path)
     for i, view in enumerate(sphere_data.views):
