@@ -2,8 +2,8 @@
 
 The judged scene (benchmarks/peers.py: 5,120-face icosphere, 256^2, one directional
 light, soft K = 8, Phong). Each stage is timed on its own, on the inputs the render gives
-it: the whole soft forward (render), the hard forward, the rasterization
-(rasterize_scene: search + fragment geometry), the search kernel alone
+it: the whole soft forward (render), the hard forward and its search kernel alone, the
+rasterization (rasterize_scene: search + fragment geometry), the search kernel alone
 (candidates.find_candidates) and its per-face setup and binning into tiles (the part
 before its parallel loop over tiles), the geometry and interpolation kernels alone
 (fragment_kernels), forward and backward (given cotangents where a reverse pass has them:
@@ -82,8 +82,8 @@ def traffic(frags, capacity, image_bytes):
     (52N). A forward + backward reads and
     writes at least as much again (each array the forward reads has a cotangent of its
     size). The interpolation backward on the compacted active slots reads and writes as
-    much per slot, for `capacity` slots of one fragment each. Per-face inputs and the
-    image are small next to these."""
+    much per slot, for `capacity` slots of one fragment each. The hard search writes one
+    face id per pixel. Per-face inputs and the image are small next to these."""
     nbytes = lambda name: getattr(frags, name).nbytes
     ids, slots = nbytes("face_ids"), frags.face_ids.size
     geometry_out = nbytes("bary") + nbytes("depth") + nbytes("dist")
@@ -94,7 +94,7 @@ def traffic(frags, capacity, image_bytes):
     # hard mode: one slot per pixel (ids, barycentrics, depth, side; no distance)
     pixels = slots // frags.face_ids.shape[-1]
     hard = pixels * (4 + (4 + 16) + (4 + 16 + 1)) + image_bytes
-    return {"forward": forward, "hard": hard,
+    return {"forward": forward, "hard": hard, "hard_search": pixels * 4,
             "raster": search + geometry, "search": search, "geometry": geometry,
             "geometry_backward": ids + slots + geometry_out,
             "interpolation_backward": ids + 2 * nbytes("bary") + 6 * 4 * slots,
@@ -210,6 +210,9 @@ def stages(size):
     return floors, [
         ("soft forward (render)", lambda: ds.render(scene, soft), "forward"),
         ("hard forward (render)", lambda: ds.render(scene, hard), "hard"),
+        ("  hard search kernel", lambda: find_candidates(
+            clip, np.asarray(faces), float(scene.camera.near), float(scene.camera.far),
+            width=size, height=size, k=1), "hard_search"),
         ("rasterize_scene, soft", lambda: ds.rasterize_scene(scene, soft), "raster"),
         ("  search kernel", lambda: find_candidates(
             clip, np.asarray(faces), float(scene.camera.near), float(scene.camera.far),

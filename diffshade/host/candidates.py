@@ -187,24 +187,47 @@ def _owns_edge(e, a, b, s):
     return a > 0.0 or (a == 0.0 and b < 0.0)
 
 
-@numba.njit(cache=True, nogil=True)
-def _covered_depth(coeffs, tri, f, x, y):
-    """NDC depth of the pixel on face f, or +inf when the face does not cover it."""
-    e0 = coeffs[f, 0, 0] * x + coeffs[f, 0, 1] * y + coeffs[f, 0, 2]
-    e1 = coeffs[f, 1, 0] * x + coeffs[f, 1, 1] * y + coeffs[f, 1, 2]
-    e2 = coeffs[f, 2, 0] * x + coeffs[f, 2, 1] * y + coeffs[f, 2, 2]
+@numba.njit(cache=True, nogil=True, inline="always")
+def _covered_depth(e0, e1, e2, a0, b0, a1, b1, a2, b2, w0, w1, w2, z0, z1, z2):
+    """NDC depth of the pixel whose edge functions are e0, e1, e2 (the face's edge
+    coefficients a_i x + b_i y + c_i there; corner clip W w_i and Z z_i), or +inf when the
+    face does not cover it."""
     s = e0 + e1 + e2
     if s == 0.0 or e0 * s < 0.0 or e1 * s < 0.0 or e2 * s < 0.0:
         return np.inf
-    if not (_owns_edge(e0, coeffs[f, 0, 0], coeffs[f, 0, 1], s)
-            and _owns_edge(e1, coeffs[f, 1, 0], coeffs[f, 1, 1], s)
-            and _owns_edge(e2, coeffs[f, 2, 0], coeffs[f, 2, 1], s)):
+    if not (_owns_edge(e0, a0, b0, s) and _owns_edge(e1, a1, b1, s)
+            and _owns_edge(e2, a2, b2, s)):
         return np.inf
-    w = e0 * tri[f, 0, 3] + e1 * tri[f, 1, 3] + e2 * tri[f, 2, 3]
+    w = e0 * w0 + e1 * w1 + e2 * w2
     if w * s <= 0.0:
         return np.inf
-    z = (e0 * tri[f, 0, 2] + e1 * tri[f, 1, 2] + e2 * tri[f, 2, 2]) / w
+    z = (e0 * z0 + e1 * z1 + e2 * z2) / w
     return z if -1.0 <= z <= 1.0 else np.inf
+
+
+@numba.njit(cache=True, nogil=True)
+def _raster_face(ids, keys, filled, coeffs, tri, f, c0, c1, r0, r1, xs, height):
+    """Insert face f (_insert_nearest) into every pixel of rows r0..r1, columns c0..c1
+    that it covers (_covered_depth); returns the fragments that fell off the lists. The
+    face's coefficients are read once into registers, the pixels' NDC x come from xs [W]
+    and each row's b_i y is formed once: the same arithmetic, in the same order, as
+    evaluating c[i, 0] x + c[i, 1] y + c[i, 2] per pixel."""
+    a0, b0, d0 = coeffs[f, 0, 0], coeffs[f, 0, 1], coeffs[f, 0, 2]
+    a1, b1, d1 = coeffs[f, 1, 0], coeffs[f, 1, 1], coeffs[f, 1, 2]
+    a2, b2, d2 = coeffs[f, 2, 0], coeffs[f, 2, 1], coeffs[f, 2, 2]
+    w0, w1, w2 = tri[f, 0, 3], tri[f, 1, 3], tri[f, 2, 3]
+    z0, z1, z2 = tri[f, 0, 2], tri[f, 1, 2], tri[f, 2, 2]
+    width, fell = xs.shape[0], 0
+    for row in range(r0, r1 + 1):
+        y = 1.0 - (2.0 * row + 1.0) / height
+        by0, by1, by2 = b0 * y, b1 * y, b2 * y
+        for col in range(c0, c1 + 1):
+            x = xs[col]
+            z = _covered_depth(a0 * x + by0 + d0, a1 * x + by1 + d1, a2 * x + by2 + d2,
+                               a0, b0, a1, b1, a2, b2, w0, w1, w2, z0, z1, z2)
+            if z < np.inf:
+                fell += _insert_nearest(ids, keys, filled, row * width + col, f, z)
+    return fell
 
 
 #: faces per item of the setups' parallel loops (_hard_setup, _soft_setup)
@@ -249,6 +272,7 @@ def _search_hard(clips, faces, width, height, k, cull_backfaces, bands):
     all_filled = np.empty((views, n_pixels), np.int32)
     all_dropped = np.zeros((views, bands), np.int64)
     tri, coeffs, pixels, reach = _hard_setup(clips, faces, width, height, cull_backfaces)
+    xs = (2.0 * np.arange(width) + 1.0) / width - 1.0  # the pixel centres' NDC x
     # one item per (view, band): the views of a batch share one parallel loop
     for item in prange(views * bands):
         view, band = item // bands, item % bands
@@ -264,14 +288,8 @@ def _search_hard(clips, faces, width, height, k, cull_backfaces, bands):
             if not reach[view, f]:
                 continue
             c0, c1, r0, r1 = pixels[view, f]
-            for row in range(max(r0, band_r0), min(r1, band_r1) + 1):
-                y = 1.0 - (2.0 * row + 1.0) / height
-                for col in range(c0, c1 + 1):
-                    z = _covered_depth(view_coeffs, view_tri, f,
-                                       (2.0 * col + 1.0) / width - 1.0, y)
-                    if z < np.inf:
-                        pixel = row * width + col
-                        dropped[band] += _insert_nearest(ids, keys, filled, pixel, f, z)
+            dropped[band] += _raster_face(ids, keys, filled, view_coeffs, view_tri, f, c0, c1,
+                                          max(r0, band_r0), min(r1, band_r1), xs, height)
     return all_ids, all_dropped.sum(1)
 
 
