@@ -10,7 +10,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffshade.composite.blend import BACKGROUND_EPS, soft_alpha, soft_blend, soft_weights
+from diffshade.composite.blend import (
+    BACKGROUND_EPS,
+    log_coverages,
+    soft_alpha,
+    soft_blend,
+    soft_weights,
+)
 from diffshade.raster.fragments import Fragments
 
 pytestmark = pytest.mark.usefixtures("x64")
@@ -96,3 +102,25 @@ def test_vmap_equals_a_loop():
         want = soft_weights(one, NEAR, FAR, SIGMA, GAMMA)
         for g, w in zip(got, want, strict=True):
             np.testing.assert_allclose(np.asarray(g[i]), np.asarray(w), rtol=1e-14)
+
+
+def test_float32_log_coverages_match_float64_log_sigmoid():
+    """log D and log(1 - D) in float32 (log(1 + exp(-|x|)), not log1p) are within 2.5e-7
+    of float64's log_sigmoid(+-x), from deep inside to far outside a face, and so are
+    their derivatives."""
+    x = np.concatenate([-np.logspace(-8, 4, 200), [0.0], np.logspace(-8, 4, 200)])
+    frags = Fragments(*(None,) * 5, dist=jnp.asarray(x, jnp.float32))
+    log_d, log_clear = log_coverages(frags, 1.0)
+    assert log_d.dtype == jnp.float32
+    want = jax.nn.log_sigmoid(jnp.asarray(np.float32(x), jnp.float64))
+    np.testing.assert_allclose(np.asarray(log_d, np.float64), want, rtol=1e-6, atol=2.5e-7)
+    np.testing.assert_allclose(np.asarray(log_clear, np.float64),
+                               jax.nn.log_sigmoid(-jnp.asarray(np.float32(x), jnp.float64)),
+                               rtol=1e-6, atol=2.5e-7)
+    # the derivative away from x = 0 (the kink of min(x, 0) and |x|, where it reads 1)
+    x = x[x != 0.0]
+    grad = jax.vmap(jax.grad(lambda d: log_coverages(
+        dataclasses.replace(frags, dist=d), 1.0)[0]))(jnp.asarray(x, jnp.float32))
+    np.testing.assert_allclose(np.asarray(grad, np.float64),
+                               jax.nn.sigmoid(-jnp.asarray(np.float32(x), jnp.float64)),
+                               rtol=1e-6, atol=2.5e-7)

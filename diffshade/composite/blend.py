@@ -39,10 +39,14 @@ def normalized_inverse_depth(depth, near, far):
 def log_coverages(frags, sigma):
     """(log D, log(1 - D)) [H, W, K] of every slot (module docstring; the slots must then
     be masked with frags.valid). Both are jax.nn.log_sigmoid written out,
-    log_sigmoid(+-x) = min(+-x, 0) - log1p(exp(-|x|)), so that under one jit XLA computes
-    the shared exp and log1p once for the weights and the alpha."""
+    log_sigmoid(+-x) = min(+-x, 0) - log(1 + exp(-|x|)), so that under one jit XLA computes
+    the shared exp and log once for the weights and the alpha. log(1 + e) rather than
+    log1p(e): e = exp(-|x|) is in (0, 1], so 1 + e loses at most half an ulp of 1 (an
+    absolute error below 1.2e-7 in float32 on a log-probability, a relative one on D), and
+    XLA on CPU vectorizes log but evaluates log1p as a slower series with branches (the
+    costliest loop of the blend weights)."""
     x = frags.dist / sigma
-    tail = jnp.log1p(jnp.exp(-jnp.abs(x)))
+    tail = jnp.log(1.0 + jnp.exp(-jnp.abs(x)))
     return jnp.minimum(x, 0.0) - tail, jnp.minimum(-x, 0.0) - tail
 
 
