@@ -184,6 +184,30 @@ def test_jax_path_equals_host_path(shading):
 
 
 @pytest.mark.parametrize("soft", [False, True])
+def test_geometry_forward_kernel_equals_the_jax_geometry(soft):
+    """fragment_geometry's forward kernel (barycentrics, depth, signed distance) against its
+    jax.numpy form on random fragments, empty slots among them: more per part than the
+    kernel gathers in one block (fragment_kernels._FWD_BLOCK), so that full blocks and the
+    last partial one are all written back to their slots."""
+    from diffshade.host.fragment_kernels import _FWD_BLOCK
+    from diffshade.raster.fragments import fragment_geometry
+
+    height, width, k, faces = 24, 20, 4, 7
+    rng = np.random.default_rng(6)
+    ids = rng.integers(-1, faces, (height, width, k)).astype(np.int32)
+    assert np.sum(ids >= 0) > 4 * _FWD_BLOCK
+    per_face = (rng.uniform(0.5, 2.0, (faces, 3)), rng.uniform(-5.0, -1.0, (faces, 3)),
+                rng.normal(size=(faces, 3, 3)), rng.uniform(0.0, width, (faces, 3, 2)))
+    outs = [jax.jit(lambda *a, host=host: fragment_geometry(
+        ids, *a, host=host, width=width, height=height, soft=soft))(*per_face)
+        for host in (True, False)]
+    for got, want in zip(*outs, strict=True):
+        assert np.abs(want).max() > 0.0 or not soft
+        np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9)
+    assert np.all(outs[0][0][ids < 0] == 0.0) and np.all(outs[0][1][ids < 0] == 0.0)
+
+
+@pytest.mark.parametrize("soft", [False, True])
 def test_geometry_backward_kernel_equals_reverse_mode_of_the_jax_geometry(soft):
     """fragment_geometry's backward kernel against jax.vjp of its jax.numpy form on random
     fragments, with a cotangent of the barycentrics and depth on about half of them (the
