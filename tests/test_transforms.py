@@ -183,6 +183,17 @@ def test_jax_path_equals_host_path(shading):
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9)
 
 
+def _random_fragments(seed, block, height=24, width=20, k=4, faces=7):
+    """(rng, ids [height, width, k] with empty slots among them, the per-face inputs of
+    fragment_geometry) at random: more fragments than 4 of a kernel's blocks of `block`."""
+    rng = np.random.default_rng(seed)
+    ids = rng.integers(-1, faces, (height, width, k)).astype(np.int32)
+    assert np.sum(ids >= 0) > 4 * block
+    per_face = (rng.uniform(0.5, 2.0, (faces, 3)), rng.uniform(-5.0, -1.0, (faces, 3)),
+                rng.normal(size=(faces, 3, 3)), rng.uniform(0.0, width, (faces, 3, 2)))
+    return rng, ids, per_face
+
+
 @pytest.mark.parametrize("soft", [False, True])
 def test_geometry_forward_kernel_equals_the_jax_geometry(soft):
     """fragment_geometry's forward kernel (barycentrics, depth, signed distance) against its
@@ -192,12 +203,8 @@ def test_geometry_forward_kernel_equals_the_jax_geometry(soft):
     from diffshade.host.fragment_kernels import _FWD_BLOCK
     from diffshade.raster.fragments import fragment_geometry
 
-    height, width, k, faces = 24, 20, 4, 7
-    rng = np.random.default_rng(6)
-    ids = rng.integers(-1, faces, (height, width, k)).astype(np.int32)
-    assert np.sum(ids >= 0) > 4 * _FWD_BLOCK
-    per_face = (rng.uniform(0.5, 2.0, (faces, 3)), rng.uniform(-5.0, -1.0, (faces, 3)),
-                rng.normal(size=(faces, 3, 3)), rng.uniform(0.0, width, (faces, 3, 2)))
+    rng, ids, per_face = _random_fragments(6, _FWD_BLOCK)
+    height, width, k = ids.shape
     outs = [jax.jit(lambda *a, host=host: fragment_geometry(
         ids, *a, host=host, width=width, height=height, soft=soft))(*per_face)
         for host in (True, False)]
@@ -216,12 +223,8 @@ def test_geometry_backward_kernel_equals_reverse_mode_of_the_jax_geometry(soft):
     from diffshade.host.fragment_kernels import _BLOCK
     from diffshade.raster.fragments import fragment_geometry
 
-    height, width, k, faces = 24, 20, 4, 7
-    rng = np.random.default_rng(5)
-    ids = rng.integers(-1, faces, (height, width, k)).astype(np.int32)
-    assert np.sum(ids >= 0) > 4 * _BLOCK
-    per_face = (rng.uniform(0.5, 2.0, (faces, 3)), rng.uniform(-5.0, -1.0, (faces, 3)),
-                rng.normal(size=(faces, 3, 3)), rng.uniform(0.0, width, (faces, 3, 2)))
+    rng, ids, per_face = _random_fragments(5, _BLOCK)
+    height, width, k = ids.shape
     on = rng.random((height, width, k)) < 0.5
     cot = (rng.normal(size=(height, width, k, 3)) * on[..., None],
            rng.normal(size=(height, width, k)) * on, rng.normal(size=(height, width, k)))
