@@ -176,83 +176,6 @@ def geometry_forward(ids, corner_w, corner_z, coeffs, scr, width, height, soft, 
 OUTSIDE = 4
 
 
-#: geometry_forward gathers the non-empty slots into blocks of _FWD_BLOCK fragments, as
-#: the backward does (_BLOCK): per fragment the scalar gather computes the edge functions
-#: and the squared distances to the three edges (_segment), and one loop over the block
-#: (_forward_block), which LLVM vectorizes, does the rest: the two divisions of
-#: _soft_bary, and the nearest edge's choice and the side by selects, not branches that
-#: mispredict. The rows of a block, each _FWD_BLOCK long, in one flat float64 buffer: per
-#: fragment the edge functions e [3] at _FE, the corners' clip W [3] at _FW and their
-#: reciprocals [3] at _FINV_W, their eye-space depth [3] at _FZ and the squared distances
-#: to the edges [3] at _FD; _forward_block writes the barycentrics [3] over e, the depth
-#: at _FZ, the signed squared distance at _FD and the edge code at _FD + 1. Copying the
-#: edges' rows of _face_table instead, to run _segment in the vectorized loop too, ran
-#: slower than one fragment at a time (29 rows to copy, not 15)
-_FWD_BLOCK = 64
-_FE, _FW, _FINV_W, _FZ, _FD, _FWD_ROWS = 0, 3, 6, 9, 12, 15
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _forward_block(n, block, soft, tiny):
-    """geometry_forward of the first n fragments of a block (see _FWD_ROWS): the same
-    operations in the same order as _hard_bary, _soft_bary and _nearest_edge (the same
-    bits), in a loop without calls or early exits, one per mode, so that it vectorizes."""
-    m = _FWD_BLOCK
-    if not soft:
-        for i in range(n):
-            e0, e1, e2 = block[_FE * m + i], block[(_FE + 1) * m + i], block[(_FE + 2) * m + i]
-            den = e0 + e1 + e2
-            inv = 1.0 / den if abs(den) > tiny else 0.0
-            b0, b1, b2 = e0 * inv, e1 * inv, e2 * inv
-            block[_FE * m + i], block[(_FE + 1) * m + i], block[(_FE + 2) * m + i] = b0, b1, b2
-            block[_FZ * m + i] = (b0 * block[_FZ * m + i] + b1 * block[(_FZ + 1) * m + i]
-                                  + b2 * block[(_FZ + 2) * m + i])
-        return
-    for i in range(n):
-        e0, e1, e2 = block[_FE * m + i], block[(_FE + 1) * m + i], block[(_FE + 2) * m + i]
-        w0, w1, w2 = block[_FW * m + i], block[(_FW + 1) * m + i], block[(_FW + 2) * m + i]
-        # _soft_bary
-        den = e0 * w0 + e1 * w1 + e2 * w2
-        inv_s = 1.0 / den if abs(den) > tiny else 0.0
-        s0, s1, s2 = e0 * w0 * inv_s, e1 * w1 * inv_s, e2 * w2 * inv_s
-        q0 = max(s0, 0.0) * block[_FINV_W * m + i]
-        q1 = max(s1, 0.0) * block[(_FINV_W + 1) * m + i]
-        q2 = max(s2, 0.0) * block[(_FINV_W + 2) * m + i]
-        den = q0 + q1 + q2
-        inv_q = 1.0 / den if abs(den) > tiny else 0.0
-        b0, b1, b2 = q0 * inv_q, q1 * inv_q, q2 * inv_q
-        # _nearest_edge's choice: the first of the smallest
-        d0, d1, d2 = block[_FD * m + i], block[(_FD + 1) * m + i], block[(_FD + 2) * m + i]
-        first = d0 <= d1
-        d01 = d0 if first else d1
-        i01 = 0.0 if first else 1.0
-        nearest = d01 <= d2
-        d = d01 if nearest else d2
-        code = i01 if nearest else 2.0
-        inside = (s0 >= 0.0) & (s1 >= 0.0) & (s2 >= 0.0)
-        block[_FE * m + i], block[(_FE + 1) * m + i], block[(_FE + 2) * m + i] = b0, b1, b2
-        block[_FZ * m + i] = (b0 * block[_FZ * m + i] + b1 * block[(_FZ + 1) * m + i]
-                              + b2 * block[(_FZ + 2) * m + i])
-        block[_FD * m + i] = d if inside else -d
-        block[(_FD + 1) * m + i] = code if inside else code + OUTSIDE
-
-
-@numba.njit(cache=True, nogil=True)
-def _scatter(block, n, where, soft, bary, depth, dist, edge):
-    """Write what _forward_block computed for the first n fragments of a block to their
-    slots where [n] of the flat outputs bary [N, 3], depth, dist and edge [N]."""
-    m = _FWD_BLOCK
-    for i in range(n):
-        j = where[i]
-        bary[j, 0], bary[j, 1], bary[j, 2] = block[_FE * m + i], block[(_FE + 1) * m + i], block[
-            (_FE + 2) * m + i]
-        depth[j] = block[_FZ * m + i]
-        if soft:
-            dist[j], edge[j] = block[_FD * m + i], np.int8(block[(_FD + 1) * m + i])
-        else:
-            dist[j], edge[j] = 0.0, 0
-
-
 @numba.njit(cache=True, nogil=True, parallel=True)
 def geometry_forward_into(ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny,
                           chunks, bary, depth, dist, edge):
@@ -261,15 +184,8 @@ def geometry_forward_into(ids, corner_w, corner_z, coeffs, scr, width, height, s
     npix, k = ids.shape
     table = _face_table(corner_w, corner_z, coeffs, scr, tiny)
     xs, pxs, ys, pys = _pixel_coords(width, height)
-    count = npix * k
-    flat_bary, flat_depth = bary.reshape(count, 3), depth.reshape(count)
-    flat_dist, flat_edge = dist.reshape(count), edge.reshape(count)
-    m = _FWD_BLOCK
     for chunk in prange(chunks):
         start, stop = _chunk(chunk, chunks, npix // width)  # whole rows
-        block = np.empty(_FWD_ROWS * m)
-        where = np.empty(m, np.int64)  # each fragment's slot in the flat outputs
-        n = 0
         # a batch of B images arrives as one of B * height rows (hostop.py)
         row, col = start % height, -1
         for pixel in range(start * width, stop * width):
@@ -279,32 +195,26 @@ def geometry_forward_into(ids, corner_w, corner_z, coeffs, scr, width, height, s
             x, y, px, py = xs[col], ys[row], pxs[col], pys[row]
             for slot in range(k):
                 f = ids[pixel, slot]
-                j = pixel * k + slot
                 if f < 0:
-                    flat_bary[j, 0] = flat_bary[j, 1] = flat_bary[j, 2] = 0.0
-                    flat_depth[j] = flat_dist[j] = 0.0
-                    flat_edge[j] = 0
+                    bary[pixel, slot, 0] = bary[pixel, slot, 1] = bary[pixel, slot, 2] = 0.0
+                    depth[pixel, slot] = dist[pixel, slot] = 0.0
+                    edge[pixel, slot] = 0
                     continue
                 e0, e1, e2, w0, w1, w2 = _face(table, f, x, y)
-                block[_FE * m + n], block[(_FE + 1) * m + n], block[(_FE + 2) * m + n] = (
-                    e0, e1, e2)
-                for c in range(3):
-                    block[(_FZ + c) * m + n] = table[f, _CZ + c]
-                if soft:
-                    block[_FW * m + n], block[(_FW + 1) * m + n], block[(_FW + 2) * m + n] = (
-                        w0, w1, w2)
-                    for c in range(3):
-                        block[(_FINV_W + c) * m + n] = table[f, _INV_W + c]
-                        block[(_FD + c) * m + n] = _segment(px, py, table, f, c)[0]
-                where[n] = j
-                n += 1
-                if n == m:
-                    _forward_block(n, block, soft, tiny)
-                    _scatter(block, n, where, soft, flat_bary, flat_depth, flat_dist,
-                             flat_edge)
-                    n = 0
-        _forward_block(n, block, soft, tiny)
-        _scatter(block, n, where, soft, flat_bary, flat_depth, flat_dist, flat_edge)
+                if not soft:
+                    dist[pixel, slot] = 0.0
+                    edge[pixel, slot] = 0
+                    b0, b1, b2, _ = _hard_bary(e0, e1, e2, tiny)
+                else:
+                    s0, s1, s2, _, _, _, b0, b1, b2, _, _ = _soft_bary(e0, e1, e2, w0, w1, w2,
+                                                                       table, f, tiny)
+                    i, d2, _, _, _ = _nearest_edge(px, py, table, f)
+                    inside = s0 >= 0.0 and s1 >= 0.0 and s2 >= 0.0
+                    dist[pixel, slot] = d2 if inside else -d2
+                    edge[pixel, slot] = i if inside else i + OUTSIDE
+                bary[pixel, slot, 0], bary[pixel, slot, 1], bary[pixel, slot, 2] = b0, b1, b2
+                depth[pixel, slot] = (b0 * table[f, _CZ] + b1 * table[f, _CZ + 1]
+                                      + b2 * table[f, _CZ + 2])
 
 
 #: geometry_backward's per-face accumulator row: the gradients of corner_w [3] at _W,
