@@ -37,6 +37,7 @@ import numba
 import numpy as np
 from llvmlite import ir
 from numba import prange, types
+from numba.core import cgutils
 from numba.extending import intrinsic
 
 EDGES = ((1, 2), (2, 0), (0, 1))
@@ -732,6 +733,66 @@ def _face_scalars(scr, edge, inv_len, zndc):
             inv_len[0], inv_len[1], inv_len[2], zndc[0], zndc[1], zndc[2])
 
 
+def _compress(builder, vector, mask):
+    """The elements of `vector` where `mask`, first (LLVM's vector compress: one
+    instruction where the CPU has one, AVX-512's vcompress; elsewhere LLVM expands it)."""
+    kind = "f64" if vector.type.element == ir.DoubleType() else "i64"
+    function = cgutils.get_or_insert_function(
+        builder.module, ir.FunctionType(vector.type, [vector.type, mask.type, vector.type]),
+        f"llvm.experimental.vector.compress.v8{kind}")
+    return builder.call(function, [vector, mask, ir.Constant(vector.type, None)])
+
+
+@intrinsic
+def _gather_reached(typingctx, out, lane, first, fragments, depth, signed_d2, count):
+    """Append the fragments in reach (out[0] < inf) among lanes lane..lane + 7 (one row
+    of a tile, TILE_W = 8) of _soft_block's out [2, L] to fragments (first + lane), depth
+    (out[0]) and signed_d2 (out[1]) from index count, in lane order, as vector operations
+    without branches; returns the new count. It writes 8 entries from count whatever the
+    number in reach (those past the new count are overwritten by the next rows)."""
+    vectors = ((out, types.float64, 2), (fragments, types.int64, 1),
+               (depth, types.float64, 1), (signed_d2, types.float64, 1))
+    if not all(isinstance(a, types.Array) and a.dtype == dtype and a.ndim == ndim
+               and a.layout == "C" for a, dtype, ndim in vectors) or TILE_W != 8:
+        return None
+
+    def codegen(context, builder, signature, args):
+        out_type, _, _, fragments_type, depth_type, signed_d2_type, _ = signature.args
+        out, lane, first, fragments, depth, signed_d2, count = args
+        double, i64 = ir.DoubleType(), ir.IntType(64)
+        lane = context.cast(builder, lane, signature.args[1], types.int64)
+        first = context.cast(builder, first, signature.args[2], types.int64)
+        count = context.cast(builder, count, signature.args[6], types.int64)
+        out_array = context.make_array(out_type)(context, builder, out)
+        length = cgutils.unpack_tuple(builder, out_array.shape, 2)[1]
+
+        def vector_at(data, index, element):
+            pointer = builder.gep(data, [index])
+            return builder.bitcast(pointer, ir.PointerType(ir.VectorType(element, 8)))
+        z = builder.load(vector_at(out_array.data, lane, double), align=8)
+        d2 = builder.load(vector_at(out_array.data, builder.add(length, lane), double),
+                          align=8)
+        reached = builder.fcmp_ordered("<", z, ir.Constant(z.type, [np.inf] * 8))
+        splat = builder.shuffle_vector(
+            builder.insert_element(ir.Constant(ir.VectorType(i64, 8), None),
+                                   builder.add(first, lane), ir.Constant(ir.IntType(32), 0)),
+            ir.Constant(ir.VectorType(i64, 8), None),
+            ir.Constant(ir.VectorType(ir.IntType(32), 8), [0] * 8))
+        index = builder.add(splat, ir.Constant(splat.type, list(range(8))))
+        for array_type, array, vector, element in (
+                (fragments_type, fragments, index, i64), (depth_type, depth, z, double),
+                (signed_d2_type, signed_d2, d2, double)):
+            data = context.make_array(array_type)(context, builder, array).data
+            builder.store(_compress(builder, vector, reached), vector_at(data, count, element),
+                          align=8)
+        bits = builder.bitcast(reached, ir.IntType(8))
+        popcount = builder.call(cgutils.get_or_insert_function(
+            builder.module, ir.FunctionType(ir.IntType(8), [ir.IntType(8)]), "llvm.ctpop.i8"),
+            [bits])
+        return builder.add(count, builder.zext(popcount, i64))
+    return types.int64(out, lane, first, fragments, depth, signed_d2, count), codegen
+
+
 #: a soft search tile's fragments in reach are gathered over its faces until there are at
 #: least this many, then keyed (_soft_keys) and inserted (_insert_group): the keys' loop
 #: runs over a thousand lanes, not the ~30 of one face, whose scalar remainder dominated
@@ -985,10 +1046,9 @@ def _search_soft_into(clips, faces, width, height, k, cull_backfaces, radii, par
                                        (r1 - r0 + 1) * TILE_W, lowest_key[view, f],
                                        worst_key[lane0:])
                 first = f * (TILE_H * TILE_W) + lane0
-                for lane in range((r1 - r0 + 1) * TILE_W):  # the pixels in reach, no branches
-                    fragments[count] = first + lane
-                    depth[count], signed_d2[count] = out[0, lane], out[1, lane]
-                    count += out[0, lane] < np.inf
+                for lane in range(0, (r1 - r0 + 1) * TILE_W, TILE_W):  # the pixels in reach
+                    count = _gather_reached(out, lane, first, fragments, depth, signed_d2,
+                                            count)
             if count >= GROUP or (slot == start[view, t + 1] - 1 and count > 0):
                 _soft_keys(depth, signed_d2, bound, key_lo, key_hi, count, soft)
                 dropped += _insert_group(ids, keys, filled, worst_key, worst_id, fragments,
