@@ -456,20 +456,25 @@ TILE_W, TILE_H = 8, 32
 
 
 @numba.njit(cache=True, nogil=True)
-def _soft_face(clip, faces, f, width, height, cull_backfaces, radius_px, tri, coeffs, scr,
-               edge, inv_len, zndc, box):
+def _soft_face(clip, faces, f, width, height, cull_backfaces, radius_px, scr, edge, inv_len,
+               zndc, box):
     """Screen-space setup of face f for the soft search: fills scr [3, 2] (vertex pixel
     coordinates), edge [3, 2] (scr[i + 1] - scr[i]), inv_len [3] (1 / edge lengths, 0 for
     a point), zndc [3] and box = (first row, last row, first column, last column) of the
-    pixels its footprint may reach (rows unclamped); False when it reaches none."""
-    det = _face_setup(clip, faces, f, tri, coeffs)
+    pixels its footprint may reach (rows unclamped); False when it reaches none. The
+    corners are read from clip once, as rows (_face_setup's det, only its first row of
+    coefficients, in the same order: the soft search needs no others)."""
+    v0, v1, v2 = clip[faces[f, 0]], clip[faces[f, 1]], clip[faces[f, 2]]
+    det = ((v1[1] * v2[3] - v1[3] * v2[1]) * v0[0] + (v1[3] * v2[0] - v1[0] * v2[3]) * v0[1]
+           + (v1[0] * v2[1] - v1[1] * v2[0]) * v0[3])
     if not np.isfinite(det) or det == 0.0 or (cull_backfaces and det < 0.0):
         return False
-    if min(tri[0, 2] + tri[0, 3], tri[1, 2] + tri[1, 3], tri[2, 2] + tri[2, 3]) < 0.0:
+    if min(v0[2] + v0[3], v1[2] + v1[3], v2[2] + v2[3]) < 0.0:
         return False
-    for i in range(3):
-        scr[i, 0] = (tri[i, 0] / tri[i, 3] + 1.0) * width / 2.0
-        scr[i, 1] = (1.0 - tri[i, 1] / tri[i, 3]) * height / 2.0
+    for i, v in enumerate((v0, v1, v2)):
+        scr[i, 0] = (v[0] / v[3] + 1.0) * width / 2.0
+        scr[i, 1] = (1.0 - v[1] / v[3]) * height / 2.0
+        zndc[i] = v[2] / v[3]
     box[0] = np.ceil(min(scr[0, 1], scr[1, 1], scr[2, 1]) - 0.5 - radius_px)
     box[1] = np.floor(max(scr[0, 1], scr[1, 1], scr[2, 1]) - 0.5 + radius_px)
     if not int(max(box[0], 0.0)) <= int(min(box[1], height - 1.0)):
@@ -480,7 +485,6 @@ def _soft_face(clip, faces, f, width, height, cull_backfaces, radius_px, tri, co
         return False
     for i in range(3):
         j = (i + 1) % 3
-        zndc[i] = tri[i, 2] / tri[i, 3]
         edge[i, 0], edge[i, 1] = scr[j, 0] - scr[i, 0], scr[j, 1] - scr[i, 1]
         length = np.hypot(edge[i, 0], edge[i, 1])
         inv_len[i] = 1.0 / length if length > 0.0 else 0.0
@@ -502,10 +506,9 @@ def _soft_setup(clips, faces, width, height, cull_backfaces, radii):
     chunks = (count + SETUP_CHUNK - 1) // SETUP_CHUNK
     for item in prange(views * chunks):
         view, chunk = item // chunks, item % chunks
-        tri, coeffs = np.empty((3, 4)), np.empty((3, 3))
         for f in range(chunk * SETUP_CHUNK, min(count, (chunk + 1) * SETUP_CHUNK)):
             reach[view, f] = _soft_face(clips[view], faces, f, width, height, cull_backfaces,
-                                        radii[view], tri, coeffs, scr[view, f], edge[view, f],
+                                        radii[view], scr[view, f], edge[view, f],
                                         inv_len[view, f], zndc[view, f], box[view, f])
     return scr, edge, inv_len, zndc, box, reach
 
