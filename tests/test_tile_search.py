@@ -393,15 +393,17 @@ def test_host_face_key_bound_is_below_every_fragment_key():
         clip = np.asarray(project(scene).clip, np.float64)[None]
         faces = np.asarray(scene.mesh.faces, np.int64)
         for radius, sigma, gamma in SOFT:
-            scr, edge, inv_len, zndc, box, reach = c._soft_setup(
-                clip, faces, cam.width, cam.height, False, np.array([radius]))
             soft = (sigma, gamma, float(cam.near), float(cam.far),
                     cam.projection == "perspective")
+            scr, edge, inv_len, zndc, box, reach, lowest = c._soft_setup(
+                clip, faces, cam.width, cam.height, False, np.array([radius]),
+                np.array([soft[:4]]), soft[4])
             out = np.empty((2, c.TILE_H * c.TILE_W))
             never = np.full(c.TILE_H * c.TILE_W, np.inf)
             for f in np.flatnonzero(reach[0]):
                 face = c._face_scalars(scr[0, f], edge[0, f], inv_len[0, f], zndc[0, f])
-                bound = c._face_key_bound(zndc[0, f], soft)
+                bound = lowest[0, f]
+                assert bound == c._face_key_bound(zndc[0, f], soft)
                 r0, r1 = max(int(box[0, f, 0]), 0), min(int(box[0, f, 1]), cam.height - 1)
                 for row in range(r0, r1 + 1):
                     for tile_c0 in range(0, cam.width, c.TILE_W):

@@ -495,22 +495,28 @@ def _soft_face(clip, faces, f, width, height, cull_backfaces, radius_px, scr, ed
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _soft_setup(clips, faces, width, height, cull_backfaces, radii):
+def _soft_setup(clips, faces, width, height, cull_backfaces, radii, params, perspective):
     """_soft_face for every face of every view: scr [B, F, 3, 2], edge [B, F, 3, 2],
     inv_len [B, F, 3], zndc [B, F, 3], box [B, F, 4] and reach [B, F] (False: the face
-    reaches no pixel), in parallel over chunks of SETUP_CHUNK faces of every view."""
+    reaches no pixel), and the face's _face_key_bound lowest [B, F] (params [B, 4] = sigma,
+    gamma, near, far; where reach), in parallel over chunks of SETUP_CHUNK faces of every
+    view."""
     views, count = clips.shape[0], faces.shape[0]
     scr, edge = np.empty((views, count, 3, 2)), np.empty((views, count, 3, 2))
     inv_len, zndc = np.empty((views, count, 3)), np.empty((views, count, 3))
     box, reach = np.empty((views, count, 4)), np.empty((views, count), np.bool_)
+    lowest = np.empty((views, count))
     chunks = (count + SETUP_CHUNK - 1) // SETUP_CHUNK
     for item in prange(views * chunks):
         view, chunk = item // chunks, item % chunks
+        soft = (params[view, 0], params[view, 1], params[view, 2], params[view, 3], perspective)
         for f in range(chunk * SETUP_CHUNK, min(count, (chunk + 1) * SETUP_CHUNK)):
             reach[view, f] = _soft_face(clips[view], faces, f, width, height, cull_backfaces,
                                         radii[view], scr[view, f], edge[view, f],
                                         inv_len[view, f], zndc[view, f], box[view, f])
-    return scr, edge, inv_len, zndc, box, reach
+            if reach[view, f]:
+                lowest[view, f] = _face_key_bound(zndc[view, f], soft)
+    return scr, edge, inv_len, zndc, box, reach, lowest
 
 
 @numba.njit(cache=True, nogil=True)
@@ -655,21 +661,6 @@ def _face_key_bound(zndc, soft):
     if not lowest == lowest:
         return np.nan
     return -_depth_logit(max(lowest, -1.0), soft)
-
-
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _face_key_bounds(zndc, params, perspective):
-    """_face_key_bound of every face of every view: [B, F] (zndc [B, F, 3]; params [B, 4]
-    = sigma, gamma, near, far), in parallel over chunks of SETUP_CHUNK faces."""
-    views, count = zndc.shape[0], zndc.shape[1]
-    lowest = np.empty((views, count))
-    chunks = (count + SETUP_CHUNK - 1) // SETUP_CHUNK
-    for item in prange(views * chunks):
-        view, chunk = item // chunks, item % chunks
-        soft = (params[view, 0], params[view, 1], params[view, 2], params[view, 3], perspective)
-        for f in range(chunk * SETUP_CHUNK, min(count, (chunk + 1) * SETUP_CHUNK)):
-            lowest[view, f] = _face_key_bound(zndc[view, f], soft)
-    return lowest
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -1000,13 +991,12 @@ def _search_soft_into(clips, faces, width, height, k, cull_backfaces, radii, par
     """The soft search of every view into all_ids [views, H * W, k] (XLA's buffer, ffi.py);
     returns dropped [views]."""
     views = clips.shape[0]
-    scr, edge, inv_len, zndc, box, reach = _soft_setup(clips, faces, width, height,
-                                                       cull_backfaces, radii)
+    scr, edge, inv_len, zndc, box, reach, lowest_key = _soft_setup(
+        clips, faces, width, height, cull_backfaces, radii, params, perspective)
     # faces front to back: the lists fill with the best fragments first, and the bound
     # then rejects most of the rest without the logarithm (the lists are ordered by
     # (key, face), so the result does not depend on this order)
     start, binned = _bin_faces(box, reach, zndc, width, height)
-    lowest_key = _face_key_bounds(zndc, params, perspective)
     tiles_x, tiles_y = (width + TILE_W - 1) // TILE_W, (height + TILE_H - 1) // TILE_H
     all_dropped = np.zeros((views, tiles_x * tiles_y), np.int64)
     # one item per (view, tile): the views of a batch share one parallel loop; a tile's
@@ -1022,6 +1012,10 @@ def _search_soft_into(clips, faces, width, height, k, cull_backfaces, radii, par
         tile_r0, tile_c0 = t // tiles_x * TILE_H, t % tiles_x * TILE_W
         tile_r1, tile_c1 = min(tile_r0 + TILE_H, height) - 1, min(tile_c0 + TILE_W, width) - 1
         tile_w = tile_c1 - tile_c0 + 1
+        if start[view, t] == start[view, t + 1]:  # no face reaches the tile: no lists
+            for row in range(tile_r0, tile_r1 + 1):
+                all_ids[view, row * width + tile_c0:row * width + tile_c1 + 1] = -1
+            continue
         ids = np.full((TILE_H * TILE_W, k), -1, np.int32)
         keys = np.full((TILE_H * TILE_W, k), np.inf)
         filled = np.zeros(TILE_H * TILE_W, np.int32)
