@@ -446,6 +446,39 @@ def test_host_sort_network_orders_lists_by_key_then_face():
         assert got_keys[0].tolist() == [key for key, _ in want]
 
 
+def test_host_gather_keeps_the_lanes_in_reach_in_lane_order():
+    """The host soft search gathers a tile's fragments in reach (out[0] < inf) a row of 8
+    lanes at a time by vector compresses (candidates._gather_reached): against NumPy's
+    boolean indexing, bit for bit (-0.0 distances keep their sign), on rows with each of
+    the 256 sets of lanes in reach, NaN and +inf depths out of reach, -inf in it, into
+    arrays no longer than the lanes (each row writes 8 entries from the count)."""
+    import numba
+
+    from diffshade.host import candidates as c
+
+    @numba.njit
+    def gather(out, first):
+        lanes = out.shape[1]
+        fragments, depth, signed_d2 = np.empty(lanes, np.int64), np.empty(lanes), np.empty(lanes)
+        count = 0
+        for lane in range(0, lanes, c.TILE_W):
+            count = c._gather_reached(out, lane, first, fragments, depth, signed_d2, count)
+        return fragments[:count], depth[:count], signed_d2[:count]
+
+    rng = np.random.default_rng(3)
+    masks = rng.permutation(256)
+    reached = ((masks[:, None] >> np.arange(8)) & 1).astype(bool).reshape(-1)
+    out = rng.normal(size=(2, reached.size))
+    out[1, rng.random(reached.size) < 0.2] = -0.0
+    out[0, ~reached] = rng.choice([np.inf, np.nan], (~reached).sum())
+    out[0, np.flatnonzero(reached)[::97]] = -np.inf
+    fragments, depth, signed_d2 = gather(out, 4096)
+    lanes = np.flatnonzero(reached)
+    assert fragments.tolist() == (4096 + lanes).tolist()
+    assert depth.view(np.int64).tolist() == out[0, lanes].view(np.int64).tolist()
+    assert signed_d2.view(np.int64).tolist() == out[1, lanes].view(np.int64).tolist()
+
+
 def test_host_strip_rows_hold_every_pixel_in_reach():
     """The host soft search evaluates a face only in the rows of a tile's columns that its
     footprint can reach (candidates._strip_rows, from the triangle clipped to the strip of

@@ -6,7 +6,7 @@ number of (pixel, nearby face) pairs, never with pixels x faces. Hard mode sets 
 up once and loops over the faces per band of rows. Soft mode sets each face up once, bins
 the faces into tiles of TILE_W x TILE_H pixels and searches the tiles in parallel: a
 tile's lists stay in the L1 cache, and a face's pixels in a tile are evaluated without
-branches, TILE_W at a time.
+branches, TILE_W at a time, those in reach gathered a row at a time by vector compresses.
 
 Coverage uses 2D homogeneous rasterization (Olano & Greer 1997): with v_i = (X, Y, W)
 of the clip-space vertices and p = (x_ndc, y_ndc, 1), the edge functions
@@ -1003,8 +1003,8 @@ def _search_soft_into(clips, faces, width, height, k, cull_backfaces, radii, par
     # lists are its own until they are copied out. A tile's pixel (row, col) is
     # (row - tile_r0) * TILE_W + col - tile_c0 (TILE_W columns even where the image ends).
     # Per face: its rows in reach of the tile's columns (_strip_rows), evaluated without
-    # branches (_soft_block), the pixels in reach gathered; per GROUP of those, keys and
-    # insertions.
+    # branches (_soft_block), the pixels in reach gathered (_gather_reached); per GROUP of
+    # those, keys and insertions.
     for item in prange(views * tiles_x * tiles_y):
         view, t = item // (tiles_x * tiles_y), item % (tiles_x * tiles_y)
         radius_px = radii[view]
