@@ -196,10 +196,13 @@ def stages(size):
     cached = jax.jit(jax.value_and_grad(lambda m, s, c: mse(
         ds.render_cached(ds.replace(s, material=m), c, soft))))
     faces64, radii = np.asarray(faces, np.int64), np.array([radius])
+    params = np.array([[soft.sigma, soft.gamma, float(scene.camera.near),
+                        float(scene.camera.far)]])
 
     def search_setup():
-        setup = candidates._soft_setup(clip[None], faces64, size, size, False, radii)
-        _, _, _, zndc, box, reach = setup
+        setup = candidates._soft_setup(clip[None], faces64, size, size, False, radii, params,
+                                       scene.camera.projection == "perspective")
+        _, _, _, zndc, box, reach, _ = setup
         return setup, candidates._bin_faces(box, reach, zndc, size, size)
     floors = traffic(frags, capacity, size * size * 4 * 4)
     # the setup reads the vertices and faces and writes its per-face and per-tile arrays

@@ -393,15 +393,17 @@ def test_host_face_key_bound_is_below_every_fragment_key():
         clip = np.asarray(project(scene).clip, np.float64)[None]
         faces = np.asarray(scene.mesh.faces, np.int64)
         for radius, sigma, gamma in SOFT:
-            scr, edge, inv_len, zndc, box, reach = c._soft_setup(
-                clip, faces, cam.width, cam.height, False, np.array([radius]))
             soft = (sigma, gamma, float(cam.near), float(cam.far),
                     cam.projection == "perspective")
+            scr, edge, inv_len, zndc, box, reach, lowest = c._soft_setup(
+                clip, faces, cam.width, cam.height, False, np.array([radius]),
+                np.array([soft[:4]]), soft[4])
             out = np.empty((2, c.TILE_H * c.TILE_W))
             never = np.full(c.TILE_H * c.TILE_W, np.inf)
             for f in np.flatnonzero(reach[0]):
                 face = c._face_scalars(scr[0, f], edge[0, f], inv_len[0, f], zndc[0, f])
-                bound = c._face_key_bound(zndc[0, f], soft)
+                bound = lowest[0, f]
+                assert bound == c._face_key_bound(zndc[0, f], soft)
                 r0, r1 = max(int(box[0, f, 0]), 0), min(int(box[0, f, 1]), cam.height - 1)
                 for row in range(r0, r1 + 1):
                     for tile_c0 in range(0, cam.width, c.TILE_W):
@@ -442,6 +444,39 @@ def test_host_sort_network_orders_lists_by_key_then_face():
         _sort_full(got_ids, got_keys, 0, np.empty(len(keys), np.int32), np.empty(len(keys)))
         assert got_ids[0].tolist() == [face for _, face in want], (keys, ids)
         assert got_keys[0].tolist() == [key for key, _ in want]
+
+
+def test_host_gather_keeps_the_lanes_in_reach_in_lane_order():
+    """The host soft search gathers a tile's fragments in reach (out[0] < inf) a row of 8
+    lanes at a time by vector compresses (candidates._gather_reached): against NumPy's
+    boolean indexing, bit for bit (-0.0 distances keep their sign), on rows with each of
+    the 256 sets of lanes in reach, NaN and +inf depths out of reach, -inf in it, into
+    arrays no longer than the lanes (each row writes 8 entries from the count)."""
+    import numba
+
+    from diffshade.host import candidates as c
+
+    @numba.njit
+    def gather(out, first):
+        lanes = out.shape[1]
+        fragments, depth, signed_d2 = np.empty(lanes, np.int64), np.empty(lanes), np.empty(lanes)
+        count = 0
+        for lane in range(0, lanes, c.TILE_W):
+            count = c._gather_reached(out, lane, first, fragments, depth, signed_d2, count)
+        return fragments[:count], depth[:count], signed_d2[:count]
+
+    rng = np.random.default_rng(3)
+    masks = rng.permutation(256)
+    reached = ((masks[:, None] >> np.arange(8)) & 1).astype(bool).reshape(-1)
+    out = rng.normal(size=(2, reached.size))
+    out[1, rng.random(reached.size) < 0.2] = -0.0
+    out[0, ~reached] = rng.choice([np.inf, np.nan], (~reached).sum())
+    out[0, np.flatnonzero(reached)[::97]] = -np.inf
+    fragments, depth, signed_d2 = gather(out, 4096)
+    lanes = np.flatnonzero(reached)
+    assert fragments.tolist() == (4096 + lanes).tolist()
+    assert depth.view(np.int64).tolist() == out[0, lanes].view(np.int64).tolist()
+    assert signed_d2.view(np.int64).tolist() == out[1, lanes].view(np.int64).tolist()
 
 
 def test_host_strip_rows_hold_every_pixel_in_reach():

@@ -6,7 +6,7 @@ number of (pixel, nearby face) pairs, never with pixels x faces. Hard mode sets 
 up once and loops over the faces per band of rows. Soft mode sets each face up once, bins
 the faces into tiles of TILE_W x TILE_H pixels and searches the tiles in parallel: a
 tile's lists stay in the L1 cache, and a face's pixels in a tile are evaluated without
-branches, TILE_W at a time.
+branches, TILE_W at a time, those in reach gathered a row at a time by vector compresses.
 
 Coverage uses 2D homogeneous rasterization (Olano & Greer 1997): with v_i = (X, Y, W)
 of the clip-space vertices and p = (x_ndc, y_ndc, 1), the edge functions
@@ -37,6 +37,7 @@ import numba
 import numpy as np
 from llvmlite import ir
 from numba import prange, types
+from numba.core import cgutils
 from numba.extending import intrinsic
 
 EDGES = ((1, 2), (2, 0), (0, 1))
@@ -455,20 +456,25 @@ TILE_W, TILE_H = 8, 32
 
 
 @numba.njit(cache=True, nogil=True)
-def _soft_face(clip, faces, f, width, height, cull_backfaces, radius_px, tri, coeffs, scr,
-               edge, inv_len, zndc, box):
+def _soft_face(clip, faces, f, width, height, cull_backfaces, radius_px, scr, edge, inv_len,
+               zndc, box):
     """Screen-space setup of face f for the soft search: fills scr [3, 2] (vertex pixel
     coordinates), edge [3, 2] (scr[i + 1] - scr[i]), inv_len [3] (1 / edge lengths, 0 for
     a point), zndc [3] and box = (first row, last row, first column, last column) of the
-    pixels its footprint may reach (rows unclamped); False when it reaches none."""
-    det = _face_setup(clip, faces, f, tri, coeffs)
+    pixels its footprint may reach (rows unclamped); False when it reaches none. The
+    corners are read from clip once, as rows (_face_setup's det, only its first row of
+    coefficients, in the same order: the soft search needs no others)."""
+    v0, v1, v2 = clip[faces[f, 0]], clip[faces[f, 1]], clip[faces[f, 2]]
+    det = ((v1[1] * v2[3] - v1[3] * v2[1]) * v0[0] + (v1[3] * v2[0] - v1[0] * v2[3]) * v0[1]
+           + (v1[0] * v2[1] - v1[1] * v2[0]) * v0[3])
     if not np.isfinite(det) or det == 0.0 or (cull_backfaces and det < 0.0):
         return False
-    if min(tri[0, 2] + tri[0, 3], tri[1, 2] + tri[1, 3], tri[2, 2] + tri[2, 3]) < 0.0:
+    if min(v0[2] + v0[3], v1[2] + v1[3], v2[2] + v2[3]) < 0.0:
         return False
-    for i in range(3):
-        scr[i, 0] = (tri[i, 0] / tri[i, 3] + 1.0) * width / 2.0
-        scr[i, 1] = (1.0 - tri[i, 1] / tri[i, 3]) * height / 2.0
+    for i, v in enumerate((v0, v1, v2)):
+        scr[i, 0] = (v[0] / v[3] + 1.0) * width / 2.0
+        scr[i, 1] = (1.0 - v[1] / v[3]) * height / 2.0
+        zndc[i] = v[2] / v[3]
     box[0] = np.ceil(min(scr[0, 1], scr[1, 1], scr[2, 1]) - 0.5 - radius_px)
     box[1] = np.floor(max(scr[0, 1], scr[1, 1], scr[2, 1]) - 0.5 + radius_px)
     if not int(max(box[0], 0.0)) <= int(min(box[1], height - 1.0)):
@@ -479,7 +485,6 @@ def _soft_face(clip, faces, f, width, height, cull_backfaces, radius_px, tri, co
         return False
     for i in range(3):
         j = (i + 1) % 3
-        zndc[i] = tri[i, 2] / tri[i, 3]
         edge[i, 0], edge[i, 1] = scr[j, 0] - scr[i, 0], scr[j, 1] - scr[i, 1]
         length = np.hypot(edge[i, 0], edge[i, 1])
         inv_len[i] = 1.0 / length if length > 0.0 else 0.0
@@ -490,23 +495,28 @@ def _soft_face(clip, faces, f, width, height, cull_backfaces, radius_px, tri, co
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _soft_setup(clips, faces, width, height, cull_backfaces, radii):
+def _soft_setup(clips, faces, width, height, cull_backfaces, radii, params, perspective):
     """_soft_face for every face of every view: scr [B, F, 3, 2], edge [B, F, 3, 2],
     inv_len [B, F, 3], zndc [B, F, 3], box [B, F, 4] and reach [B, F] (False: the face
-    reaches no pixel), in parallel over chunks of SETUP_CHUNK faces of every view."""
+    reaches no pixel), and the face's _face_key_bound lowest [B, F] (params [B, 4] = sigma,
+    gamma, near, far; where reach), in parallel over chunks of SETUP_CHUNK faces of every
+    view."""
     views, count = clips.shape[0], faces.shape[0]
     scr, edge = np.empty((views, count, 3, 2)), np.empty((views, count, 3, 2))
     inv_len, zndc = np.empty((views, count, 3)), np.empty((views, count, 3))
     box, reach = np.empty((views, count, 4)), np.empty((views, count), np.bool_)
+    lowest = np.empty((views, count))
     chunks = (count + SETUP_CHUNK - 1) // SETUP_CHUNK
     for item in prange(views * chunks):
         view, chunk = item // chunks, item % chunks
-        tri, coeffs = np.empty((3, 4)), np.empty((3, 3))
+        soft = (params[view, 0], params[view, 1], params[view, 2], params[view, 3], perspective)
         for f in range(chunk * SETUP_CHUNK, min(count, (chunk + 1) * SETUP_CHUNK)):
             reach[view, f] = _soft_face(clips[view], faces, f, width, height, cull_backfaces,
-                                        radii[view], tri, coeffs, scr[view, f], edge[view, f],
+                                        radii[view], scr[view, f], edge[view, f],
                                         inv_len[view, f], zndc[view, f], box[view, f])
-    return scr, edge, inv_len, zndc, box, reach
+            if reach[view, f]:
+                lowest[view, f] = _face_key_bound(zndc[view, f], soft)
+    return scr, edge, inv_len, zndc, box, reach, lowest
 
 
 @numba.njit(cache=True, nogil=True)
@@ -653,21 +663,6 @@ def _face_key_bound(zndc, soft):
     return -_depth_logit(max(lowest, -1.0), soft)
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _face_key_bounds(zndc, params, perspective):
-    """_face_key_bound of every face of every view: [B, F] (zndc [B, F, 3]; params [B, 4]
-    = sigma, gamma, near, far), in parallel over chunks of SETUP_CHUNK faces."""
-    views, count = zndc.shape[0], zndc.shape[1]
-    lowest = np.empty((views, count))
-    chunks = (count + SETUP_CHUNK - 1) // SETUP_CHUNK
-    for item in prange(views * chunks):
-        view, chunk = item // chunks, item % chunks
-        soft = (params[view, 0], params[view, 1], params[view, 2], params[view, 3], perspective)
-        for f in range(chunk * SETUP_CHUNK, min(count, (chunk + 1) * SETUP_CHUNK)):
-            lowest[view, f] = _face_key_bound(zndc[view, f], soft)
-    return lowest
-
-
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _soft_keys(depth, signed_d2, bound, key_lo, key_hi, count, soft):
     """For `count` fragments in reach (gathered from _soft_block's out), without branches
@@ -730,6 +725,66 @@ def _face_scalars(scr, edge, inv_len, zndc):
     return (scr[0, 0], scr[0, 1], scr[1, 0], scr[1, 1], scr[2, 0], scr[2, 1],
             edge[0, 0], edge[0, 1], edge[1, 0], edge[1, 1], edge[2, 0], edge[2, 1],
             inv_len[0], inv_len[1], inv_len[2], zndc[0], zndc[1], zndc[2])
+
+
+def _compress(builder, vector, mask):
+    """The elements of `vector` where `mask`, first (LLVM's vector compress: one
+    instruction where the CPU has one, AVX-512's vcompress; elsewhere LLVM expands it)."""
+    kind = "f64" if vector.type.element == ir.DoubleType() else "i64"
+    function = cgutils.get_or_insert_function(
+        builder.module, ir.FunctionType(vector.type, [vector.type, mask.type, vector.type]),
+        f"llvm.experimental.vector.compress.v8{kind}")
+    return builder.call(function, [vector, mask, ir.Constant(vector.type, None)])
+
+
+@intrinsic
+def _gather_reached(typingctx, out, lane, first, fragments, depth, signed_d2, count):
+    """Append the fragments in reach (out[0] < inf) among lanes lane..lane + 7 (one row
+    of a tile, TILE_W = 8) of _soft_block's out [2, L] to fragments (first + lane), depth
+    (out[0]) and signed_d2 (out[1]) from index count, in lane order, as vector operations
+    without branches; returns the new count. It writes 8 entries from count whatever the
+    number in reach (those past the new count are overwritten by the next rows)."""
+    vectors = ((out, types.float64, 2), (fragments, types.int64, 1),
+               (depth, types.float64, 1), (signed_d2, types.float64, 1))
+    if not all(isinstance(a, types.Array) and a.dtype == dtype and a.ndim == ndim
+               and a.layout == "C" for a, dtype, ndim in vectors) or TILE_W != 8:
+        return None
+
+    def codegen(context, builder, signature, args):
+        out_type, _, _, fragments_type, depth_type, signed_d2_type, _ = signature.args
+        out, lane, first, fragments, depth, signed_d2, count = args
+        double, i64 = ir.DoubleType(), ir.IntType(64)
+        lane = context.cast(builder, lane, signature.args[1], types.int64)
+        first = context.cast(builder, first, signature.args[2], types.int64)
+        count = context.cast(builder, count, signature.args[6], types.int64)
+        out_array = context.make_array(out_type)(context, builder, out)
+        length = cgutils.unpack_tuple(builder, out_array.shape, 2)[1]
+
+        def vector_at(data, index, element):
+            pointer = builder.gep(data, [index])
+            return builder.bitcast(pointer, ir.PointerType(ir.VectorType(element, 8)))
+        z = builder.load(vector_at(out_array.data, lane, double), align=8)
+        d2 = builder.load(vector_at(out_array.data, builder.add(length, lane), double),
+                          align=8)
+        reached = builder.fcmp_ordered("<", z, ir.Constant(z.type, [np.inf] * 8))
+        splat = builder.shuffle_vector(
+            builder.insert_element(ir.Constant(ir.VectorType(i64, 8), None),
+                                   builder.add(first, lane), ir.Constant(ir.IntType(32), 0)),
+            ir.Constant(ir.VectorType(i64, 8), None),
+            ir.Constant(ir.VectorType(ir.IntType(32), 8), [0] * 8))
+        index = builder.add(splat, ir.Constant(splat.type, list(range(8))))
+        for array_type, array, vector, element in (
+                (fragments_type, fragments, index, i64), (depth_type, depth, z, double),
+                (signed_d2_type, signed_d2, d2, double)):
+            data = context.make_array(array_type)(context, builder, array).data
+            builder.store(_compress(builder, vector, reached), vector_at(data, count, element),
+                          align=8)
+        bits = builder.bitcast(reached, ir.IntType(8))
+        popcount = builder.call(cgutils.get_or_insert_function(
+            builder.module, ir.FunctionType(ir.IntType(8), [ir.IntType(8)]), "llvm.ctpop.i8"),
+            [bits])
+        return builder.add(count, builder.zext(popcount, i64))
+    return types.int64(out, lane, first, fragments, depth, signed_d2, count), codegen
 
 
 #: a soft search tile's fragments in reach are gathered over its faces until there are at
@@ -936,21 +991,20 @@ def _search_soft_into(clips, faces, width, height, k, cull_backfaces, radii, par
     """The soft search of every view into all_ids [views, H * W, k] (XLA's buffer, ffi.py);
     returns dropped [views]."""
     views = clips.shape[0]
-    scr, edge, inv_len, zndc, box, reach = _soft_setup(clips, faces, width, height,
-                                                       cull_backfaces, radii)
+    scr, edge, inv_len, zndc, box, reach, lowest_key = _soft_setup(
+        clips, faces, width, height, cull_backfaces, radii, params, perspective)
     # faces front to back: the lists fill with the best fragments first, and the bound
     # then rejects most of the rest without the logarithm (the lists are ordered by
     # (key, face), so the result does not depend on this order)
     start, binned = _bin_faces(box, reach, zndc, width, height)
-    lowest_key = _face_key_bounds(zndc, params, perspective)
     tiles_x, tiles_y = (width + TILE_W - 1) // TILE_W, (height + TILE_H - 1) // TILE_H
     all_dropped = np.zeros((views, tiles_x * tiles_y), np.int64)
     # one item per (view, tile): the views of a batch share one parallel loop; a tile's
     # lists are its own until they are copied out. A tile's pixel (row, col) is
     # (row - tile_r0) * TILE_W + col - tile_c0 (TILE_W columns even where the image ends).
     # Per face: its rows in reach of the tile's columns (_strip_rows), evaluated without
-    # branches (_soft_block), the pixels in reach gathered; per GROUP of those, keys and
-    # insertions.
+    # branches (_soft_block), the pixels in reach gathered (_gather_reached); per GROUP of
+    # those, keys and insertions.
     for item in prange(views * tiles_x * tiles_y):
         view, t = item // (tiles_x * tiles_y), item % (tiles_x * tiles_y)
         radius_px = radii[view]
@@ -958,6 +1012,10 @@ def _search_soft_into(clips, faces, width, height, k, cull_backfaces, radii, par
         tile_r0, tile_c0 = t // tiles_x * TILE_H, t % tiles_x * TILE_W
         tile_r1, tile_c1 = min(tile_r0 + TILE_H, height) - 1, min(tile_c0 + TILE_W, width) - 1
         tile_w = tile_c1 - tile_c0 + 1
+        if start[view, t] == start[view, t + 1]:  # no face reaches the tile: no lists
+            for row in range(tile_r0, tile_r1 + 1):
+                all_ids[view, row * width + tile_c0:row * width + tile_c1 + 1] = -1
+            continue
         ids = np.full((TILE_H * TILE_W, k), -1, np.int32)
         keys = np.full((TILE_H * TILE_W, k), np.inf)
         filled = np.zeros(TILE_H * TILE_W, np.int32)
@@ -985,10 +1043,9 @@ def _search_soft_into(clips, faces, width, height, k, cull_backfaces, radii, par
                                        (r1 - r0 + 1) * TILE_W, lowest_key[view, f],
                                        worst_key[lane0:])
                 first = f * (TILE_H * TILE_W) + lane0
-                for lane in range((r1 - r0 + 1) * TILE_W):  # the pixels in reach, no branches
-                    fragments[count] = first + lane
-                    depth[count], signed_d2[count] = out[0, lane], out[1, lane]
-                    count += out[0, lane] < np.inf
+                for lane in range(0, (r1 - r0 + 1) * TILE_W, TILE_W):  # the pixels in reach
+                    count = _gather_reached(out, lane, first, fragments, depth, signed_d2,
+                                            count)
             if count >= GROUP or (slot == start[view, t + 1] - 1 and count > 0):
                 _soft_keys(depth, signed_d2, bound, key_lo, key_hi, count, soft)
                 dropped += _insert_group(ids, keys, filled, worst_key, worst_id, fragments,
