@@ -31,8 +31,7 @@ import time
 
 import numpy as np
 
-from diffshade.io import store_dir
-from diffshade.io.xla_cache import await_producer
+from diffshade.io import await_producer, store_dir
 
 #: the targets' colour while precompiling: inside (0, 1), so that every pixel counts
 GREY = 0.5
