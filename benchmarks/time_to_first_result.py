@@ -40,8 +40,8 @@ install`: the first image (`diffshade render --builtin sphere -o out/first.png`)
 README's main job (`diffshade synth -o out/data`, then `diffshade fit out/data -o out/fit`:
 two processes, timed together), each the median over --runs. The CPU time is that of
 those processes: it leaves out the background compilations they start (the host kernels',
-and synth's compilation of the fit's programs, data_synth.background, which the fit waits
-for). On a fresh install a run
+and synth's compilation of the fit's programs, data_synth.background, whose programs the
+fit waits for). On a fresh install a run
 takes the JAX kernels while the host kernels compile in the background
 (diffshade.host.warmup); the benchmark waits for that warm-up after each run (it is not
 part of the figure, but it shares the machine with the run it was started by), then times

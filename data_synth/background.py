@@ -11,9 +11,11 @@ fitting.precompile — into the command line's compilation cache and program sto
 them. A fit with other options, or of other data, compiles what it needs as before.
 
 The process holds a lock for the dataset's folder while it runs
-(fitting.precompile.lock_path: synth takes it and hands it over), and the fit of that
-folder waits for it after loading the dataset, so that the fit's start (its imports, the
-dataset) runs alongside the end of the compilation and no program is compiled twice.
+(fitting.precompile.lock_path: synth takes it and hands it over); the fit of that folder,
+after loading the dataset and while the lock is held, waits for each program until the
+process has written it (fitting.precompile.await_background), so that the fit's start
+(its imports, the dataset, its first steps) runs alongside the end of the compilation and
+no program is compiled twice.
 synth does not wait for it (`finish`), except to end it where synth failed. Ended at any
 point, it leaves the caches whole: their entries are written atomically and checked when
 read.

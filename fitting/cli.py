@@ -54,7 +54,7 @@ from fitting.inputs import non_negative_float, non_negative_int, positive_float,
 from fitting.model.cache import build_cache
 from fitting.model.loss import LOSSES
 from fitting.plan import CHECKPOINT, flag, prepare
-from fitting.precompile import wait_for_background
+from fitting.precompile import await_background
 from fitting.refine import pose_records, refined_poses
 from fitting.report.holdout import holdout_results, holdout_table, write_panels
 from fitting.report.result import RESULT_FORMAT, STATUS_LABELS, comparison_table, write_result
@@ -296,7 +296,7 @@ def run_fit(args) -> int:
         return run_texture(args)  # a kd map in closed form (fitting.texture_fit)
     with _Signals() as signals:
         dataset, plan = prepare(args)
-        wait_for_background(args.dataset)  # the programs synth's background compile makes
+        await_background(args.dataset)  # the programs synth's background compile makes
         start = time.perf_counter()
         poses = None
         if args.refine_pose:

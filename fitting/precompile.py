@@ -8,10 +8,12 @@ it runs `precompile` on the dataset's layout in a second process while it render
 compilation cache (diffshade.io.compile_cache), and the `diffshade fit` that follows loads
 them instead of compiling them.
 
-That process holds a lock for the dataset's folder (`lock_path`) while it runs; the `diffshade
-fit` of that folder loads the dataset, then waits for the lock (`wait_for_background`)
-before it compiles anything, so that it loads the programs rather than compiling them a
-second time alongside.
+That process holds a lock for the dataset's folder (`lock_path`) while it runs. The
+`diffshade fit` of that folder, while the lock is held, waits for each program it does not
+find in the caches until the process has written it (`await_background`), so that it loads
+the programs rather than compiling them a second time alongside, and starts on each as
+soon as it is there: its first steps run while the process compiles the later ones.
+`wait_for_background` waits for the whole process instead.
 
 `precompile` takes the fit's own steps, once each and in the fit's order, on grey
 targets: the cache (fitting.model.cache.build_cache), the closed-form start
@@ -29,7 +31,7 @@ import time
 
 import numpy as np
 
-from diffshade.io import store_dir
+from diffshade.io import await_producer, store_dir
 
 #: the targets' colour while precompiling: inside (0, 1), so that every pixel counts
 GREY = 0.5
@@ -67,6 +69,31 @@ def wait_for_background(dataset_path, patience=PATIENCE) -> None:
                     time.sleep(0.02)
     except OSError:  # a lock file that cannot be read: nothing to wait for
         return
+
+
+def await_background(dataset_path, patience=PATIENCE) -> None:
+    """Until no background precompile of `dataset_path` holds its lock, or for at most
+    `patience` seconds from now, have the caches wait for a missing program rather than
+    compile it (diffshade.io.xla_cache.await_producer; module docstring)."""
+    path = lock_path(dataset_path)
+    if path is None or not os.path.exists(path):
+        return
+    try:
+        lock = open(path, "rb")  # kept open until the process is done (busy)
+    except OSError:  # a lock file that cannot be read: nothing to wait for
+        return
+    deadline = time.monotonic() + patience
+
+    def busy():
+        try:
+            if time.monotonic() <= deadline:
+                fcntl.flock(lock, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        lock.close()
+        return False
+
+    await_producer(busy)
 
 
 def grey_targets(dataset):

@@ -18,6 +18,8 @@ import os
 import pickle
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 import jax
@@ -515,6 +517,72 @@ def test_a_program_with_custom_calls_is_not_stored(store, monkeypatch):
     program.loaded.clear()
     no_compiling(monkeypatch)  # the entry sends it to jit, which compiles on its own
     np.testing.assert_allclose(program(matrix), np.eye(2), atol=1e-6)
+
+
+# ---- another process compiling into the caches (a fit's background precompile) ----
+
+
+def _producing(monkeypatch, write=None, after=0.3, busy_for=None):
+    """Have the caches wait on a producer that calls `write()` after `after` seconds (from
+    another thread, as another process would write an entry), then stays busy for
+    `busy_for` more seconds (None: until the test sets the event returned); returns
+    (its thread, that event)."""
+    done = threading.Event()
+    monkeypatch.setattr(xla_cache, "_producer", None)  # restored after the test
+    xla_cache.await_producer(lambda: not done.is_set())
+
+    def produce():
+        time.sleep(after)
+        if write is not None:
+            write()
+        done.wait(busy_for)
+        done.set()
+    thread = threading.Thread(target=produce)
+    thread.start()
+    return thread, done
+
+
+def test_a_missing_program_is_waited_for_while_a_producer_compiles(store, monkeypatch):
+    """The program another process is compiling is loaded once it is written, while that
+    process is still busy: neither compiled here nor waited for to the producer's end."""
+    compile_cache.StoredProgram(_affine, ("power",))(X, TABLE, 0.5, power=2)
+    (path,) = entries(store)  # what the other process will write, taken away meanwhile
+    blob = path.read_bytes()
+    path.unlink()
+    no_compiling(monkeypatch)
+    thread, done = _producing(monkeypatch, lambda: private_files.write_private(path, blob))
+    try:
+        start = time.perf_counter()
+        out = compile_cache.StoredProgram(_affine, ("power",))(X, TABLE, 0.5, power=2)
+        waited = time.perf_counter() - start
+        busy = not done.is_set()
+    finally:
+        done.set()
+        thread.join()
+    check(out, X, TABLE, 0.5, power=2)
+    assert waited >= 0.3 and busy  # loaded while the producer was still busy
+
+
+def test_a_program_the_producer_does_not_write_compiles_once_it_is_done(store, monkeypatch):
+    thread, _ = _producing(monkeypatch, busy_for=0.6)
+    start = time.perf_counter()
+    out = compile_cache.StoredProgram(_affine, ("power",))(X, TABLE, 0.5, power=3)
+    assert time.perf_counter() - start >= 0.9  # waited for the producer, then compiled
+    check(out, X, TABLE, 0.5, power=3)
+    thread.join()
+    assert xla_cache._producer is None and len(entries(store)) == 1  # asked no more
+
+
+def test_jax_entries_are_waited_for_while_a_producer_compiles(tmp_path, monkeypatch):
+    cache = xla_cache.PrivateCache(tmp_path)
+    key = "jit_f-" + "a" * 64
+    thread, done = _producing(monkeypatch, lambda: cache.put(key, b"executable bytes"),
+                              busy_for=0.5)
+    assert cache.get(key) == b"executable bytes"  # written by the producer meanwhile
+    assert not done.is_set()
+    assert cache.get("jit_g-" + "b" * 64) is None  # never written: None once it is done
+    assert done.is_set()
+    thread.join()
 
 
 # ---- JAX's own cache, where diffshade configures it (diffshade.io.xla_cache) ----

@@ -191,6 +191,32 @@ def test_fixed_geometry_and_panels_compile_no_host_callback(monkeypatch):
     np.testing.assert_allclose(image, expected[..., :3], atol=2e-6)
 
 
+def test_the_views_of_one_camera_are_rasterized_once(monkeypatch):
+    """A camera's views (one per light) share their geometry: the cache and the panels
+    rasterize it once for them, and what they get equals a rasterization of each view on
+    its own (cache._last emptied before each), bit for bit."""
+    from fitting.model import cache
+
+    dataset = make_dataset(SPHERE, truth_material(), n_views=2, n_lights=2, size=24)
+    monkeypatch.setattr(cache, "_last", {})  # not what an earlier test left
+    rasterized = []
+    once = cache._rasterized
+    monkeypatch.setattr(cache, "_rasterized", lambda *a: rasterized.append(a) or once(*a))
+    data = build_cache(dataset, DEFAULT_INIT, edge_margin=0)
+    assert len(rasterized) == 2  # 2 cameras, 4 views
+    panels = [render_rgb(dataset, i, DEFAULT_INIT) for i in range(4)]  # as panel_renders
+    assert len(rasterized) == 4
+    for i in range(4):
+        monkeypatch.setattr(cache, "_last", {})
+        alone = cache.view_samples(dataset, i, edge_margin=0)
+        for got, want in zip(jax.tree.leaves(data.views[i]), jax.tree.leaves(alone),
+                             strict=True):
+            np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+        monkeypatch.setattr(cache, "_last", {})
+        np.testing.assert_array_equal(panels[i], render_rgb(dataset, i, DEFAULT_INIT))
+    assert len(rasterized) == 12
+
+
 @pytest.mark.parametrize("kind", ["l1", "charbonnier", "huber"])
 def test_robust_losses_match_their_formulas(kind):
     r = np.array([[-0.3, 0.0, 0.004], [0.02, -0.001, 1.5]])

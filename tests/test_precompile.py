@@ -20,8 +20,14 @@ from data_synth import background, make_dataset
 from data_synth.options import layout_of
 from data_synth.scenes import dataset_layout
 from diffshade.host import warmup
-from diffshade.io import compile_cache, program_entries
-from fitting.precompile import GREY, grey_targets, lock_path, wait_for_background
+from diffshade.io import compile_cache, program_entries, xla_cache
+from fitting.precompile import (
+    GREY,
+    await_background,
+    grey_targets,
+    lock_path,
+    wait_for_background,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 SYNTH = ["synth", "--size", "16", "--views", "2", "--lights", "2", "-o", "data"]
@@ -146,6 +152,34 @@ def test_the_fit_waits_for_its_datasets_background_compile(tmp_path, monkeypatch
         assert 0.3 <= time.perf_counter() - start < 1.5 and holder.poll() is None
         wait_for_background(tmp_path / "data")
         assert holder.wait(1) == 0  # returned once the holder let go
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+def test_the_fit_waits_for_each_program_while_its_datasets_background_compiles(
+        tmp_path, monkeypatch):
+    """While the lock is held, a missing program is waited for (at most `patience`);
+    once the holder lets go, not any more."""
+    monkeypatch.setattr(compile_cache, "_store", str(tmp_path / "cache" / "programs"))
+    monkeypatch.setattr(xla_cache, "_producer", None)  # restored after the test
+    (tmp_path / "cache").mkdir()
+    missing = str(tmp_path / "cache" / "missing.xla")
+    await_background(tmp_path / "data")  # no lock file: no compile to wait for
+    assert xla_cache._producer is None
+    holder = subprocess.Popen([sys.executable, "-c", _HOLD, lock_path(tmp_path / "data"),
+                               "2"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        await_background(tmp_path / "data", patience=0.3)
+        start = time.perf_counter()
+        xla_cache.await_entry(missing)  # gives up
+        assert 0.3 <= time.perf_counter() - start < 1.5 and holder.poll() is None
+        assert xla_cache._producer is None
+        await_background(tmp_path / "data")
+        xla_cache.await_entry(missing)
+        assert holder.wait(1) == 0  # returned once the holder let go
+        assert xla_cache._producer is None
     finally:
         holder.kill()
         holder.wait()

@@ -41,11 +41,13 @@ from diffshade.io.undistort import (
     undistort_points,
     undistort_rounding,
 )
+from diffshade.io.xla_cache import await_producer
 
 __all__ = [
     "colmap_text", "read_colmap", "read_transforms", "transforms_dict",
     "COLOR_SPACES", "decode", "encode", "linear_to_srgb", "srgb_to_linear",
-    "FAST_COMPILE", "LIGHT_COMPILE", "enable_compile_cache", "store_dir", "stored_jit",
+    "FAST_COMPILE", "LIGHT_COMPILE", "await_producer", "enable_compile_cache", "store_dir",
+    "stored_jit",
     "check_color_space", "check_writable", "image_header", "read_image", "write_json",
     "write_npy", "write_png", "write_text",
     "SceneFileError", "camera_to_dict", "load_material", "load_scene", "load_scenes",

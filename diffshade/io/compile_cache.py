@@ -27,6 +27,11 @@ the arguments' shapes (StoredProgram), and a later process loads them without tr
 The store keeps the programs of the current source only (an edit of diffshade or
 fitting starts it afresh; the other folders are removed).
 
+While another process compiles into the caches (synth's background compilation of the
+fit that follows it, fitting.precompile), a program missing from either one is waited for
+until that process has written it or is done (diffshade.io.xla_cache.await_producer),
+rather than compiled a second time alongside.
+
 What is read from the cache is run, so it is held to the rules ssh holds ~/.ssh to
 (diffshade.io.private_files; docs/cli.md, "Time to first result", Trust):
 - the folders are created with mode 0700; the cache directory, `programs` and its folder
@@ -340,6 +345,7 @@ class StoredProgram:
             return None
         name = hashlib.sha256(key[1].encode()).hexdigest()
         path = os.path.join(_store, key[0], f"{name}.bin")
+        xla_cache.await_entry(path)  # where another process is compiling it now
         entry = read_entry(path, key, memo[0], device)
         if entry is PLAIN:
             return None

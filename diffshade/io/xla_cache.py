@@ -14,11 +14,18 @@ folder instead:
   damaged, is removed before it is read; either way the program compiles normally.
 
 JAX's entries hold XLA executables only (no pickle): XLA's deserializer reads them.
+
+While another process compiles into the caches (a fit's background precompile,
+fitting.precompile: `await_producer`), an entry missing from either cache, JAX's or the
+program store (diffshade.io.compile_cache), is waited for (`await_entry`) rather than
+compiled a second time alongside; once that process is done, or the caller gives up on
+it, a missing program compiles as before.
 """
 
 import contextlib
 import os
 import pathlib
+import time
 
 from jax._src import compilation_cache
 from jax._src.compilation_cache_interface import CacheInterface
@@ -29,11 +36,33 @@ from diffshade.io.private_files import (
     write_private,
 )
 
-__all__ = ["PrivateCache", "guard"]
+__all__ = ["PrivateCache", "await_entry", "await_producer", "guard"]
 
 MAGIC = b"diffshade-xla-cache 1\n"
 SUFFIX = ".xla"
 _guarded = set()  # the folders whose JAX cache is a PrivateCache
+#: how often a missing entry is looked for while a producer compiles, in seconds
+POLL = 0.02
+_producer = None  # busy() -> bool while another process compiles into the caches
+
+
+def await_producer(busy):
+    """From now on, until `busy()` returns False (then never asked again), a program
+    missing from the caches is waited for: another process is compiling it into them.
+    None: stop waiting."""
+    global _producer
+    _producer = busy
+
+
+def await_entry(path):
+    """Return once the cache entry `path` exists, or at once where no producer is busy
+    (await_producer)."""
+    global _producer
+    while _producer is not None and not os.path.exists(path):
+        if not _producer():
+            _producer = None
+            return
+        time.sleep(POLL)
 
 
 class PrivateCache(CacheInterface):
@@ -49,6 +78,8 @@ class PrivateCache(CacheInterface):
 
     def get(self, key):
         path = self._file(key)
+        if path is not None:
+            await_entry(path)
         blob = None if path is None else read_cached(path, MAX_ENTRY_BYTES)
         if blob is None:
             return None

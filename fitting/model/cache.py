@@ -40,6 +40,7 @@ reads them.
 """
 
 import dataclasses
+import hashlib
 from functools import partial
 
 import jax
@@ -170,6 +171,26 @@ def geometry_scene(dataset: Dataset, index: int, layered=False, textured=False):
     return view_scene(dataset, index, material, LightGroups())
 
 
+def _geometry_key(scene, settings, layers):
+    """A digest of everything fixed_fragments' value depends on (the scene's structure and
+    values, the settings and the kernels they mean, the layers, x64); None inside a
+    trace."""
+    leaves, tree = jax.tree.flatten(scene)
+    digest = hashlib.sha256(repr((tree, settings, settings.use_host_kernels(), layers,
+                                  jax.config.jax_enable_x64)).encode())
+    for leaf in leaves:
+        if isinstance(leaf, jax.core.Tracer):
+            return None
+        value = np.asarray(leaf)
+        digest.update(repr((value.dtype, value.shape, getattr(leaf, "weak_type", False)))
+                      .encode())
+        digest.update(value.tobytes())
+    return digest.digest()
+
+
+_last = {}  # {key: (Projected, Fragments)}: the last geometry fixed_fragments rasterized
+
+
 def fixed_fragments(scene, settings, layers=1):
     """(Projected, Fragments) of `scene`: diffshade.rasterize's fragments, equal to them
     up to float rounding, for geometry that does not change (a fit's views).
@@ -177,7 +198,22 @@ def fixed_fragments(scene, settings, layers=1):
     Nothing here compiles a host callback, so every program is kept by JAX's persistent
     compilation cache (diffshade.io.compile_cache): with host kernels (settings.kernels) the
     candidate search runs once, on NumPy arrays between two jitted programs
-    (diffshade.host.hostcall), and the per-fragment geometry is computed in jax.numpy."""
+    (diffshade.host.hostcall), and the per-fragment geometry is computed in jax.numpy.
+
+    The views of one camera (one per light) have the same geometry scene: the last one
+    rasterized is kept, and a call with the same scene, settings and layers (the next
+    view of that camera, in the cache and in the report's panels) gets it again."""
+    key = _geometry_key(scene, settings, layers)
+    if key is None or key not in _last:
+        found = _rasterized(scene, settings, layers)
+        _last.clear()
+        if key is None:
+            return found
+        _last[key] = found
+    return _last[key]
+
+
+def _rasterized(scene, settings, layers):
     proj = _project(scene)
     depth = search_depth(settings, layers)
     if not settings.use_host_kernels():
