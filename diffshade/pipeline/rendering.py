@@ -60,9 +60,15 @@ ACTIVE_SLOTS_PER_PIXEL = (3, 4)
 def view_dirs(scene, points):
     """Unit directions towards the viewer, [..., 3] for points [..., 3]: local (to the eye)
     or infinite (the camera's +z axis)."""
+    return jnp.broadcast_to(_view_dirs(scene, points), points.shape)
+
+
+def _view_dirs(scene, points):
+    """view_dirs, where an infinite viewer's is one direction [3]: shade broadcasts it
+    where it meets the normals, and reverse mode keeps no copy of it per sample."""
     if scene.local_viewer:
         return safe_normalize(scene.camera.eye - points)
-    return jnp.broadcast_to(view_dir_infinite(scene.camera), points.shape).astype(points.dtype)
+    return view_dir_infinite(scene.camera).astype(points.dtype)
 
 
 def _fill_absent(material, other):
@@ -108,7 +114,7 @@ def shade_samples(scene, samples: Samples, settings, maps=None):
     material = _material_at(scene, samples.front, samples.objects, samples.uv, samples.valid,
                             settings.use_host_kernels())
     parts = shade(material, scene.lights, scene.global_ambient,
-                  samples.points, samples.normals, view_dirs(scene, samples.points), settings,
+                  samples.points, samples.normals, _view_dirs(scene, samples.points), settings,
                   maps)
     return parts, clamp01(parts.total) if settings.clamp else parts.total
 

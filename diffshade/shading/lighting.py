@@ -77,9 +77,11 @@ def _spot_factor(light_dir, spot, edge, softness_deg):
 
 def _incidence(kind, light, points, settings):
     """Unit direction to the light [..., 3] and its attenuation * spot scale [..., 1], or
-    None for a directional light (no attenuation: nothing to multiply per fragment)."""
+    for a directional light its one direction [3] and None (no attenuation: nothing to
+    multiply per fragment; the direction broadcasts where it meets the normals, so that
+    reverse mode keeps no copy of it per fragment)."""
     if kind == "directional":
-        return jnp.broadcast_to(safe_normalize(-light.direction), points.shape), None
+        return safe_normalize(-light.direction), None
     to_light = light.position - points
     light_dir = safe_normalize(to_light)
     scale = _attenuation(light.attenuation, safe_norm(to_light, keepdims=True))
