@@ -131,6 +131,17 @@ def _seen(shadow, points, normals, light_dir, settings):
     return shadow
 
 
+def reads_points(lights: LightGroups, shadow_maps=None) -> bool:
+    """Whether `shade` reads its `points` for these lights and shadow entries: a point,
+    spot, area or sphere light's direction and attenuation, or a shadow map lookup. With
+    only ambient and directional lights (and visibilities computed before, if any) it
+    reads the normals alone, and a caller need not compute the points (the view
+    directions are the caller's: a local viewer reads them too)."""
+    positional = ("point", "spot", *area.KINDS)
+    return (any(getattr(lights, kind) is not None for kind in positional)
+            or any(isinstance(entry, ShadowMap) for entry in (shadow_maps or {}).values()))
+
+
 def light_visibility(lights: LightGroups, points, normals, settings, shadow_maps):
     """{(kind, index): visibility [..., 1]} of the points for every light with a shadow
     map: what `shade` scales those lights' diffuse and specular terms by. With geometry
