@@ -25,10 +25,13 @@ from diffshade import (
     render_parts,
     replace,
     shade,
+    sphere_light,
     spot_light,
 )
 from diffshade.numerics import float_dtype
 from diffshade.scene.lights import group_lights
+from diffshade.shading.lighting import reads_points
+from diffshade.shading.shadows import shadow_maps
 
 pytestmark = pytest.mark.usefixtures("x64")
 
@@ -353,3 +356,42 @@ def test_two_sided_front_face_keeps_front_material(mesh):
     expected_diffuse = np.multiply((1.0, 0.8, 0.6), (0.2, 0.4, 0.8))  # front kd * light B
     np.testing.assert_allclose(out["diffuse"], np.broadcast_to(expected_diffuse, (25, 25, 3)),
                                atol=1e-12)
+
+
+# ------------------------------------------------------------------ what shade reads
+
+
+SUN = directional_light((0.3, -0.2, -1.0), (0.9, 0.8, 0.7))
+
+
+@pytest.mark.parametrize("lights, reads", [
+    ([], False), ([ambient_light(0.3)], False), ([SUN], False),
+    ([SUN, ambient_light(0.3)], False), ([SUN, point_light((1.0, 2.0, 3.0))], True),
+    ([spot_light((0.0, 0.0, 2.0), (0.0, 0.0, -1.0))], True),
+    ([sphere_light((0.0, 1.0, 2.0), 0.3)], True)])
+def test_shade_reads_points_only_for_positional_lights(lights, reads):
+    # render interpolates no points where reads_points says shade reads none: with NaN
+    # points, shade must then give the values it gives at the true points
+    mat = material(ka=0.2, kd=(0.5, 0.4, 0.3), ks=0.4, shininess=12.0)
+    groups = group_lights(lights)
+    assert reads_points(groups) is reads
+    points = jnp.array([[0.1, -0.3, 0.0], [0.5, 0.2, 0.1]])
+    normals = jnp.asarray(unit([[0.0, 0.2, 1.0], [0.4, -0.1, 0.9]]))
+    views = jnp.asarray(unit([0.1, 0.0, 1.0]))
+    ga = jnp.full(3, 0.1)
+    at_points = _shade(mat, groups, ga, points, normals, views, BLINN)
+    at_nan = _shade(mat, groups, ga, jnp.full_like(points, jnp.nan), normals, views, BLINN)
+    finite = all(np.isfinite(np.asarray(p)).all() for p in jax.tree.leaves(at_nan))
+    assert finite is not reads
+    if not reads:
+        for got, want in zip(jax.tree.leaves(at_nan), jax.tree.leaves(at_points), strict=True):
+            np.testing.assert_array_equal(got, want)
+
+
+def test_a_shadow_map_makes_shade_read_the_points(mesh):
+    scene = plane_scene(mesh, [directional_light((0.0, 0.0, -1.0), shadows=True)],
+                        material(kd=0.5))
+    maps = shadow_maps(scene, RenderSettings())
+    assert not reads_points(scene.lights) and reads_points(scene.lights, maps)
+    # visibilities computed before (fitting's cache) are no lookup
+    assert not reads_points(scene.lights, {key: jnp.ones((4, 1)) for key in maps})

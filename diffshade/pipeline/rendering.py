@@ -44,7 +44,7 @@ from diffshade.scene.objects import take_material
 from diffshade.scene.scene import Scene
 from diffshade.settings import RenderSettings
 from diffshade.shading.compact import on_active
-from diffshade.shading.lighting import ShadingParts, shade
+from diffshade.shading.lighting import ShadingParts, reads_points, shade
 from diffshade.shading.samples import Samples, phong_samples, read, shading_samples
 from diffshade.shading.shadows import shadow_maps
 from diffshade.shading.texturing import textured_material
@@ -60,9 +60,15 @@ ACTIVE_SLOTS_PER_PIXEL = (3, 4)
 def view_dirs(scene, points):
     """Unit directions towards the viewer, [..., 3] for points [..., 3]: local (to the eye)
     or infinite (the camera's +z axis)."""
+    return jnp.broadcast_to(_view_dirs(scene, points), points.shape)
+
+
+def _view_dirs(scene, points):
+    """view_dirs, where an infinite viewer's is one direction [3]: shade broadcasts it
+    where it meets the normals, and reverse mode keeps no copy of it per sample."""
     if scene.local_viewer:
         return safe_normalize(scene.camera.eye - points)
-    return jnp.broadcast_to(view_dir_infinite(scene.camera), points.shape).astype(points.dtype)
+    return view_dir_infinite(scene.camera).astype(points.dtype)
 
 
 def _fill_absent(material, other):
@@ -108,7 +114,7 @@ def shade_samples(scene, samples: Samples, settings, maps=None):
     material = _material_at(scene, samples.front, samples.objects, samples.uv, samples.valid,
                             settings.use_host_kernels())
     parts = shade(material, scene.lights, scene.global_ambient,
-                  samples.points, samples.normals, view_dirs(scene, samples.points), settings,
+                  samples.points, samples.normals, _view_dirs(scene, samples.points), settings,
                   maps)
     return parts, clamp01(parts.total) if settings.clamp else parts.total
 
@@ -123,27 +129,31 @@ def shade_fragments(scene, proj: Projected, frags: Fragments, settings, active=N
     host = settings.use_host_kernels()
     maps = shadow_maps(scene, settings)
     light = lambda samples: shade_samples(scene, samples, settings, maps)
+    # directional and ambient light seen from afar read the normals only
+    points = scene.local_viewer or reads_points(scene.lights, maps)
     if active is not None and settings.shading == "phong":
-        parts, colour = _shade_active(scene, proj, frags, active, light, axis_name, host)
+        parts, colour = _shade_active(scene, proj, frags, active, light, axis_name, host,
+                                      points)
     else:
-        samples, reader = shading_samples(scene, proj, frags, settings.shading, host)
+        samples, reader = shading_samples(scene, proj, frags, settings.shading, host, points)
         parts, colour = read(light(samples), reader, host)
     # interpolated clamped colours can exceed 1 by a rounding error; keep [0, 1] exact
     return parts, clamp01(colour) if settings.clamp else colour
 
 
-def _shade_active(scene, proj, frags, active, light, axis_name, host):
+def _shade_active(scene, proj, frags, active, light, axis_name, host, points=True):
     """Phong shading of the active fragments (active [H, W, K] bool): on_active gathers
     their face ids, barycentrics and sides, and only those are interpolated and lit;
-    light(Samples) -> (ShadingParts, colour). The other slots' face ids are masked to -1,
-    which the interpolation kernels skip, should on_active process every slot."""
+    light(Samples) -> (ShadingParts, colour); points: whether `light` reads the samples'
+    points (phong_samples). The other slots' face ids are masked to -1, which the
+    interpolation kernels skip, should on_active process every slot."""
     height, width, k = frags.face_ids.shape
     capacity = tuple(sorted({height * width * min(k, tier) for tier in ACTIVE_SLOTS_PER_PIXEL}))
 
     def lit(face_ids, bary, front):
         # N fragments ([N], [N, 3], [N]) as N pixels of one slot each
         samples = phong_samples(scene, proj, face_ids[:, None], bary[:, None], front[:, None],
-                                host)
+                                host, points)
         return jax.tree.map(lambda a: a[:, 0], light(samples))
     face_ids = jnp.where(active, frags.face_ids, -1)
     return on_active(lit, active, capacity, face_ids, frags.bary, frags.front,

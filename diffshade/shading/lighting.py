@@ -77,9 +77,11 @@ def _spot_factor(light_dir, spot, edge, softness_deg):
 
 def _incidence(kind, light, points, settings):
     """Unit direction to the light [..., 3] and its attenuation * spot scale [..., 1], or
-    None for a directional light (no attenuation: nothing to multiply per fragment)."""
+    for a directional light its one direction [3] and None (no attenuation: nothing to
+    multiply per fragment; the direction broadcasts where it meets the normals, so that
+    reverse mode keeps no copy of it per fragment)."""
     if kind == "directional":
-        return jnp.broadcast_to(safe_normalize(-light.direction), points.shape), None
+        return safe_normalize(-light.direction), None
     to_light = light.position - points
     light_dir = safe_normalize(to_light)
     scale = _attenuation(light.attenuation, safe_norm(to_light, keepdims=True))
@@ -127,6 +129,17 @@ def _seen(shadow, points, normals, light_dir, settings):
     if isinstance(shadow, ShadowMap):
         return visibility(shadow, points, normals, light_dir, settings)
     return shadow
+
+
+def reads_points(lights: LightGroups, shadow_maps=None) -> bool:
+    """Whether `shade` reads its `points` for these lights and shadow entries: a point,
+    spot, area or sphere light's direction and attenuation, or a shadow map lookup. With
+    only ambient and directional lights (and visibilities computed before, if any) it
+    reads the normals alone, and a caller need not compute the points (the view
+    directions are the caller's: a local viewer reads them too)."""
+    positional = ("point", "spot", *area.KINDS)
+    return (any(getattr(lights, kind) is not None for kind in positional)
+            or any(isinstance(entry, ShadowMap) for entry in (shadow_maps or {}).values()))
 
 
 def light_visibility(lights: LightGroups, points, normals, settings, shadow_maps):

@@ -98,20 +98,29 @@ def object_ids(scene, per_face, index):
     return jnp.take(ids, jnp.maximum(index, 0), axis=0)
 
 
-def phong_samples(scene, proj, face_ids, bary, front, host=None):
+def phong_samples(scene, proj, face_ids, bary, front, host=None, points=True):
     """Phong's samples of fragments given by their face ids [N, K] (-1 = empty),
     barycentrics [N, K, 3] and sides [N, K]: interpolated points and renormalized normals
-    (render lights only the fragments that count this way, diffshade.render)."""
+    (render lights only the fragments that count this way, diffshade.render).
+
+    points=False: for a shading that reads no points (lighting.reads_points, and no local
+    viewer) only the normals are interpolated, and the points are NaN, so that a use
+    would show in the image; the interpolation forward and backward then carry three
+    columns fewer, and the backward no zeros for the points."""
     textured = uses_uv(scene)
-    attrs = (proj.world, proj.normals) + ((scene.mesh.uv,) if textured else ())
-    points, normals, *uv = interpolate_rows(attrs, scene.mesh.faces, face_ids, bary, host)
+    attrs = ((proj.world,) if points else ()) + (proj.normals,) + (
+        (scene.mesh.uv,) if textured else ())
+    values = interpolate_rows(attrs, scene.mesh.faces, face_ids, bary, host)
+    if not points:
+        values = (jnp.full_like(values[0], jnp.nan),) + tuple(values)
+    points, normals, *uv = values
     normals = _oriented(safe_normalize(normals), front, scene.two_sided)
     return Samples(points, normals, front, object_ids(scene, True, face_ids), *uv,
                    valid=face_ids >= 0 if textured else None)
 
 
-def _phong(scene, proj, frags, host):
-    samples = phong_samples(scene, proj, frags.face_ids, frags.bary, frags.front, host)
+def _phong(scene, proj, frags, host, points):
+    samples = phong_samples(scene, proj, frags.face_ids, frags.bary, frags.front, host, points)
     return samples, Reader(frags.face_ids)
 
 
@@ -145,10 +154,11 @@ def _flat(scene, proj, frags):
     return Samples(points, normals, front, objects, uv), Reader(frags.face_ids, None, table)
 
 
-def shading_samples(scene, proj, frags, shading, host=None):
-    """(Samples, Reader) of the shading mode for the fragments `frags` of `proj`."""
+def shading_samples(scene, proj, frags, shading, host=None, points=True):
+    """(Samples, Reader) of the shading mode for the fragments `frags` of `proj`;
+    points=False: Phong's samples carry no points (phong_samples)."""
     if shading == "phong":
-        return _phong(scene, proj, frags, host)
+        return _phong(scene, proj, frags, host, points)
     if shading == "flat":
         return _flat(scene, proj, frags)
     return _per_vertex(scene, proj, frags, (0, 1, 2) if shading == "gouraud" else (2,))
