@@ -12,9 +12,12 @@ The indices of the active slots come from a compiled host kernel on the CPU back
 (`host=True`; diffshade.host.active_kernel through diffshade.host.hostcall): XLA on CPU
 runs `jnp.nonzero` as a cumulative sum and a scatter over all the slots (524,288 in a
 256^2, K = 8 render), which costs more than lighting the active slots; the kernel is one
-pass over the mask. There too, the gather of the active slots' barycentrics is `take_rows`,
-whose transpose (reverse mode puts the cotangents back into all the slots) runs as a
-compiled kernel in parallel; XLA's own is a zero fill and a scatter-add in one thread.
+pass over the mask. There too, Phong's interpolation reads the active slots' face ids and
+barycentrics at their positions itself (`interpolate_rows_at`, one compiled kernel, with
+on_active's `positions` and `whole`), and in its derivative the gather of the barycentrics
+is `take_rows`, whose transpose (reverse mode puts the cotangents back into all the slots)
+runs as a compiled kernel in parallel; XLA's own is a zero fill and a scatter-add in one
+thread.
 """
 
 import functools
@@ -71,8 +74,8 @@ def put_rows(rows, idx, count, host=False, clip=False):
 
 def interpolate_rows_at(tree, table, rows, ids, weights, host=None):
     """interpolation.interpolate_rows at some fragments only: [M, C_j] leaves, the values
-    of the fragments at rows [M] int32 of ids [N] int32 (-1 = empty) and weights [N, 3]
-    (entries of rows outside [0, N) read as empty). host: one compiled kernel reads the
+    of the fragments at rows [M] int32 of ids [N] int32 (-1 = empty) and weights [N, 3];
+    the entries of rows in [0, N) must be distinct, the others read as empty. host: one compiled kernel reads the
     face ids and weights at `rows` itself, with no gathered copy of them (the gathers
     would cost as much as the interpolation); its derivatives are those of the gathers
     followed by interpolate_rows (_interpolate_at_jvp). Else the gathers in jax.numpy."""
@@ -198,8 +201,8 @@ def on_active(fn, active, capacity, *arrays, axis_name=None, host=None, position
     """fn(*arrays) -> pytree of [N, ...] arrays, for arrays [*S, ...] and active [*S] bool
     (N = prod(S)); returns the pytree reshaped to [*S, ...]. Entries where `active` is
     False are 0 or fn's value (the caller must not depend on them). positions: fn takes
-    first the positions among the N of the entries it is given, [M] int32 in [0, N) (the
-    active ones, or all; no gather of an index array). whole: more arrays [*S, ...], handed
+    first the positions among the N of the entries it is given, [M] int32 (the active
+    ones, padded with N, or all; no gather of an index array). whole: more arrays [*S, ...], handed
     to fn after the others as [N, ...], whole (fn reads them at its positions itself).
 
     capacity: an int, or a tuple of ints in ascending order (tiers): fn runs on the
@@ -232,15 +235,15 @@ def _on_tiers(fn, tiers, axis_name, idx, count, flat, host, rows=(False, 0)):
     """fn on the first `size` of the active entries' indices idx (padded with N) for the
     smallest size in tiers that holds all `count`, scattered back to N rows; or on every
     row when none does. fn(size): the function for `size` rows (N: every row). host: the
-    float arrays are gathered by take_rows' primitive. rows: (on_active's positions (the
-    padding reads entry N - 1), how many of the last flat arrays are its `whole`)."""
+    float arrays are gathered by take_rows' primitive. rows: (on_active's positions, how
+    many of the last flat arrays are its `whole`)."""
     n = flat[0].shape[0]
     positions, whole = rows
 
     def compacted(size):
         def branch(flat):
             part = idx[:size]
-            where = (jnp.minimum(part, n - 1),) if positions else ()
+            where = (part,) if positions else ()
             gathered = flat[:len(flat) - whole]
             out = fn(size)(*where, *[take_rows(a, part, host and jnp.issubdtype(a.dtype,
                                                                                  jnp.inexact))
