@@ -75,10 +75,11 @@ def put_rows(rows, idx, count, host=False, clip=False):
 def interpolate_rows_at(tree, table, rows, ids, weights, host=None):
     """interpolation.interpolate_rows at some fragments only: [M, C_j] leaves, the values
     of the fragments at rows [M] int32 of ids [N] int32 (-1 = empty) and weights [N, 3];
-    the entries of rows in [0, N) must be distinct, the others read as empty. host: one compiled kernel reads the
-    face ids and weights at `rows` itself, with no gathered copy of them (the gathers
-    would cost as much as the interpolation); its derivatives are those of the gathers
-    followed by interpolate_rows (_interpolate_at_jvp). Else the gathers in jax.numpy."""
+    the entries of rows in [0, N) must be distinct, the others read as empty. host: one
+    compiled kernel reads the face ids and weights at `rows` itself, with no gathered copy
+    of them (the gathers would cost as much as the interpolation); its derivatives are
+    those of the gathers followed by interpolate_rows (_interpolate_at_jvp). Else the
+    gathers in jax.numpy."""
     host = jax.default_backend() == "cpu" if host is None else host
     corners, split = corner_values(tree, table)
     weights = weights.astype(corners.dtype)
