@@ -117,10 +117,11 @@ def test_float32_log_coverages_match_float64_log_sigmoid():
     np.testing.assert_allclose(np.asarray(log_clear, np.float64),
                                jax.nn.log_sigmoid(-jnp.asarray(np.float32(x), jnp.float64)),
                                rtol=1e-6, atol=2.5e-7)
-    # the derivative away from x = 0 (the kink of min(x, 0) and |x|, where it reads 1)
-    x = x[x != 0.0]
-    grad = jax.vmap(jax.grad(lambda d: log_coverages(
-        dataclasses.replace(frags, dist=d), 1.0)[0]))(jnp.asarray(x, jnp.float32))
-    np.testing.assert_allclose(np.asarray(grad, np.float64),
-                               jax.nn.sigmoid(-jnp.asarray(np.float32(x), jnp.float64)),
-                               rtol=1e-6, atol=2.5e-7)
+    # the derivatives, x = 0 (the kink of min(+-x, 0) and |x|) included
+    x32 = jnp.asarray(x, jnp.float32)
+    for out, sign in ((0, 1.0), (1, -1.0)):
+        grad = jax.vmap(jax.grad(lambda d, out=out: log_coverages(
+            dataclasses.replace(frags, dist=d), 1.0)[out]))(x32)
+        np.testing.assert_allclose(np.asarray(grad, np.float64),
+                                   sign * jax.nn.sigmoid(-sign * jnp.asarray(x32, jnp.float64)),
+                                   rtol=1e-6, atol=2.5e-7)

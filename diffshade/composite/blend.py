@@ -44,9 +44,12 @@ def log_coverages(frags, sigma):
     log1p(e): e = exp(-|x|) is in (0, 1], so 1 + e loses at most half an ulp of 1 (an
     absolute error below 1.2e-7 in float32 on a log-probability, a relative one on D), and
     XLA on CPU vectorizes log but evaluates log1p as a slower series with branches (the
-    costliest loop of the blend weights)."""
+    costliest loop of the blend weights). |x| is written max(x, -x): at x = 0 its
+    derivative is then 0 (JAX splits a tie between the two), with min(+-x, 0)'s +-1/2 the
+    exact sigmoid(-+x) = +-1/2; jnp.abs's derivative there is 1, which made log D's
+    derivative 1 instead of 1/2 on a pixel exactly on an edge."""
     x = frags.dist / sigma
-    tail = jnp.log(1.0 + jnp.exp(-jnp.abs(x)))
+    tail = jnp.log(1.0 + jnp.exp(-jnp.maximum(x, -x)))
     return jnp.minimum(x, 0.0) - tail, jnp.minimum(-x, 0.0) - tail
 
 
