@@ -92,10 +92,10 @@ def interpolate_rows_at(tree, table, rows, ids, weights, host=None):
 
 def _fragments_at(rows, ids, weights):
     """The face ids [M] (-1 at rows outside [0, N)) and weights [M, 3] of the fragments
-    at rows [M]."""
+    at rows [M] (those of an end row where the face id is -1: they are not read)."""
     inside = (rows >= 0) & (rows < ids.shape[0])
     return (jnp.where(inside, jnp.take(ids, rows, mode="clip"), -1),
-            jnp.where(inside[:, None], jnp.take(weights, rows, axis=0, mode="clip"), 0))
+            jnp.take(weights, rows, axis=0, mode="clip"))
 
 
 @jax.custom_jvp
