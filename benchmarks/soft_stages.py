@@ -8,8 +8,9 @@ rasterization (rasterize_scene: search + fragment geometry), the search kernel a
 before its parallel loop over tiles), the geometry and interpolation kernels alone
 (fragment_kernels), forward and backward (given cotangents where a reverse pass has them:
 barycentrics and depth where the blend weight is not 0, the distance wherever a face
-is), the interpolation backward also on the active slots gathered as a forward +
-backward runs it (compact.on_active's largest size), the blend weights, the active-slot
+is), the interpolation at the active slots as render's forward runs it
+(interpolate_at, compact.on_active's largest size), the interpolation backward also on
+the active slots gathered as a forward + backward runs it, the blend weights, the active-slot
 compaction (compact.active_indices) and what follows the rasterization
 (render_fragments); everything after the search (the fragment geometry from fixed face
 ids, then render_fragments), forward and forward + backward with respect to the material
@@ -82,7 +83,9 @@ def traffic(frags, capacity, image_bytes):
     (52N). A forward + backward reads and
     writes at least as much again (each array the forward reads has a cotangent of its
     size). The interpolation backward on the compacted active slots reads and writes as
-    much per slot, for `capacity` slots of one fragment each. The hard search writes one
+    much per slot, for `capacity` slots of one fragment each; the interpolation at the
+    active slots (render's forward) reads a position, a face id and barycentrics and
+    writes 6 floats per slot. The hard search writes one
     face id per pixel. Per-face inputs and the image are small next to these."""
     nbytes = lambda name: getattr(frags, name).nbytes
     ids, slots = nbytes("face_ids"), frags.face_ids.size
@@ -99,6 +102,7 @@ def traffic(frags, capacity, image_bytes):
             "geometry_backward": ids + slots + geometry_out,
             "interpolation_backward": ids + 2 * nbytes("bary") + 6 * 4 * slots,
             "interpolation_backward_active": capacity * (4 + 2 * 12 + 6 * 4),
+            "interpolation_active": capacity * (4 + 4 + 12 + 6 * 4),
             "shading": shading, "interpolation": ids + nbytes("bary") + 6 * 4 * slots,
             "weights": ids + nbytes("depth") + nbytes("dist") + 4 * slots,
             "compaction": slots + 4 * capacity, "after_search": geometry + shading,
@@ -229,6 +233,9 @@ def stages(size):
         ("render_fragments", lambda: after_raster(scene, frags), "shading"),
         ("  interpolation kernel, all slots", lambda: kernels.interpolate_forward(
             ids, bary, corners, kernels.chunks()), "interpolation"),
+        ("  interpolation at the active slots", lambda: kernels.interpolate_at(
+            idx, ids.reshape(-1), bary.reshape(-1, 3), corners, kernels.chunks()),
+         "interpolation_active"),
         ("  interpolation backward, all slots", lambda: kernels.interpolate_backward(
             ids, bary, corners, g_values, kernels.chunks()), "interpolation_backward"),
         ("  interp. backward, active slots", lambda: kernels.interpolate_backward(

@@ -1,14 +1,22 @@
 """diffshade.shading.compact.on_active: values and gradients at the active entries equal a plain
 evaluation, whether the active entries fit the capacity (compacted) or not (everywhere);
 take_rows and put_rows (each the other's transpose; host: the compiled kernel) against
-NumPy loops."""
+NumPy loops; interpolate_rows_at (host: the compiled kernel reading the fragments at the rows)
+against a loop and, for its derivatives, central differences."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jax.test_util import check_grads
 
-from diffshade.shading.compact import active_indices, on_active, put_rows, take_rows
+from diffshade.shading.compact import (
+    active_indices,
+    interpolate_rows_at,
+    on_active,
+    put_rows,
+    take_rows,
+)
 
 pytestmark = pytest.mark.usefixtures("x64")
 
@@ -166,3 +174,87 @@ def test_take_rows_under_vmap(batched_idx):
     jac = jax.jacfwd(lambda x: take_rows(x, idx, True))(x)
     np.testing.assert_array_equal(np.asarray(jac), np.asarray(jax.jacrev(
         lambda x: take_rows(x, idx, False))(x)))
+
+
+def _interpolation_case(seed=3):
+    """Fragments (face ids [N] with empty ones, barycentrics [N, 3]), rows [M] (distinct,
+    and entries outside [0, N)), vertex attributes (a pytree of [V, C] leaves), faces [F, 3]."""
+    rng = np.random.default_rng(seed)
+    n, faces = 40, rng.integers(0, 9, (7, 3)).astype(np.int32)
+    ids = rng.integers(-1, 7, n).astype(np.int32)
+    bary = rng.uniform(0.1, 1.0, (n, 3))
+    rows = np.concatenate([rng.permutation(n)[:25], [n, -1, n + 5]]).astype(np.int32)
+    attrs = (jnp.asarray(rng.normal(size=(9, 3))), jnp.asarray(rng.normal(size=(9, 2))))
+    return ids, jnp.asarray(bary), rows, attrs, faces
+
+
+def _interpolation_loop(ids, bary, rows, attrs, faces):
+    """interpolate_rows_at by a plain loop: [M, C] per leaf."""
+    out = []
+    for attr in (np.asarray(a) for a in attrs):
+        values = np.zeros((rows.size, attr.shape[1]))
+        for i, r in enumerate(rows):
+            if 0 <= r < ids.size and ids[r] >= 0:
+                values[i] = sum(np.asarray(bary)[r, j] * attr[faces[ids[r], j]] for j in range(3))
+        out.append(values)
+    return out
+
+
+@pytest.mark.parametrize("host", [True, False])
+def test_interpolate_rows_at_equals_a_loop(host):
+    ids, bary, rows, attrs, faces = _interpolation_case()
+    got = jax.jit(lambda b, a: interpolate_rows_at(a, faces, rows, ids, b, host))(bary, attrs)
+    for g, want in zip(got, _interpolation_loop(ids, bary, rows, attrs, faces), strict=True):
+        np.testing.assert_allclose(np.asarray(g), want, rtol=1e-14, atol=1e-15)
+
+
+@pytest.mark.parametrize("host", [True, False])
+def test_interpolate_rows_at_gradients_equal_finite_differences(host):
+    ids, bary, rows, attrs, faces = _interpolation_case()
+    fn = lambda b, a: interpolate_rows_at(a, faces, rows, ids, b, host)
+    check_grads(jax.jit(fn), (bary, attrs), order=1, modes=("fwd", "rev"), eps=1e-6)
+
+
+@pytest.mark.parametrize("host", [True, False])
+def test_interpolate_rows_at_under_vmap(host):
+    ids, bary, rows, attrs, faces = _interpolation_case()
+    batch = jnp.stack([bary, 2.0 * bary[::-1]])
+    fn = lambda b, a: interpolate_rows_at(a, faces, rows, ids, b, host)
+    got = jax.jit(jax.vmap(fn, (0, None)))(batch, attrs)
+    for member in range(2):
+        want = _interpolation_loop(ids, batch[member], rows, attrs, faces)
+        for g, w in zip(got, want, strict=True):
+            np.testing.assert_allclose(np.asarray(g[member]), w, rtol=1e-14, atol=1e-15)
+
+
+@pytest.mark.parametrize("host", [True, False])
+@pytest.mark.parametrize("capacity", [30, (20, 30), 10])
+def test_positions_and_whole_arrays(capacity, host):
+    """on_active handing fn its positions and whole arrays (as render's Phong shading
+    uses it, through interpolate_rows_at): values and gradients at the active entries
+    equal those of every entry, the last entry active (the padding's neighbour)."""
+    ids, bary, _, attrs, faces = _interpolation_case()
+    active = jnp.asarray(np.random.default_rng(5).random(ids.size) < 0.5).at[-1].set(True)
+    assert 20 < int(active.sum()) <= 30
+    weights = jnp.asarray(np.random.default_rng(6).normal(size=(ids.size, 5)))
+
+    def compacted(b, a):
+        fn = lambda rows, ids, b: jnp.concatenate(interpolate_rows_at(a, faces, rows, ids, b,
+                                                                      host), -1)
+        out = on_active(fn, active, capacity, positions=True, whole=(ids, b), host=host)
+        return jnp.sum(jnp.where(active[:, None], out, 0.0) * weights)
+
+    def plain(b, a):
+        out = jnp.concatenate(_interpolation_loop_jax(ids, b, a, faces), -1)
+        return jnp.sum(jnp.where(active[:, None], out, 0.0) * weights)
+    got, want = (jax.jit(jax.value_and_grad(f, (0, 1)))(bary, attrs) for f in (compacted, plain))
+    for g, w in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
+        np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-13, atol=1e-14)
+
+
+def _interpolation_loop_jax(ids, bary, attrs, faces):
+    """Every fragment's interpolated attributes in jax.numpy (no kernel, no gather by
+    rows), for derivatives to compare with."""
+    corners = [jnp.asarray(a)[faces[np.maximum(ids, 0)]] for a in attrs]
+    return [jnp.where((ids >= 0)[:, None], jnp.einsum("nj,njc->nc", bary, c), 0.0)
+            for c in corners]

@@ -518,3 +518,19 @@ def test_geometry_target_rejects_bad_shapes():
         with pytest.raises(Exception, match=re.escape(f"{target}: attribute 'soft' is of")):
             _ffi_call(target, (ids, corner_w, corner_z, coeffs, scr), results,
                       **{**attributes, "soft": np.int32(1)})
+
+
+@pytest.mark.parametrize("x64", [False, True])
+def test_interpolate_at_target_equals_the_kernel(x64):
+    with jax.enable_x64(x64):
+        dtype = np.float64 if x64 else np.float32
+        rng = np.random.default_rng(4)
+        ids = rng.integers(-1, F, H * W * K).astype(np.int32)
+        bary = rng.uniform(size=(H * W * K, 3)).astype(dtype)
+        corners = rng.normal(size=(F, 3, 4)).astype(dtype)
+        rows = np.concatenate([rng.permutation(ids.size)[:40], [ids.size, -1]]).astype(np.int32)
+        at = lambda b, c: compact._interpolate_at(rows, ids, b, c)
+        width = "f64" if x64 else "f32"
+        assert _targets(at, bary, corners) == {f"diffshade_interpolate_at_{width}"}
+        np.testing.assert_array_equal(np.asarray(jax.jit(at)(bary, corners)),
+                                      kernels.interpolate_at(rows, ids, bary, corners, 2))

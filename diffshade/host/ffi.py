@@ -179,6 +179,18 @@ def _interpolate_backward(frame, values, dtype):
         _array3(frame, FRAME_RETS, 1, 3, c, dtype))
 
 
+# -- interpolation at some fragments (interpolation.interpolate_rows_at) -------------------
+# arguments: rows [M] int32, ids [N] int32, bary [N, 3], corners [F, 3, C]; result [M, C]
+
+@numba.njit(cache=True, nogil=True)
+def _interpolate_at(frame, values, dtype):
+    c = buffer_dim(item(frame, FRAME_ARGS, 3), -1)
+    kernels.interpolate_at_into(
+        _flat(frame, FRAME_ARGS, 0, np.int32), _flat(frame, FRAME_ARGS, 1, np.int32),
+        _array2(frame, FRAME_ARGS, 2, 3, dtype), _array3(frame, FRAME_ARGS, 3, 3, c, dtype),
+        values[0], _array2(frame, FRAME_RETS, 0, c, dtype))
+
+
 # -- texture lookup (texturing.sample_texels) ------------------------------------------------
 # arguments: ids [M] int32 (texture offsets), uv [M, 2], texels [T, C]; attributes: height,
 # width, clamp, uv_grad (read by the backward). Forward result [M, C]; backward: the
@@ -342,7 +354,7 @@ def _search_hard(frame, values, dtype, face_dtype):
 #: the handlers' bodies, by the number a handler is made with (_handler)
 _BODIES = ("active", "geometry_forward", "geometry_backward", "interpolate_forward",
            "interpolate_backward", "search_soft", "search_hard", "texture_forward",
-           "texture_backward", "put_rows")
+           "texture_backward", "put_rows", "interpolate_at")
 
 
 class Target(NamedTuple):
@@ -441,8 +453,10 @@ def _handler(name, target):
             _texture_forward(frame, values, dtype)
         elif body == 8:
             _texture_backward(frame, values, dtype)
-        else:
+        elif body == 9:
             _put_rows(frame, values, dtype)
+        else:
+            _interpolate_at(frame, values, dtype)
         return pointer(0)
     handler.__name__ = handler.__qualname__ = f"_handler_{name}"
     return handler
@@ -463,6 +477,9 @@ for _width, _f, _dtype, _tiny in (("f32", F32, np.float32, _TINY32),
     TARGETS[f"diffshade_put_rows_{_width}"] = Target(
         9, _dtype, 0, (spec(S32, 1), spec(_f, 2, (3,), TIMES, 0, 3)), (spec(_f, 2, (3,)),),
         ("clip", THREADS))
+    TARGETS[f"diffshade_interpolate_at_{_width}"] = Target(
+        10, _dtype, 0, (spec(S32, 1), spec(S32, 1), spec(_f, 2, (3,), TIMES, 1, 3),
+                        spec(_f, 3, (0, 3))), (spec(_f, 2, (), PER_LAST, 0, 3),), (THREADS,))
     for _ints, _i, _int in (("i32", S32, np.int32), ("i64", S64, np.int64)):
         for _body in (5, 6):
             TARGETS[f"diffshade_{_BODIES[_body]}_{_width}_{_ints}"] = _search(

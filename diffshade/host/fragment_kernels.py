@@ -461,6 +461,37 @@ def interpolate_forward_into(ids, bary, corners, chunks, out):
 
 
 @numba.njit(cache=True, nogil=True)
+def interpolate_at(rows, ids, bary, corners, chunks):
+    """interpolate_forward at some fragments only: out[i] = sum_j bary[r, j] *
+    corners[ids[r], j] with r = rows[i]: [M, C] for rows [M] int32, ids [N] int32 and
+    bary [N, 3] (the fragments, flat), corners [F, 3, C]; zeros where r is outside [0, N)
+    or ids[r] < 0."""
+    out = np.empty((rows.shape[0], corners.shape[2]), corners.dtype)
+    interpolate_at_into(rows, ids, bary, corners, chunks, out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def interpolate_at_into(rows, ids, bary, corners, chunks, out):
+    """interpolate_at writing every element of out [M, C]: the gather of the fragments'
+    face ids and barycentrics is this loop's read, not an array of its own."""
+    nfrags, nc = ids.shape[0], corners.shape[2]
+    for chunk in prange(chunks):
+        start, stop = _chunk(chunk, chunks, rows.shape[0])
+        for i in range(start, stop):
+            r = rows[i]
+            f = ids[r] if 0 <= r < nfrags else -1
+            if f < 0:
+                for ch in range(nc):
+                    out[i, ch] = 0.0
+                continue
+            b0, b1, b2 = bary[r, 0], bary[r, 1], bary[r, 2]
+            for ch in range(nc):
+                out[i, ch] = b0 * corners[f, 0, ch] + b1 * corners[f, 1, ch] + b2 * corners[
+                    f, 2, ch]
+
+
+@numba.njit(cache=True, nogil=True)
 def interpolate_backward(ids, bary, corners, g_out, chunks):
     """Gradients of interpolate_forward: (g_bary [P, K, 3], g_corners [F, 3, C])."""
     npix, k = ids.shape

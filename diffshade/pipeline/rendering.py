@@ -45,7 +45,7 @@ from diffshade.scene.scene import Scene
 from diffshade.settings import RenderSettings
 from diffshade.shading.compact import on_active
 from diffshade.shading.lighting import ShadingParts, reads_points, shade
-from diffshade.shading.samples import Samples, phong_samples, read, shading_samples
+from diffshade.shading.samples import Samples, phong_samples_at, read, shading_samples
 from diffshade.shading.shadows import shadow_maps
 from diffshade.shading.texturing import textured_material
 
@@ -142,22 +142,21 @@ def shade_fragments(scene, proj: Projected, frags: Fragments, settings, active=N
 
 
 def _shade_active(scene, proj, frags, active, light, axis_name, host, points=True):
-    """Phong shading of the active fragments (active [H, W, K] bool): on_active gathers
-    their face ids, barycentrics and sides, and only those are interpolated and lit;
+    """Phong shading of the active fragments (active [H, W, K] bool): on_active gives
+    their positions among the slots (and gathers their sides), and only those are
+    interpolated (phong_samples_at reads their face ids and barycentrics there) and lit;
     light(Samples) -> (ShadingParts, colour); points: whether `light` reads the samples'
-    points (phong_samples). The other slots' face ids are masked to -1, which the
-    interpolation kernels skip, should on_active process every slot."""
+    points (phong_samples). Should on_active process every slot, the inactive ones are lit
+    too, and their weight 0 drops them."""
     height, width, k = frags.face_ids.shape
     capacity = tuple(sorted({height * width * min(k, tier) for tier in ACTIVE_SLOTS_PER_PIXEL}))
 
-    def lit(face_ids, bary, front):
-        # N fragments ([N], [N, 3], [N]) as N pixels of one slot each
-        samples = phong_samples(scene, proj, face_ids[:, None], bary[:, None], front[:, None],
-                                host, points)
-        return jax.tree.map(lambda a: a[:, 0], light(samples))
-    face_ids = jnp.where(active, frags.face_ids, -1)
-    return on_active(lit, active, capacity, face_ids, frags.bary, frags.front,
-                     axis_name=axis_name, host=host)
+    def lit(rows, front, face_ids, bary):
+        return light(phong_samples_at(scene, proj, rows, face_ids, bary, front, host, points))
+    # the face ids and barycentrics pass whole, as arguments (not closed over: a closure
+    # would cross each tier's branch, and its derivative, as a separate array)
+    return on_active(lit, active, capacity, frags.front, axis_name=axis_name, host=host,
+                     positions=True, whole=(frags.face_ids, frags.bary))
 
 
 def _check_types(scene, settings):

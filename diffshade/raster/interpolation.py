@@ -55,11 +55,17 @@ def interpolate_rows(tree, table, ids, weights, host=None):
     one pass over the fragments: table [T, 3] int, ids [H, W, K] int (-1 = empty), weights
     [H, W, K, 3] -> [H, W, K, C_j] leaves. host as in `interpolate`."""
     host = jax.default_backend() == "cpu" if host is None else host
+    corners, split = corner_values(tree, table)
+    return split(interpolate_corners(ids, weights.astype(corners.dtype), corners, host=host)[0])
+
+
+def corner_values(tree, table):
+    """(corners [T, 3, C] of all the [S, C_j] leaves of a pytree side by side, at the rows
+    of table [T, 3] int; a function that splits values [..., C] back into that pytree)."""
     leaves, treedef = jax.tree.flatten(tree)
     corners = jnp.take(jnp.concatenate(leaves, -1), table, axis=0)
-    values = interpolate_corners(ids, weights.astype(corners.dtype), corners, host=host)[0]
     splits = np.cumsum([leaf.shape[-1] for leaf in leaves])[:-1]
-    return treedef.unflatten(jnp.split(values, splits, -1))
+    return corners, lambda values: treedef.unflatten(jnp.split(values, splits, -1))
 
 
 def interpolate(attrs, faces, frags, host=None):

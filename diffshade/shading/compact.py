@@ -12,9 +12,12 @@ The indices of the active slots come from a compiled host kernel on the CPU back
 (`host=True`; diffshade.host.active_kernel through diffshade.host.hostcall): XLA on CPU
 runs `jnp.nonzero` as a cumulative sum and a scatter over all the slots (524,288 in a
 256^2, K = 8 render), which costs more than lighting the active slots; the kernel is one
-pass over the mask. There too, the gather of the active slots' barycentrics is `take_rows`,
-whose transpose (reverse mode puts the cotangents back into all the slots) runs as a
-compiled kernel in parallel; XLA's own is a zero fill and a scatter-add in one thread.
+pass over the mask. There too, Phong's interpolation reads the active slots' face ids and
+barycentrics at their positions itself (`interpolate_rows_at`, one compiled kernel, with
+on_active's `positions` and `whole`), and in its derivative the gather of the barycentrics
+is `take_rows`, whose transpose (reverse mode puts the cotangents back into all the slots)
+runs as a compiled kernel in parallel; XLA's own is a zero fill and a scatter-add in one
+thread.
 """
 
 import functools
@@ -28,9 +31,11 @@ from jax.extend import core as jex_core
 from jax.interpreters import ad, batching, mlir
 
 from diffshade.host import active_kernel
+from diffshade.host import fragment_kernels as kernels
 from diffshade.host.active_kernel import first_active
 from diffshade.host.fragment_kernels import chunks
 from diffshade.host.hostcall import host_call
+from diffshade.raster.interpolation import corner_values, interpolate_corners
 
 
 def active_indices(mask, capacity, host=None):
@@ -65,6 +70,54 @@ def put_rows(rows, idx, count, host=False, clip=False):
     if not host:
         return _put(rows, idx, count=count, clip=clip, host=False)
     return _put_p.bind(rows, idx, count=count, clip=clip)
+
+
+def interpolate_rows_at(tree, table, rows, ids, weights, host=None):
+    """interpolation.interpolate_rows at some fragments only: [M, C_j] leaves, the values
+    of the fragments at rows [M] int32 of ids [N] int32 (-1 = empty) and weights [N, 3];
+    the entries of rows in [0, N) must be distinct, the others read as empty. host: one
+    compiled kernel reads the face ids and weights at `rows` itself, with no gathered copy
+    of them (the gathers would cost as much as the interpolation); its derivatives are
+    those of the gathers followed by interpolate_rows (_interpolate_at_jvp). Else the
+    gathers in jax.numpy."""
+    host = jax.default_backend() == "cpu" if host is None else host
+    corners, split = corner_values(tree, table)
+    weights = weights.astype(corners.dtype)
+    if host:
+        return split(_interpolate_at(rows, ids, weights, corners))
+    ids_at, weights_at = _fragments_at(rows, ids, weights)
+    return split(interpolate_corners(ids_at[:, None], weights_at[:, None], corners,
+                                     host=False)[0][:, 0])
+
+
+def _fragments_at(rows, ids, weights):
+    """The face ids [M] (-1 at rows outside [0, N)) and weights [M, 3] of the fragments
+    at rows [M] (those of an end row where the face id is -1: they are not read)."""
+    inside = (rows >= 0) & (rows < ids.shape[0])
+    return (jnp.where(inside, jnp.take(ids, rows, mode="clip"), -1),
+            jnp.take(weights, rows, axis=0, mode="clip"))
+
+
+@jax.custom_jvp
+def _interpolate_at(rows, ids, weights, corners):
+    """interpolate_rows_at's values [M, C] by the compiled kernel, corners [F, 3, C]."""
+    shape = jax.ShapeDtypeStruct((rows.shape[0], corners.shape[2]), corners.dtype)
+    at = lambda *arrays: (kernels.interpolate_at(*arrays, chunks()),)
+    return host_call(at, (shape,), rows, ids, weights, corners, ffi=("interpolate_at", ()))[0]
+
+
+@_interpolate_at.defjvp
+def _interpolate_at_jvp(primals, tangents):
+    """The tangent of the gathers and the interpolation (linear primitives: take_rows and
+    interpolate_corners' jvp_p, whose transposes are put_rows and the interpolation's
+    backward kernel); the forward value by the kernel."""
+    rows, ids, weights, corners = primals
+    _, _, d_weights, d_corners = tangents
+    ids_at, weights_at = _fragments_at(rows, ids, weights)
+    d_at = take_rows(d_weights, rows, host=True, clip=False)
+    tangent, = interpolate_corners.prims["jvp"].bind(ids_at[:, None], weights_at[:, None],
+                                                     corners, d_at[:, None], d_corners)
+    return _interpolate_at(rows, ids, weights, corners), tangent[:, 0]
 
 
 def _take(x, idx, *, clip):
@@ -144,10 +197,14 @@ for _prim, _impl, _shape, _transpose, _batch in (
     batching.primitive_batchers[_prim] = _batch
 
 
-def on_active(fn, active, capacity, *arrays, axis_name=None, host=None):
+def on_active(fn, active, capacity, *arrays, axis_name=None, host=None, positions=False,
+              whole=()):
     """fn(*arrays) -> pytree of [N, ...] arrays, for arrays [*S, ...] and active [*S] bool
     (N = prod(S)); returns the pytree reshaped to [*S, ...]. Entries where `active` is
-    False are 0 or fn's value (the caller must not depend on them).
+    False are 0 or fn's value (the caller must not depend on them). positions: fn takes
+    first the positions among the N of the entries it is given, [M] int32 (the active
+    ones, padded with N, or all; no gather of an index array). whole: more arrays [*S, ...], handed
+    to fn after the others as [N, ...], whole (fn reads them at its positions itself).
 
     capacity: an int, or a tuple of ints in ascending order (tiers): fn runs on the
     smallest tier that holds the active entries (`lax.switch` picks at run time; each tier
@@ -160,31 +217,38 @@ def on_active(fn, active, capacity, *arrays, axis_name=None, host=None):
     host = jax.default_backend() == "cpu" if host is None else host
     shape = active.shape
     n = active.size
-    flat = [a.reshape((n,) + a.shape[len(shape):]) for a in arrays]
+    flat = [a.reshape((n,) + a.shape[len(shape):]) for a in arrays + tuple(whole)]
     tiers = tuple(c for c in (capacity if isinstance(capacity, tuple) else (capacity,))
                   if c < n)
     if not tiers:
-        return jax.tree.map(lambda o: o.reshape(shape + o.shape[1:]), fn(*flat))
+        everywhere = (jnp.arange(n, dtype=jnp.int32),) if positions else ()
+        return jax.tree.map(lambda o: o.reshape(shape + o.shape[1:]), fn(*everywhere, *flat))
     idx, count = active_indices(jax.lax.stop_gradient(active).reshape(n), tiers[-1], host)
+    rows = (positions, len(whole))
     if len(tiers) == 1:
-        out = _on_tiers(lambda size: fn, tiers, axis_name, idx, count, flat, host)
+        out = _on_tiers(lambda size: fn, tiers, axis_name, idx, count, flat, host, rows)
     else:
-        out = _forward_tiers(fn, tiers, axis_name, idx, count, flat, host)
+        out = _forward_tiers(fn, tiers, axis_name, idx, count, flat, host, rows)
     return jax.tree.map(lambda o: o.reshape(shape + o.shape[1:]), out)
 
 
-def _on_tiers(fn, tiers, axis_name, idx, count, flat, host):
+def _on_tiers(fn, tiers, axis_name, idx, count, flat, host, rows=(False, 0)):
     """fn on the first `size` of the active entries' indices idx (padded with N) for the
     smallest size in tiers that holds all `count`, scattered back to N rows; or on every
     row when none does. fn(size): the function for `size` rows (N: every row). host: the
-    float arrays are gathered by take_rows' primitive."""
+    float arrays are gathered by take_rows' primitive. rows: (on_active's positions, how
+    many of the last flat arrays are its `whole`)."""
     n = flat[0].shape[0]
+    positions, whole = rows
 
     def compacted(size):
         def branch(flat):
             part = idx[:size]
-            out = fn(size)(*[take_rows(a, part, host and jnp.issubdtype(a.dtype, jnp.inexact))
-                             for a in flat])
+            where = (part,) if positions else ()
+            gathered = flat[:len(flat) - whole]
+            out = fn(size)(*where, *[take_rows(a, part, host and jnp.issubdtype(a.dtype,
+                                                                                 jnp.inexact))
+                                     for a in gathered], *flat[len(gathered):])
             # the padding (N) is dropped. XLA's scatter-set (its zero fill apart) costs
             # no more than the kernel here, and the forward pass then compiles no kernel
             return jax.tree.map(lambda o: put_rows(o, part, n), out)
@@ -195,7 +259,8 @@ def _on_tiers(fn, tiers, axis_name, idx, count, flat, host):
         # branches, zeros for the branch not taken; this branch has many residual
         # arrays of N rows, which every call of the compacted branch would write as zeros.
         # Checkpointed, it keeps only its operands and recomputes the rest when taken.
-        return jax.checkpoint(fn(n))(*flat)
+        everywhere = (jnp.arange(n, dtype=jnp.int32),) if positions else ()
+        return jax.checkpoint(fn(n))(*everywhere, *flat)
 
     # the smallest tier that holds them all; len(tiers): none does
     tier = sum((count > size).astype(jnp.int32) for size in tiers)
@@ -204,25 +269,29 @@ def _on_tiers(fn, tiers, axis_name, idx, count, flat, host):
     return jax.lax.switch(tier, [compacted(size) for size in tiers] + [everywhere], flat)
 
 
-def _forward_tiers(fn, tiers, axis_name, idx, count, flat, host):
+def _forward_tiers(fn, tiers, axis_name, idx, count, flat, host, rows=(False, 0)):
     """_on_tiers with every tier in the forward pass, and only the largest (and
     everywhere) in a derivative: under reverse mode a `lax.switch` keeps the residuals of
     every branch (zeros for those that did not run), and the tiers' residuals differ in
     shape, so each more tier would add its own to the memory and the work of a forward +
     backward. fn's closure (every value it closes over, the integer ones included) is
     passed across the custom_jvp boundary explicitly: fn is traced once per number of
-    rows, and its jaxpr's constants become arguments."""
+    rows, and its jaxpr's constants become arguments. rows: as _on_tiers'."""
     sizes = tiers + (flat[0].shape[0],)
-    traced = {size: jax.make_jaxpr(fn, return_shape=True)(*[a[:size] for a in flat])
-              for size in sizes}
+    positions, whole = rows
+    where = lambda size: (jax.ShapeDtypeStruct((size,), jnp.int32),) if positions else ()
+    gathered = len(flat) - whole
+    traced = {size: jax.make_jaxpr(fn, return_shape=True)(
+        *where(size), *[a[:size] for a in flat[:gathered]], *flat[gathered:])
+        for size in sizes}
 
     def run(tiers, consts, idx, count, flat):
-        def rows(size):
+        def sized(size):
             program, shapes = traced[size]
             call = jex_core.jaxpr_as_fun(jex_core.ClosedJaxpr(program.jaxpr, consts[size]))
             return lambda *arrays: jax.tree.unflatten(jax.tree.structure(shapes),
                                                       call(*arrays))
-        return _on_tiers(rows, tiers, axis_name, idx, count, flat, host)
+        return _on_tiers(sized, tiers, axis_name, idx, count, flat, host, rows)
 
     @jax.custom_jvp
     def tiered(consts, idx, count, flat):

@@ -29,6 +29,7 @@ from diffshade.numerics import safe_normalize
 from diffshade.raster.fragments import face_edge_coefficients
 from diffshade.raster.interpolation import interpolate_rows
 from diffshade.scene.materials import has_textures
+from diffshade.shading.compact import interpolate_rows_at
 
 
 @jax.tree_util.register_dataclass
@@ -107,16 +108,39 @@ def phong_samples(scene, proj, face_ids, bary, front, host=None, points=True):
     viewer) only the normals are interpolated, and the points are NaN, so that a use
     would show in the image; the interpolation forward and backward then carry three
     columns fewer, and the backward no zeros for the points."""
-    textured = uses_uv(scene)
-    attrs = ((proj.world,) if points else ()) + (proj.normals,) + (
-        (scene.mesh.uv,) if textured else ())
+    attrs = _phong_attributes(scene, proj, points)
     values = interpolate_rows(attrs, scene.mesh.faces, face_ids, bary, host)
+    return _phong_from(scene, values, face_ids, front, points)
+
+
+def phong_samples_at(scene, proj, rows, face_ids, bary, front, host=None, points=True):
+    """phong_samples of the fragments at rows [M] int32 of face ids [N] and barycentrics
+    [N, 3] (flat), with their sides front [M]: [M, ...] samples. The interpolation reads
+    the fragments at `rows` itself (compact.interpolate_rows_at)."""
+    attrs = _phong_attributes(scene, proj, points)
+    values = interpolate_rows_at(attrs, scene.mesh.faces, rows, face_ids, bary, host)
+    needs_ids = scene.objects is not None or uses_uv(scene)
+    ids = jnp.take(face_ids, rows, mode="fill", fill_value=-1) if needs_ids else None
+    return _phong_from(scene, values, ids, front, points)
+
+
+def _phong_attributes(scene, proj, points):
+    """The vertex attributes Phong interpolates: positions (where `points`), normals (and
+    UVs)."""
+    return (((proj.world,) if points else ()) + (proj.normals,)
+            + ((scene.mesh.uv,) if uses_uv(scene) else ()))
+
+
+def _phong_from(scene, values, face_ids, front, points):
+    """Phong's Samples from the interpolated ([points,] normals[, uv]) of fragments of face
+    ids face_ids (read only by a scene of several objects, or with textures); NaN points
+    where not `points`."""
     if not points:
         values = (jnp.full_like(values[0], jnp.nan),) + tuple(values)
     points, normals, *uv = values
     normals = _oriented(safe_normalize(normals), front, scene.two_sided)
     return Samples(points, normals, front, object_ids(scene, True, face_ids), *uv,
-                   valid=face_ids >= 0 if textured else None)
+                   valid=face_ids >= 0 if uses_uv(scene) else None)
 
 
 def _phong(scene, proj, frags, host, points):
