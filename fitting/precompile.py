@@ -108,7 +108,7 @@ def precompile(dataset) -> None:
     """Compile (and run once) the programs `diffshade fit DATASET` runs with its default
     options on `dataset` (a fitting.Dataset)'s geometry (module docstring); its targets
     are not read."""
-    # the fit's modules: neither synth nor the fit's wait_for_background imports them here
+    # the fit's modules: neither synth nor the fit's await_background imports them here
     from fitting.data.views import material_for
     from fitting.driver import fit_result
     from fitting.inputs import fit_spec
