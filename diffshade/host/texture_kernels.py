@@ -17,9 +17,11 @@ coordinates and weights are computed in float64, the blend in the texels' dtype.
 Every read is in range whatever the UV: a coordinate that is not finite (NaN, or an
 infinite one under 'repeat') reads texel 0 of its axis with weight NaN, so the value is
 NaN, as in the jax.numpy lookup; an offset whose texture would end past the texels reads
-nothing (zeros). Kernels split the samples into `chunks` parts run in parallel, and each
-part into blocks (_BLOCK); the backward kernel accumulates the texels' gradient in one
-buffer per part (no races).
+nothing (zeros). Kernels split the samples into blocks (_BLOCK), dealt in turn to
+`chunks` parts run in parallel: a part's blocks are spread over the samples, so that the
+parts do the same work where the samples that read a texture come first (the compacted
+active slots: one part would have them all); the backward kernel accumulates the texels'
+gradient in one buffer per part (no races).
 """
 
 import numba
@@ -169,10 +171,9 @@ def _uv_gradient(texels, g_out, scratch, g_uv):
 
 
 @numba.njit(cache=True, nogil=True)
-def _chunk(chunk, chunks, n):
-    """The sample range [start, stop) of one of `chunks` equal parts."""
-    step = (n + chunks - 1) // chunks
-    return chunk * step, min(n, (chunk + 1) * step)
+def _block(block, n):
+    """The sample range [lo, hi) of block number `block` of n samples."""
+    return block * _BLOCK, min(n, (block + 1) * _BLOCK)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -189,9 +190,8 @@ def sample_forward_into(ids, uv, texels, height, width, clamp, chunks, out):
     n, nc = ids.shape[0], texels.shape[1]
     for chunk in prange(chunks):
         scratch = _scratch(texels.dtype)
-        start, stop = _chunk(chunk, chunks, n)
-        for lo in range(start, stop, _BLOCK):
-            hi = min(lo + _BLOCK, stop)
+        for block in range(chunk, (n + _BLOCK - 1) // _BLOCK, chunks):
+            lo, hi = _block(block, n)
             if not _block_cells(ids, uv, lo, hi, height, width, clamp, texels.shape[0],
                                 scratch):  # none reads a texture (the compacted tail)
                 out[lo:hi] = 0.0
@@ -218,19 +218,20 @@ def sample_backward_into(ids, uv, texels, g_out, height, width, clamp, uv_grad, 
                          g_texels):
     """sample_backward writing every element of g_uv and g_texels."""
     n, nc = ids.shape[0], texels.shape[1]
-    acc = np.zeros((chunks,) + texels.shape, texels.dtype)
+    acc = np.empty((chunks,) + texels.shape, texels.dtype)
     for chunk in prange(chunks):
-        scratch = _scratch(texels.dtype)
-        start, stop = _chunk(chunk, chunks, n)
-        for lo in range(start, stop, _BLOCK):
-            hi = min(lo + _BLOCK, stop)
-            # none reads a texture (the compacted tail): nothing to scatter
+        part, scratch = acc[chunk], _scratch(texels.dtype)
+        part[:] = 0.0  # here, not before the loop: the parts in parallel
+        for block in range(chunk, (n + _BLOCK - 1) // _BLOCK, chunks):
+            lo, hi = _block(block, n)
+            # count: how many of the block's samples read a texture (none in the
+            # compacted tail: nothing to scatter)
             count = _block_cells(ids, uv, lo, hi, height, width, clamp, texels.shape[0],
                                  scratch)
             if count and nc == 3:  # as in the forward
-                _scatter(acc[chunk], g_out[lo:hi], scratch, 3)
+                _scatter(part, g_out[lo:hi], scratch, 3)
             elif count:
-                _scatter(acc[chunk], g_out[lo:hi], scratch, nc)
+                _scatter(part, g_out[lo:hi], scratch, nc)
             if uv_grad and count:
                 _uv_gradient(texels, g_out[lo:hi], scratch, g_uv[lo:hi])
             else:
