@@ -99,6 +99,9 @@ def _cells(ids, uv, height, width, clamp, total, rows, weights, cell):
 def _block_cells(ids, uv, lo, hi, height, width, clamp, total, scratch):
     """_cells of the samples [lo, hi), with `clamp` a constant in each loop (no branch in
     the loop); uv [M, 2]. Returns how many read a texture."""
+    # slices indexed from 0 (an index lo + j could be negative to numba: a wraparound
+    # select per read), and the UVs flat (uv[j, 0] strides by a row length known only at
+    # run time, which LLVM versions on being 1: the vector loop never ran)
     ids, uv = ids[lo:hi], uv.reshape(-1)[2 * lo:2 * hi]
     rows, weights, cell = scratch
     if clamp:
