@@ -5,6 +5,7 @@ NumPy loops; interpolate_rows_at (host: the compiled kernel reading the fragment
 against a loop and, for its derivatives, central differences."""
 
 import jax
+import jax.extend.core as jex_core
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -77,6 +78,36 @@ def test_values_and_gradients_at_active_entries(capacity, host):
     g_want = jax.grad(lambda x, y: loss(x, y, False), argnums=(0, 1))(x, y)
     for a, b in zip(g_got, g_want, strict=True):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-14)
+
+
+def _add_shapes(jaxpr):
+    """Output shapes of the add_any equations of a jaxpr, sub-jaxprs included."""
+    shapes = []
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name == "add_any":
+            shapes.append(eqn.outvars[0].aval.shape)
+        for param in eqn.params.values():
+            for sub in param if isinstance(param, (list, tuple)) else [param]:
+                if isinstance(sub, (jex_core.ClosedJaxpr, jex_core.Jaxpr)):
+                    shapes += _add_shapes(getattr(sub, "jaxpr", sub))
+    return shapes
+
+
+def test_a_value_fn_closes_over_reaches_the_tiers_once():
+    """An array fn closes over (a texture, in the renders) is one operand of the tiers,
+    not one per tier: its gradient is one array, not one per tier summed; and it is
+    right."""
+    x, y, flag, active = _inputs(0.4)
+    weight = jnp.asarray(np.random.default_rng(2).normal(size=(7, 3)))
+
+    def loss(w, compact):
+        fn = lambda x: jnp.sin(x) * jnp.sum(w, 0)  # linear in w: its own VJP adds nothing
+        out = on_active(fn, active, (40, 60), x) if compact else fn(x)
+        return jnp.sum(jnp.where(active[..., None], out, 0.0))
+    grad = jax.grad(lambda w: loss(w, True))
+    assert weight.shape not in _add_shapes(jax.make_jaxpr(grad)(weight).jaxpr)
+    np.testing.assert_allclose(jax.jit(grad)(weight), jax.grad(lambda w: loss(w, False))(
+        weight), rtol=1e-12)
 
 
 def test_inactive_entries_are_zero_when_compacted():

@@ -12,97 +12,171 @@ into one call), -1 for no sample (zeros, no gradient); uv [M, 2] (v = 0 at the i
 bottom row); `height`, `width` the texture's size, so a texture is the rows [offset,
 offset + height * width) of texels, row-major from the image's top row. `clamp`: the
 wrap, True for 'clamp' (edge texels), False for 'repeat' (u and v modulo 1). The texel
-coordinates are computed in float64, the blend in the texels' dtype.
+coordinates and weights are computed in float64, the blend in the texels' dtype.
 
 Every read is in range whatever the UV: a coordinate that is not finite (NaN, or an
 infinite one under 'repeat') reads texel 0 of its axis with weight NaN, so the value is
 NaN, as in the jax.numpy lookup; an offset whose texture would end past the texels reads
-nothing (zeros). Kernels split the samples into `chunks` parts run in parallel; the
-backward kernel accumulates the texels' gradient in one buffer per part (no races).
+nothing (zeros). Kernels split the samples into blocks (_BLOCK), dealt in turn to
+`chunks` parts run in parallel: a part's blocks are spread over the samples, so that the
+parts do the same work where the samples that read a texture come first (the compacted
+active slots: one part would have them all); the backward kernel accumulates the texels'
+gradient in one buffer per part (no races).
 """
 
 import numba
 import numpy as np
 from numba import prange
 
+#: samples per block: a block's cells (texel rows and weights) are computed in one loop
+#: over the block, which LLVM vectorizes (several samples per instruction: one at a time,
+#: the coordinates' arithmetic took most of the lookup's time), into scratch rows that
+#: stay in the L1 cache; then the block is blended or scattered
+_BLOCK = 256
+#: a block's scratch (_scratch) is three flat buffers of rows _BLOCK long, at offsets that
+#: are constant multiples of _BLOCK (so LLVM sees that the rows do not overlap): int32 the
+#: four texel rows of each sample (top-left, top-right, bottom-left, bottom-right) and
+#: whether it reads a texture (_VALID); in the texels' dtype the four bilinear weights;
+#: float64 the weights of the next texels along u and v (_FX, _FY) and their slopes
+#: d fx / d u and d fy / d v (_SU, _SV)
+_VALID = 4
+_FX, _FY, _SU, _SV = 0, 1, 2, 3
+
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _axis(coord, size, clamp):
     """(index of the texel at or before coord, index of the next one, the next one's
     weight, d weight / d coord) along an axis of `size` texels, texel centres at integers:
-    wrapped modulo size ('repeat') or clamped to the edge texels ('clamp')."""
+    wrapped modulo size ('repeat') or clamped to the edge texels ('clamp'). Selects, no
+    branches: the loop over a block vectorizes."""
+    fsize = float(size)
     if clamp:
-        if coord > size - 1.0:
-            return size - 1, size - 1, 0.0, 0.0
-        if coord < 0.0:
-            return 0, 0, 0.0, 0.0
-        if coord != coord:  # NaN: a NaN weight, in-range reads
-            return 0, 0, np.nan, 1.0
-    elif not (coord >= 0.0 and coord < size):  # (the modulo only where it changes coord)
-        coord = coord - size * np.floor(coord / size)
-        # the modulo of a tiny negative number rounds to size itself: that is texel 0
-        if coord >= size:
-            coord -= size
-        if not (coord >= 0.0 and coord < size):  # NaN or infinite: as above
-            return 0, 0, np.nan, 1.0
-    low = int(coord)
-    nxt = low + 1
-    if nxt == size:
-        nxt = 0 if not clamp else low
-    return low, nxt, coord - low, 1.0
+        above, below, nan = coord > fsize - 1.0, coord < 0.0, coord != coord
+        c = fsize - 1.0 if above else coord
+        c = 0.0 if below | nan else c
+        low = int(c)
+        nxt = low if (low + 1 == size) | above | below | nan else low + 1
+        # NaN: a NaN weight, in-range reads
+        return low, nxt, np.nan if nan else c - low, 0.0 if above | below else 1.0
+    # the modulo only where it changes coord; that of a tiny negative number rounds to
+    # size itself: that is texel 0
+    c = coord if (coord >= 0.0) & (coord < fsize) else coord - fsize * np.floor(coord / fsize)
+    c = c - fsize if c >= fsize else c
+    ok = (c >= 0.0) & (c < fsize)  # else NaN or infinite: as NaN above
+    c = c if ok else 0.0
+    low = int(c)
+    nxt = 0 if low + 1 == size else low + 1
+    return low, nxt if ok else low, c - low if ok else np.nan, 1.0
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _cell(u, v, height, width, clamp):
-    """The four texel rows of a sample at (u, v) in one texture, top-left, top-right,
-    bottom-left, bottom-right (relative to its offset), its weights (fx, fy) and their
-    slopes d fx / d u and d fy / d v."""
-    x0, x1, fx, sx = _axis(u * width - 0.5, width, clamp)
-    y0, y1, fy, sy = _axis((1.0 - v) * height - 0.5, height, clamp)
-    return (y0 * width + x0, y0 * width + x1, y1 * width + x0, y1 * width + x1, fx, fy,
-            sx * width, -sy * height)
+def _cells(ids, uv, height, width, clamp, total, rows, weights, cell):
+    """The cells of a block's samples, ids [n] and uv [2 n] (flat: u, v, u, ...), into the
+    block's scratch (rows, weights, cell: see _VALID). A sample reads a texture where its
+    offset is not -1 and the texture ends within `total` texels; else its rows are 0.
+    Returns how many do."""
+    area, count = height * width, 0
+    for j in range(ids.shape[0]):
+        base = ids[j]
+        valid = (base >= 0) & (base + area <= total)
+        base = base if valid else 0
+        x0, x1, fx, sx = _axis(uv[2 * j] * width - 0.5, width, clamp)
+        y0, y1, fy, sy = _axis((1.0 - uv[2 * j + 1]) * height - 0.5, height, clamp)
+        top, bottom = base + y0 * width, base + y1 * width
+        rows[j], rows[_BLOCK + j] = top + x0, top + x1
+        rows[2 * _BLOCK + j], rows[3 * _BLOCK + j] = bottom + x0, bottom + x1
+        rows[_VALID * _BLOCK + j] = valid
+        count += valid
+        gx, gy = 1.0 - fx, 1.0 - fy
+        weights[j], weights[_BLOCK + j] = gy * gx, gy * fx
+        weights[2 * _BLOCK + j], weights[3 * _BLOCK + j] = fy * gx, fy * fx
+        cell[_FX * _BLOCK + j], cell[_FY * _BLOCK + j] = fx, fy
+        cell[_SU * _BLOCK + j], cell[_SV * _BLOCK + j] = sx * width, -sy * height
+    return count
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _block_cells(ids, uv, lo, hi, height, width, clamp, total, scratch):
+    """_cells of the samples [lo, hi), with `clamp` a constant in each loop (no branch in
+    the loop); uv [M, 2]. Returns how many read a texture."""
+    # slices indexed from 0 (an index lo + j could be negative to numba: a wraparound
+    # select per read), and the UVs flat (uv[j, 0] strides by a row length known only at
+    # run time, which LLVM versions on being 1: the vector loop never ran)
+    ids, uv = ids[lo:hi], uv.reshape(-1)[2 * lo:2 * hi]
+    rows, weights, cell = scratch
+    if clamp:
+        return _cells(ids, uv, height, width, True, total, rows, weights, cell)
+    return _cells(ids, uv, height, width, False, total, rows, weights, cell)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _offset(ids, i, area, total):
-    """Sample i's texture offset, or -1 where it has none or it would end past `total`."""
-    base = ids[i]
-    return base if base >= 0 and base + area <= total else -1
+def _scratch(dtype):
+    """A block's scratch for _cells: (rows, weights, cell), see _VALID."""
+    return (np.empty(5 * _BLOCK, np.int32), np.empty(4 * _BLOCK, dtype),
+            np.empty(4 * _BLOCK, np.float64))
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _weights(weights, gx, gy, fx, fy):
-    """The four texels' bilinear weights in the texels' dtype, through `weights` [4] of
-    that dtype: float32 products and sums of float32 texels run faster than float64 ones
-    (and a float64 weight would promote them)."""
-    weights[0], weights[1], weights[2], weights[3] = gy * gx, gy * fx, fy * gx, fy * fx
-    return weights[0], weights[1], weights[2], weights[3]
+def _corners(scratch, j):
+    """Sample j's texel rows (4) and weights (4) from its block's scratch."""
+    rows, weights, _ = scratch
+    return (rows[j], rows[_BLOCK + j], rows[2 * _BLOCK + j], rows[3 * _BLOCK + j],
+            weights[j], weights[_BLOCK + j], weights[2 * _BLOCK + j], weights[3 * _BLOCK + j])
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _blend(out, i, texels, rows, w, nc):
-    """out[i] = the four texel rows [4] blended by their weights w [4], nc channels."""
-    for ch in range(nc):
-        out[i, ch] = (w[0] * texels[rows[0], ch] + w[1] * texels[rows[1], ch]
-                      + w[2] * texels[rows[2], ch] + w[3] * texels[rows[3], ch])
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _blend(texels, scratch, out, nc):
+    """out [n, nc] = each sample's four texel rows blended by their weights (0 where it
+    reads no texture)."""
+    valid = scratch[0][_VALID * _BLOCK:]
+    for j in range(out.shape[0]):
+        a, b, c, d, w0, w1, w2, w3 = _corners(scratch, j)
+        for ch in range(nc):
+            value = (w0 * texels[a, ch] + w1 * texels[b, ch] + w2 * texels[c, ch]
+                     + w3 * texels[d, ch])
+            out[j, ch] = value if valid[j] else 0.0
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _scatter(acc, g_out, i, rows, w, nc):
-    """Sample i's cotangent g_out[i] into the four texel rows of acc by their weights."""
-    for ch in range(nc):
-        g = g_out[i, ch]
-        acc[rows[0], ch] += w[0] * g
-        acc[rows[1], ch] += w[1] * g
-        acc[rows[2], ch] += w[2] * g
-        acc[rows[3], ch] += w[3] * g
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _scatter(acc, g_out, scratch, nc):
+    """Each sample's cotangent g_out [n, nc] into its four texel rows of acc by their
+    weights (none where it reads no texture)."""
+    valid = scratch[0][_VALID * _BLOCK:]
+    for j in range(g_out.shape[0]):
+        if not valid[j]:
+            continue
+        a, b, c, d, w0, w1, w2, w3 = _corners(scratch, j)
+        for ch in range(nc):
+            g = g_out[j, ch]
+            acc[a, ch] += w0 * g
+            acc[b, ch] += w1 * g
+            acc[c, ch] += w2 * g
+            acc[d, ch] += w3 * g
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _uv_gradient(texels, g_out, scratch, g_uv):
+    """g_uv [n, 2]: the gradient of each sample's value (cotangent g_out [n, C]) with
+    respect to its UV (0 where it reads no texture)."""
+    valid, cell = scratch[0][_VALID * _BLOCK:], scratch[2]
+    for j in range(g_uv.shape[0]):
+        a, b, c, d = _corners(scratch, j)[:4]
+        fx, fy = cell[_FX * _BLOCK + j], cell[_FY * _BLOCK + j]
+        gx, gy = 1.0 - fx, 1.0 - fy
+        du = dv = 0.0
+        for ch in range(texels.shape[1]):
+            g = g_out[j, ch]
+            t00, t01, t10, t11 = texels[a, ch], texels[b, ch], texels[c, ch], texels[d, ch]
+            du += g * (gy * (t01 - t00) + fy * (t11 - t10))
+            dv += g * (gx * (t10 - t00) + fx * (t11 - t01))
+        g_uv[j, 0] = du * cell[_SU * _BLOCK + j] if valid[j] else 0.0
+        g_uv[j, 1] = dv * cell[_SV * _BLOCK + j] if valid[j] else 0.0
 
 
 @numba.njit(cache=True, nogil=True)
-def _chunk(chunk, chunks, n):
-    """The sample range [start, stop) of one of `chunks` equal parts."""
-    step = (n + chunks - 1) // chunks
-    return chunk * step, min(n, (chunk + 1) * step)
+def _block(block, n):
+    """The sample range [lo, hi) of block number `block` of n samples."""
+    return block * _BLOCK, min(n, (block + 1) * _BLOCK)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -117,23 +191,17 @@ def sample_forward(ids, uv, texels, height, width, clamp, chunks):
 def sample_forward_into(ids, uv, texels, height, width, clamp, chunks, out):
     """sample_forward writing every element of out [M, C]."""
     n, nc = ids.shape[0], texels.shape[1]
-    area, total = height * width, texels.shape[0]
     for chunk in prange(chunks):
-        weights = np.empty(4, texels.dtype)
-        start, stop = _chunk(chunk, chunks, n)
-        for i in range(start, stop):
-            base = _offset(ids, i, area, total)
-            if base < 0:
-                for ch in range(nc):
-                    out[i, ch] = 0.0
-                continue
-            t00, t01, t10, t11, fx, fy, _, _ = _cell(uv[i, 0], uv[i, 1], height, width, clamp)
-            rows = base + t00, base + t01, base + t10, base + t11
-            w = _weights(weights, 1.0 - fx, 1.0 - fy, fx, fy)
-            if nc == 3:  # RGB, the common case: a loop of constant length, unrolled
-                _blend(out, i, texels, rows, w, 3)
+        scratch = _scratch(texels.dtype)
+        for block in range(chunk, (n + _BLOCK - 1) // _BLOCK, chunks):
+            lo, hi = _block(block, n)
+            if not _block_cells(ids, uv, lo, hi, height, width, clamp, texels.shape[0],
+                                scratch):  # none reads a texture (the compacted tail)
+                out[lo:hi] = 0.0
+            elif nc == 3:  # RGB, the common case: a loop of constant length, unrolled
+                _blend(texels, scratch, out[lo:hi], 3)
             else:
-                _blend(out, i, texels, rows, w, nc)
+                _blend(texels, scratch, out[lo:hi], nc)
     return out
 
 
@@ -153,35 +221,24 @@ def sample_backward_into(ids, uv, texels, g_out, height, width, clamp, uv_grad, 
                          g_texels):
     """sample_backward writing every element of g_uv and g_texels."""
     n, nc = ids.shape[0], texels.shape[1]
-    area, total = height * width, texels.shape[0]
-    acc = np.zeros((chunks,) + texels.shape, texels.dtype)
+    acc = np.empty((chunks,) + texels.shape, texels.dtype)
     for chunk in prange(chunks):
-        weights = np.empty(4, texels.dtype)
-        part = acc[chunk]
-        start, stop = _chunk(chunk, chunks, n)
-        for i in range(start, stop):
-            base = _offset(ids, i, area, total)
-            if base < 0:
-                g_uv[i, 0] = g_uv[i, 1] = 0.0
-                continue
-            t00, t01, t10, t11, fx, fy, su, sv = _cell(uv[i, 0], uv[i, 1], height, width,
-                                                       clamp)
-            t00, t01, t10, t11 = base + t00, base + t01, base + t10, base + t11
-            gx, gy = 1.0 - fx, 1.0 - fy
-            w = _weights(weights, gx, gy, fx, fy)
-            if nc == 3:  # as in the forward
-                _scatter(part, g_out, i, (t00, t01, t10, t11), w, 3)
+        part, scratch = acc[chunk], _scratch(texels.dtype)
+        part[:] = 0.0  # here, not before the loop: the parts in parallel
+        for block in range(chunk, (n + _BLOCK - 1) // _BLOCK, chunks):
+            lo, hi = _block(block, n)
+            # count: how many of the block's samples read a texture (none in the
+            # compacted tail: nothing to scatter)
+            count = _block_cells(ids, uv, lo, hi, height, width, clamp, texels.shape[0],
+                                 scratch)
+            if count and nc == 3:  # as in the forward
+                _scatter(part, g_out[lo:hi], scratch, 3)
+            elif count:
+                _scatter(part, g_out[lo:hi], scratch, nc)
+            if uv_grad and count:
+                _uv_gradient(texels, g_out[lo:hi], scratch, g_uv[lo:hi])
             else:
-                _scatter(part, g_out, i, (t00, t01, t10, t11), w, nc)
-            du = dv = 0.0
-            if uv_grad:
-                for ch in range(nc):
-                    g = g_out[i, ch]
-                    a, b = texels[t00, ch], texels[t01, ch]
-                    c, d = texels[t10, ch], texels[t11, ch]
-                    du += g * (gy * (b - a) + fy * (d - c))
-                    dv += g * (gx * (c - a) + fx * (d - b))
-            g_uv[i, 0], g_uv[i, 1] = du * su, dv * sv
+                g_uv[lo:hi] = 0.0
     _sum_parts(acc, g_texels)
 
 

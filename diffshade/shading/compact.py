@@ -285,10 +285,20 @@ def _forward_tiers(fn, tiers, axis_name, idx, count, flat, host, rows=(False, 0)
         *where(size), *[a[:size] for a in flat[:gathered]], *flat[gathered:])
         for size in sizes}
 
+    # the constants the tiers share (the values fn closes over: a texture, say) go across
+    # once: a value given twice would get two cotangents, each its own array, then summed
+    shared, slots = [], {}
+    for const in (c for size in sizes for c in traced[size][0].consts):
+        if id(const) not in slots:
+            slots[id(const)] = len(shared)
+            shared.append(const)
+    picks = {size: [slots[id(c)] for c in traced[size][0].consts] for size in sizes}
+
     def run(tiers, consts, idx, count, flat):
         def sized(size):
             program, shapes = traced[size]
-            call = jex_core.jaxpr_as_fun(jex_core.ClosedJaxpr(program.jaxpr, consts[size]))
+            call = jex_core.jaxpr_as_fun(jex_core.ClosedJaxpr(
+                program.jaxpr, [consts[i] for i in picks[size]]))
             return lambda *arrays: jax.tree.unflatten(jax.tree.structure(shapes),
                                                       call(*arrays))
         return _on_tiers(sized, tiers, axis_name, idx, count, flat, host, rows)
@@ -300,4 +310,4 @@ def _forward_tiers(fn, tiers, axis_name, idx, count, flat, host, rows=(False, 0)
     @tiered.defjvp
     def tiered_jvp(primals, tangents):
         return jax.jvp(functools.partial(run, tiers[-1:]), primals, tangents)
-    return tiered({size: traced[size][0].consts for size in sizes}, idx, count, flat)
+    return tiered(shared, idx, count, flat)
