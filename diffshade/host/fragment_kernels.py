@@ -21,9 +21,10 @@ gradients in one buffer per part (no races), summed at the end.
 
 Every division is `safe_div` semantics (numerics.py): num / den where |den| > tiny,
 0 (and zero gradient) elsewhere. The geometry kernels multiply by reciprocals instead of
-dividing (`_inv`): one per fragment and sum, and per face those of the corners' W and of
-the edges' squared lengths, because a division costs many times a multiplication and a
-fragment would otherwise need a dozen or more. What they read of a face sits in one
+dividing (`_inv`): one per fragment (the soft forward needs only the sign of its first
+sum, _soft_bary), and per face those of the corners' W and of the edges' squared
+lengths, because a division costs many times a multiplication and a fragment would
+otherwise need a dozen or more. What they read of a face sits in one
 float64 row (`_face_table`, built once per call), and the pixel coordinates come from
 per-row and per-column tables (`_pixel_coords`).
 """
