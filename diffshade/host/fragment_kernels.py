@@ -48,8 +48,9 @@ def _inv(den, tiny):
 #: a row of _face_table: the edge coefficients [3, 3] (row-major) at _COEFFS, the corners'
 #: clip W [3] at _CW and their reciprocals [3] at _INV_W, then per edge i (from corner i to
 #: corner i+1 mod 3) _EDGE_WIDTH values from _EDGES + i * _EDGE_WIDTH: its start (ax, ay),
-#: its vector (ex, ey) = b - a and 1 / |e|^2; then the corners' eye-space depth [3] at _CZ
-_COEFFS, _CW, _INV_W, _EDGES, _EDGE_WIDTH, _CZ, _TABLE_WIDTH = 0, 9, 12, 15, 5, 30, 33
+#: its vector (ex, ey) = b - a and that vector over its squared length, e / |e|^2; then
+#: the corners' eye-space depth [3] at _CZ
+_COEFFS, _CW, _INV_W, _EDGES, _EDGE_WIDTH, _CZ, _TABLE_WIDTH = 0, 9, 12, 15, 6, 33, 36
 
 
 @numba.njit(cache=True, nogil=True)
@@ -72,7 +73,8 @@ def _face_table(corner_w, corner_z, coeffs, scr, tiny):
             edge = _EDGES + i * _EDGE_WIDTH
             table[f, edge], table[f, edge + 1] = scr[f, i, 0], scr[f, i, 1]
             table[f, edge + 2], table[f, edge + 3] = ex, ey
-            table[f, edge + 4] = _inv(ex * ex + ey * ey, tiny)
+            inv = _inv(ex * ex + ey * ey, tiny)
+            table[f, edge + 4], table[f, edge + 5] = ex * inv, ey * inv
     return table
 
 
@@ -127,7 +129,7 @@ def _segment(px, py, table, f, i):
     d = p - a - t e."""
     edge = _EDGES + i * _EDGE_WIDTH
     ax, ay, ex, ey = table[f, edge], table[f, edge + 1], table[f, edge + 2], table[f, edge + 3]
-    t = min(max(((px - ax) * ex + (py - ay) * ey) * table[f, edge + 4], 0.0), 1.0)
+    t = min(max((px - ax) * table[f, edge + 4] + (py - ay) * table[f, edge + 5], 0.0), 1.0)
     dx, dy = px - ax - t * ex, py - ay - t * ey
     return dx * dx + dy * dy, t, dx, dy
 
