@@ -2,15 +2,15 @@
 
 benchmarks/soft_stages.py times each stage on its own; this script times the pieces of
 the one compiled program that peers.py times (the judged scene, soft K = 8, Phong): the
-value_and_grad of the MSE w.r.t. the material, or the material and the vertices
-(--program). It traces --calls calls with jax.profiler, reads the XLA CPU runtime's
-events (one per thunk: a fusion, a custom call such as a host kernel, a copy), and prints
-each thunk's minimum and median over the calls with what the compiled HLO says of it:
-its shape, its custom-call target (the host kernels: diffshade_*) and its JAX op name
-(`transpose(...)` marks the reverse pass). Conditionals (on_active's tiers) are listed
-too, but their events span the thunks run inside them, which are listed on their own: the
-totals leave them out and split the other thunks into host kernels, forward XLA code and
-reverse XLA code.
+value_and_grad of the MSE w.r.t. the material, or the material and the vertices, or the
+soft forward alone (--program). It traces --calls calls with jax.profiler, reads the XLA
+CPU runtime's events (one per thunk: a fusion, a custom call such as a host kernel, a
+copy), and prints each thunk's minimum and median over the calls with what the compiled
+HLO says of it: its shape, its custom-call target (the host kernels: diffshade_*) and its
+JAX op name (`transpose(...)` marks the reverse pass). Conditionals (on_active's tiers)
+are listed too, but their events span the thunks run inside them, which are listed on
+their own: the totals leave them out and split the other thunks into host kernels,
+forward XLA code and reverse XLA code.
 
 --diff prints, instead, the material + vertices program against the material one: per
 (thunk kind, shape, op name), the difference of the minima, largest first: what the
@@ -39,7 +39,8 @@ _NOT_LEAVES = ("ThunkExecutor", "block_until_ready", "PjitFunction", "Execute", 
 
 
 def program(size, with_vertices):
-    """(jitted value_and_grad, its arguments): peers.py's soft f+b on the judged scene."""
+    """(jitted function, its arguments): peers.py's soft f+b on the judged scene, or its
+    soft forward (with_vertices None)."""
     import jax
     import jax.numpy as jnp
     from peers import SOFT_K, judged_scene, mse_grad
@@ -48,6 +49,8 @@ def program(size, with_vertices):
 
     scene = judged_scene(size, 4)
     soft = ds.RenderSettings(raster="soft", faces_per_pixel=SOFT_K, shading="phong")
+    if with_vertices is None:
+        return jax.jit(lambda s: ds.render(s, soft)), (scene,)
     target = jnp.full((size, size, 4), 0.5, jnp.float32)
     fn, args = mse_grad(scene, soft, target, with_vertices)
     return jax.jit(fn), args
@@ -142,7 +145,8 @@ def print_diff(material, vertices, top):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", type=int, default=256)
-    parser.add_argument("--program", choices=("material", "vertices"), default="vertices")
+    parser.add_argument("--program", choices=("forward", "material", "vertices"),
+                        default="vertices")
     parser.add_argument("--calls", type=int, default=15)
     parser.add_argument("--top", type=int, default=40)
     parser.add_argument("--diff", action="store_true")
@@ -153,7 +157,8 @@ def main():
         print_diff(profile(args.size, False, args.calls), profile(args.size, True, args.calls),
                    args.top)
     else:
-        print_profile(profile(args.size, args.program == "vertices", args.calls), args.top)
+        with_vertices = {"forward": None, "material": False, "vertices": True}[args.program]
+        print_profile(profile(args.size, with_vertices, args.calls), args.top)
 
 
 if __name__ == "__main__":

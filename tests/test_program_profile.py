@@ -40,3 +40,12 @@ def test_profile_of_the_vertex_gradient_names_the_geometry_backward_kernel():
     # the material's gradient runs no geometry backward
     material = {row[4] for row in profile(32, False, calls)}
     assert not any(t.startswith("diffshade_geometry_backward") for t in material)
+
+
+def test_profile_of_the_forward_has_no_reverse_pass():
+    rows = profile(32, None, 2)
+    kinds = {row[6] for row in rows}
+    assert "host" in kinds and "reverse" not in kinds
+    targets = {row[4] for row in rows if row[6] == "host"}
+    assert any(t.startswith("diffshade_geometry_forward") for t in targets), targets
+    assert not any(t.startswith("diffshade_geometry_backward") for t in targets), targets

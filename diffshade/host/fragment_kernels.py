@@ -21,9 +21,10 @@ gradients in one buffer per part (no races), summed at the end.
 
 Every division is `safe_div` semantics (numerics.py): num / den where |den| > tiny,
 0 (and zero gradient) elsewhere. The geometry kernels multiply by reciprocals instead of
-dividing (`_inv`): one per fragment and sum, and per face those of the corners' W and of
-the edges' squared lengths, because a division costs many times a multiplication and a
-fragment would otherwise need a dozen or more. What they read of a face sits in one
+dividing (`_inv`): one per fragment (the soft forward needs only the sign of its first
+sum, _soft_bary), and per face those of the corners' W and of the edges' squared
+lengths, because a division costs many times a multiplication and a fragment would
+otherwise need a dozen or more. What they read of a face sits in one
 float64 row (`_face_table`, built once per call), and the pixel coordinates come from
 per-row and per-column tables (`_pixel_coords`).
 """
@@ -47,8 +48,9 @@ def _inv(den, tiny):
 #: a row of _face_table: the edge coefficients [3, 3] (row-major) at _COEFFS, the corners'
 #: clip W [3] at _CW and their reciprocals [3] at _INV_W, then per edge i (from corner i to
 #: corner i+1 mod 3) _EDGE_WIDTH values from _EDGES + i * _EDGE_WIDTH: its start (ax, ay),
-#: its vector (ex, ey) = b - a and 1 / |e|^2; then the corners' eye-space depth [3] at _CZ
-_COEFFS, _CW, _INV_W, _EDGES, _EDGE_WIDTH, _CZ, _TABLE_WIDTH = 0, 9, 12, 15, 5, 30, 33
+#: its vector (ex, ey) = b - a and that vector over its squared length, e / |e|^2; then
+#: the corners' eye-space depth [3] at _CZ
+_COEFFS, _CW, _INV_W, _EDGES, _EDGE_WIDTH, _CZ, _TABLE_WIDTH = 0, 9, 12, 15, 6, 33, 36
 
 
 @numba.njit(cache=True, nogil=True)
@@ -71,7 +73,8 @@ def _face_table(corner_w, corner_z, coeffs, scr, tiny):
             edge = _EDGES + i * _EDGE_WIDTH
             table[f, edge], table[f, edge + 1] = scr[f, i, 0], scr[f, i, 1]
             table[f, edge + 2], table[f, edge + 3] = ex, ey
-            table[f, edge + 4] = _inv(ex * ex + ey * ey, tiny)
+            inv = _inv(ex * ex + ey * ey, tiny)
+            table[f, edge + 4], table[f, edge + 5] = ex * inv, ey * inv
     return table
 
 
@@ -86,10 +89,11 @@ def _pixel_coords(width, height):
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _face(table, f, x, y):
-    """Edge functions e_i = coeffs[f, i] . (x, y, 1) and the corners' clip W."""
-    e0 = table[f, _COEFFS] * x + table[f, _COEFFS + 1] * y + table[f, _COEFFS + 2]
-    e1 = table[f, _COEFFS + 3] * x + table[f, _COEFFS + 4] * y + table[f, _COEFFS + 5]
-    e2 = table[f, _COEFFS + 6] * x + table[f, _COEFFS + 7] * y + table[f, _COEFFS + 8]
+    """Edge functions e_i = coeffs[f, i] . (x, y, 1) and the corners' clip W (the
+    constant term added first: two FMAs per edge where a kernel fuses them)."""
+    e0 = table[f, _COEFFS] * x + (table[f, _COEFFS + 1] * y + table[f, _COEFFS + 2])
+    e1 = table[f, _COEFFS + 3] * x + (table[f, _COEFFS + 4] * y + table[f, _COEFFS + 5])
+    e2 = table[f, _COEFFS + 6] * x + (table[f, _COEFFS + 7] * y + table[f, _COEFFS + 8])
     return e0, e1, e2, table[f, _CW], table[f, _CW + 1], table[f, _CW + 2]
 
 
@@ -103,15 +107,21 @@ def _hard_bary(e0, e1, e2, tiny):
 @numba.njit(cache=True, nogil=True, inline="always")
 def _soft_bary(e0, e1, e2, w0, w1, w2, table, f, tiny):
     """Soft mode's barycentrics: screen-space s = e w / sum(e w) clamped to >= 0, then
-    corrected for perspective, b = (c / w) / sum(c / w).
-    Returns (s, q = max(s, 0) / w, b, 1 / sum(e w), 1 / sum(q)), each vector as 3 scalars."""
-    inv_s = _inv(e0 * w0 + e1 * w1 + e2 * w2, tiny)
-    s0, s1, s2 = e0 * w0 * inv_s, e1 * w1 * inv_s, e2 * w2 * inv_s
+    corrected for perspective, b = (c / w) / sum(c / w), with one division: b is
+    unchanged when s is scaled by |sum(e w)| (q below, scaled alike), so s takes only the
+    sign of 1 / sum(e w) (0 where _inv gives 0), and 1 / sum(q) is 0 where the unscaled
+    sum(q) <= tiny, as _inv. Returns (s / |1 / sum(e w)|, b), each as 3 scalars: s has
+    the signs of the screen-space barycentrics."""
+    ew0, ew1, ew2 = e0 * w0, e1 * w1, e2 * w2
+    den = ew0 + ew1 + ew2
+    sign = 1.0 if den > tiny else -1.0 if den < -tiny else 0.0
+    s0, s1, s2 = ew0 * sign, ew1 * sign, ew2 * sign
     q0 = max(s0, 0.0) * table[f, _INV_W + 0]
     q1 = max(s1, 0.0) * table[f, _INV_W + 1]
     q2 = max(s2, 0.0) * table[f, _INV_W + 2]
-    inv_q = _inv(q0 + q1 + q2, tiny)
-    return s0, s1, s2, q0, q1, q2, q0 * inv_q, q1 * inv_q, q2 * inv_q, inv_s, inv_q
+    sum_q = q0 + q1 + q2
+    inv_q = 1.0 / sum_q if abs(sum_q) > tiny * abs(den) else 0.0
+    return s0, s1, s2, q0 * inv_q, q1 * inv_q, q2 * inv_q
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -120,25 +130,23 @@ def _segment(px, py, table, f, i):
     d = p - a - t e."""
     edge = _EDGES + i * _EDGE_WIDTH
     ax, ay, ex, ey = table[f, edge], table[f, edge + 1], table[f, edge + 2], table[f, edge + 3]
-    t = min(max(((px - ax) * ex + (py - ay) * ey) * table[f, edge + 4], 0.0), 1.0)
+    t = min(max((px - ax) * table[f, edge + 4] + (py - ay) * table[f, edge + 5], 0.0), 1.0)
     dx, dy = px - ax - t * ex, py - ay - t * ey
     return dx * dx + dy * dy, t, dx, dy
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _nearest_edge(px, py, table, f):
-    """(edge index i: from corner i to corner i+1 mod 3, squared distance, t, dx, dy) of
-    the nearest edge; ties go to the first (as jnp.where(a <= b, a, b))."""
-    d0, t0, dx0, dy0 = _segment(px, py, table, f, 0)
-    d1, t1, dx1, dy1 = _segment(px, py, table, f, 1)
-    d2, t2, dx2, dy2 = _segment(px, py, table, f, 2)
-    if d0 <= d1:
-        if d0 <= d2:
-            return 0, d0, t0, dx0, dy0
-        return 2, d2, t2, dx2, dy2
-    if d1 <= d2:
-        return 1, d1, t1, dx1, dy1
-    return 2, d2, t2, dx2, dy2
+    """(edge index i: from corner i to corner i+1 mod 3, squared distance) of the nearest
+    edge; ties go to the first (as jnp.where(a <= b, a, b)). Selects, not branches: which
+    edge is nearest changes from fragment to fragment, past any branch predictor."""
+    d0 = _segment(px, py, table, f, 0)[0]
+    d1 = _segment(px, py, table, f, 1)[0]
+    d2 = _segment(px, py, table, f, 2)[0]
+    first = d0 <= d1
+    i, d = (0, d0) if first else (1, d1)
+    last = d2 < d
+    return (2 if last else i), (d2 if last else d)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -176,7 +184,12 @@ def geometry_forward(ids, corner_w, corner_z, coeffs, scr, width, height, soft, 
 OUTSIDE = 4
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
+#: the forward's arithmetic may fuse a multiplication and an addition into one FMA (one
+#: rounding, not two; in float64, before the results round to their dtype)
+_FUSED = {"contract"}
+
+
+@numba.njit(cache=True, nogil=True, parallel=True, error_model="numpy", fastmath=_FUSED)
 def geometry_forward_into(ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny,
                           chunks, bary, depth, dist, edge):
     """geometry_forward writing every element of bary, depth, dist and edge (as XLA's
@@ -206,10 +219,10 @@ def geometry_forward_into(ids, corner_w, corner_z, coeffs, scr, width, height, s
                     edge[pixel, slot] = 0
                     b0, b1, b2, _ = _hard_bary(e0, e1, e2, tiny)
                 else:
-                    s0, s1, s2, _, _, _, b0, b1, b2, _, _ = _soft_bary(e0, e1, e2, w0, w1, w2,
-                                                                       table, f, tiny)
-                    i, d2, _, _, _ = _nearest_edge(px, py, table, f)
-                    inside = s0 >= 0.0 and s1 >= 0.0 and s2 >= 0.0
+                    s0, s1, s2, b0, b1, b2 = _soft_bary(e0, e1, e2, w0, w1, w2, table, f,
+                                                        tiny)
+                    i, d2 = _nearest_edge(px, py, table, f)
+                    inside = (s0 >= 0.0) & (s1 >= 0.0) & (s2 >= 0.0)
                     dist[pixel, slot] = d2 if inside else -d2
                     edge[pixel, slot] = i if inside else i + OUTSIDE
                 bary[pixel, slot, 0], bary[pixel, slot, 1], bary[pixel, slot, 2] = b0, b1, b2
