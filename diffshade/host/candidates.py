@@ -4,8 +4,9 @@ Runs on the host (called through a host callback, hostcall.py, by raster.py) as 
 numba-compiled loop over tiles of the faces' screen footprints, so its cost grows with the
 number of (pixel, nearby face) pairs, never with pixels x faces. Hard mode sets each face
 up once and loops over the faces per band of rows. Soft mode sets each face up once, bins
-the faces into tiles of TILE_W x TILE_H pixels and searches the tiles in parallel: a
-tile's lists stay in the L1 cache, and a face's pixels in a tile are evaluated without
+the faces into tiles of TILE_W x TILE_H pixels and searches the tiles in parallel (each
+thread claims the next tile as it comes free, costliest first): a tile's lists stay in
+the L1 cache, and a face's pixels in a tile are evaluated without
 branches, TILE_W at a time, those in reach gathered a row at a time by vector compresses.
 
 Coverage uses 2D homogeneous rasterization (Olano & Greer 1997): with v_i = (X, Y, W)
@@ -31,6 +32,10 @@ brackets it first without libm (_key_bracket) and calls libm only where the brac
 not decide its bits. A soft fragment that cannot beat its pixel's full list (by a lower
 bound of its key: its face's nearest corner, _face_key_bound) is dropped before its key
 is computed.
+
+The parallel kernels hold nothing but their prange loops: under parallel=True numba turns
+np.zeros, reductions and array expressions into parallel loops of their own, each one more
+start and join of the threads (costly where a thread waits for one the system paused).
 """
 
 import numba
