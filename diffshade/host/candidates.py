@@ -842,15 +842,19 @@ def _insert_group8(ids, keys, worst_key, fragments, depth, signed_d2, bound, key
     (so neither the counts of filled entries nor a sort at the end are needed); returns
     how many fragments were dropped."""
     depth_bits = depth.view(np.int64)
+    # those fragments listed first, without branches (a few in a hundred: a branch per
+    # fragment would be mispredicted at each of them)
+    straddling, listed = np.empty(count, np.int64), 0
     for i in range(count):
-        if key_lo[i] != key_hi[i]:
-            lowest = max(bound[i], key_lo[i])
-            if lowest > worst_key[fragments[i] % (TILE_H * TILE_W)]:
-                # its list, full before the group, already holds 8 better: it falls off
-                key_lo[i] = lowest
-            else:
-                key_lo[i] = _fragment_key(depth[i], signed_d2[i], bound[i], depth_bits[i],
-                                          sigma)
+        straddling[listed] = i
+        listed += key_lo[i] != key_hi[i]
+    for i in straddling[:listed]:
+        lowest = max(bound[i], key_lo[i])
+        if lowest > worst_key[fragments[i] % (TILE_H * TILE_W)]:
+            # its list, full before the group, already holds 8 better: it falls off
+            key_lo[i] = lowest
+        else:
+            key_lo[i] = _fragment_key(depth[i], signed_d2[i], bound[i], depth_bits[i], sigma)
     dropped = 0
     for i in range(count):
         pixel, f = fragments[i] % (TILE_H * TILE_W), fragments[i] // (TILE_H * TILE_W)
