@@ -542,3 +542,54 @@ def test_host_depth_order_is_front_to_back_up_to_one_class():
     width = (depth[ranked].max() - depth[ranked].min()) / (DEPTH_BUCKETS - 1)
     for near, far in zip(first[:-1], first[1:], strict=True):
         assert depth[near] <= depth[far] + width * (1 + 1e-9)
+
+
+def test_host_tile_claims_give_each_item_to_one_thread():
+    """candidates._claim (an atomic counter) from every thread of a parallel loop at once:
+    each item is claimed by exactly one of them, and the items come costliest first
+    (_tile_order: by the faces binned per (view, tile), against NumPy's stable argsort)."""
+    import numba
+
+    from diffshade.host.candidates import _claim, _tile_order
+
+    @numba.njit(parallel=True)
+    def claim_all(items, threads):
+        counter, hits = np.zeros(1, np.int64), np.zeros((threads, items), np.uint8)
+        for worker in numba.prange(threads):
+            item = _claim(counter)
+            while item < items:
+                hits[worker, item] = 1
+                item = _claim(counter)
+        return hits
+
+    hits = claim_all(2_000_000, numba.get_num_threads())
+    np.testing.assert_array_equal(hits.sum(0), 1)
+    counts = np.random.default_rng(5).integers(0, 40, (3, 50))
+    start = np.concatenate([np.zeros((3, 1), np.int64), np.cumsum(counts, 1)], 1)
+    np.testing.assert_array_equal(_tile_order(start),
+                                  np.argsort(-counts.reshape(-1), kind="stable"))
+
+
+def test_host_soft_search_is_the_same_on_any_thread_count():
+    """The soft search hands its (view, tile) items to the threads as they come free, so
+    which thread searches which tile varies from call to call: the ids and drop counts of
+    a batch of views are the same on one thread as on all of them."""
+    import numba
+
+    clip = np.asarray(project(make_scene(icosphere(3), sphere().camera)).clip)
+    clips = np.stack([clip, clip + [0.05, 0.0, 0.0, 0.0] * clip[:, 3:],
+                      clip - [0.0, 0.1, 0.0, 0.0] * clip[:, 3:]])  # shifted views
+    faces = np.asarray(icosphere(3).faces)
+    search = lambda: find_candidates(clips, faces, 0.1, 100.0, width=37, height=29, k=6,
+                                     radius_px=2.0, sigma=1.0, gamma=1e-3)
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = search()
+    finally:
+        numba.set_num_threads(threads)
+    assert (one[0] >= 0).sum() > 1000 and (one[1] > 0).all()
+    for _ in range(3):
+        got = search()
+        np.testing.assert_array_equal(got[0], one[0])
+        np.testing.assert_array_equal(got[1], one[1])

@@ -4,8 +4,9 @@ Runs on the host (called through a host callback, hostcall.py, by raster.py) as 
 numba-compiled loop over tiles of the faces' screen footprints, so its cost grows with the
 number of (pixel, nearby face) pairs, never with pixels x faces. Hard mode sets each face
 up once and loops over the faces per band of rows. Soft mode sets each face up once, bins
-the faces into tiles of TILE_W x TILE_H pixels and searches the tiles in parallel: a
-tile's lists stay in the L1 cache, and a face's pixels in a tile are evaluated without
+the faces into tiles of TILE_W x TILE_H pixels and searches the tiles in parallel (each
+thread claims the next tile as it comes free, costliest first): a tile's lists stay in
+the L1 cache, and a face's pixels in a tile are evaluated without
 branches, TILE_W at a time, those in reach gathered a row at a time by vector compresses.
 
 Coverage uses 2D homogeneous rasterization (Olano & Greer 1997): with v_i = (X, Y, W)
@@ -31,6 +32,10 @@ brackets it first without libm (_key_bracket) and calls libm only where the brac
 not decide its bits. A soft fragment that cannot beat its pixel's full list (by a lower
 bound of its key: its face's nearest corner, _face_key_bound) is dropped before its key
 is computed.
+
+The parallel kernels hold nothing but their prange loops: under parallel=True numba turns
+np.zeros, reductions and array expressions into parallel loops of their own, each one more
+start and join of the threads (costly where a thread waits for one the system paused).
 """
 
 import numba
@@ -243,12 +248,13 @@ def _hard_setup(clips, faces, width, height, cull_backfaces):
     parallel over chunks of SETUP_CHUNK faces of every view."""
     views, count = clips.shape[0], faces.shape[0]
     tri, coeffs = np.empty((views, count, 3, 4)), np.empty((views, count, 3, 3))
-    pixels, reach = np.empty((views, count, 4), np.int64), np.zeros((views, count), np.bool_)
+    pixels, reach = np.empty((views, count, 4), np.int64), np.empty((views, count), np.bool_)
     chunks = (count + SETUP_CHUNK - 1) // SETUP_CHUNK
     for item in prange(views * chunks):
         view, chunk = item // chunks, item % chunks
         box = np.empty(4)
         for f in range(chunk * SETUP_CHUNK, min(count, (chunk + 1) * SETUP_CHUNK)):
+            reach[view, f] = False
             det = _face_setup(clips[view], faces, f, tri[view, f], coeffs[view, f])
             if not np.isfinite(det) or det == 0.0 or (cull_backfaces and det < 0.0):
                 continue
@@ -262,6 +268,12 @@ def _hard_setup(clips, faces, width, height, cull_backfaces):
     return tri, coeffs, pixels, reach
 
 
+@numba.njit(cache=True, nogil=True)
+def _centres_x(width):
+    """The pixel centres' NDC x [W]."""
+    return (2.0 * np.arange(width) + 1.0) / width - 1.0
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _search_hard(clips, faces, width, height, k, cull_backfaces, bands):
     """(ids [views, H * W, k] int32, dropped [views]) of the hard search: per view and
@@ -271,14 +283,15 @@ def _search_hard(clips, faces, width, height, k, cull_backfaces, bands):
     all_ids = np.empty((views, n_pixels, k), np.int32)
     all_keys = np.empty((views, n_pixels, k))
     all_filled = np.empty((views, n_pixels), np.int32)
-    all_dropped = np.zeros((views, bands), np.int64)
+    all_dropped = np.empty((views, bands), np.int64)
     tri, coeffs, pixels, reach = _hard_setup(clips, faces, width, height, cull_backfaces)
-    xs = (2.0 * np.arange(width) + 1.0) / width - 1.0  # the pixel centres' NDC x
+    xs = _centres_x(width)
     # one item per (view, band): the views of a batch share one parallel loop
     for item in prange(views * bands):
         view, band = item // bands, item % bands
         ids, keys, filled = all_ids[view], all_keys[view], all_filled[view]
         dropped = all_dropped[view]
+        dropped[band] = 0
         view_tri, view_coeffs = tri[view], coeffs[view]
         band_r0, band_r1 = _band_rows(band, bands, height)
         # the band's lists start empty (filled here, in parallel, not before the loop)
@@ -563,38 +576,64 @@ def _depth_order(zndc, reach):
     return order
 
 
+@numba.njit(cache=True, nogil=True)
+def _count_view(box, reach, order, height, tiles_x, start):
+    """_bin_faces' starts of one view: start [T + 1] (filled here) = 0, then the running sum
+    of the number of faces whose box touches each tile."""
+    start[:] = 0
+    for f in order:
+        if reach[f]:
+            ty0, ty1, tx0, tx1 = _face_tiles(box[f], height)
+            for ty in range(ty0, ty1 + 1):
+                for tx in range(tx0, tx1 + 1):
+                    start[ty * tiles_x + tx + 1] += 1
+    for t in range(start.shape[0] - 1):
+        start[t + 1] += start[t]
+
+
+@numba.njit(cache=True, nogil=True)
+def _fill_view(box, reach, order, height, tiles_x, start, binned):
+    """_bin_faces' lists of one view: tile t's faces into binned[start[t]:start[t + 1]], in
+    `order`."""
+    fill = start[:-1].copy()
+    for f in order:
+        if reach[f]:
+            ty0, ty1, tx0, tx1 = _face_tiles(box[f], height)
+            for ty in range(ty0, ty1 + 1):
+                for tx in range(tx0, tx1 + 1):
+                    binned[fill[ty * tiles_x + tx]] = f
+                    fill[ty * tiles_x + tx] += 1
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _bin_faces(box, reach, zndc, width, height):
     """Per view, the faces whose box touches each tile, roughly front to back
     (_depth_order): (start [B, T + 1], binned [B, N]) with tile t's faces
-    binned[v, start[v, t]:start[v, t + 1]]. The views are binned in parallel; their depth
-    orders are made one after another (inside the parallel loop, numba compiles this
+    binned[v, start[v, t]:start[v, t + 1]]. The views are binned in parallel, a single view
+    without a parallel loop (one more start and join of the threads, for nothing); their
+    depth orders are made one after another (inside the parallel loop, numba compiles this
     function much more slowly the first time)."""
     views, count = reach.shape
     tiles_x, tiles_y = (width + TILE_W - 1) // TILE_W, (height + TILE_H - 1) // TILE_H
-    start = np.zeros((views, tiles_x * tiles_y + 1), np.int64)
+    start = np.empty((views, tiles_x * tiles_y + 1), np.int64)
     order = np.empty((views, count), np.int64)
     for view in range(views):
         order[view] = _depth_order(zndc[view], reach[view])
-    for view in prange(views):
-        for f in order[view]:
-            if reach[view, f]:
-                ty0, ty1, tx0, tx1 = _face_tiles(box[view, f], height)
-                for ty in range(ty0, ty1 + 1):
-                    for tx in range(tx0, tx1 + 1):
-                        start[view, ty * tiles_x + tx + 1] += 1
-        for t in range(tiles_x * tiles_y):
-            start[view, t + 1] += start[view, t]
-    binned = np.empty((views, start[:, -1].max()), np.int64)
-    for view in prange(views):
-        fill = start[view, :-1].copy()
-        for f in order[view]:
-            if reach[view, f]:
-                ty0, ty1, tx0, tx1 = _face_tiles(box[view, f], height)
-                for ty in range(ty0, ty1 + 1):
-                    for tx in range(tx0, tx1 + 1):
-                        binned[view, fill[ty * tiles_x + tx]] = f
-                        fill[ty * tiles_x + tx] += 1
+    if views == 1:
+        _count_view(box[0], reach[0], order[0], height, tiles_x, start[0])
+    else:
+        for view in prange(views):
+            _count_view(box[view], reach[view], order[view], height, tiles_x, start[view])
+    largest = 0
+    for view in range(views):
+        largest = max(largest, start[view, -1])
+    binned = np.empty((views, largest), np.int64)
+    if views == 1:
+        _fill_view(box[0], reach[0], order[0], height, tiles_x, start[0], binned[0])
+    else:
+        for view in prange(views):
+            _fill_view(box[view], reach[view], order[view], height, tiles_x, start[view],
+                       binned[view])
     return start, binned
 
 
@@ -803,15 +842,19 @@ def _insert_group8(ids, keys, worst_key, fragments, depth, signed_d2, bound, key
     (so neither the counts of filled entries nor a sort at the end are needed); returns
     how many fragments were dropped."""
     depth_bits = depth.view(np.int64)
+    # those fragments listed first, without branches (a few in a hundred: a branch per
+    # fragment would be mispredicted at each of them)
+    straddling, listed = np.empty(count, np.int64), 0
     for i in range(count):
-        if key_lo[i] != key_hi[i]:
-            lowest = max(bound[i], key_lo[i])
-            if lowest > worst_key[fragments[i] % (TILE_H * TILE_W)]:
-                # its list, full before the group, already holds 8 better: it falls off
-                key_lo[i] = lowest
-            else:
-                key_lo[i] = _fragment_key(depth[i], signed_d2[i], bound[i], depth_bits[i],
-                                          sigma)
+        straddling[listed] = i
+        listed += key_lo[i] != key_hi[i]
+    for i in straddling[:listed]:
+        lowest = max(bound[i], key_lo[i])
+        if lowest > worst_key[fragments[i] % (TILE_H * TILE_W)]:
+            # its list, full before the group, already holds 8 better: it falls off
+            key_lo[i] = lowest
+        else:
+            key_lo[i] = _fragment_key(depth[i], signed_d2[i], bound[i], depth_bits[i], sigma)
     dropped = 0
     for i in range(count):
         pixel, f = fragments[i] % (TILE_H * TILE_W), fragments[i] // (TILE_H * TILE_W)
@@ -976,20 +1019,109 @@ def _sort_full(ids, keys, pixel, scratch_ids, scratch_keys):
 
 
 @numba.njit(cache=True, nogil=True)
-def _search_soft(clips, faces, width, height, k, cull_backfaces, radii, params, perspective):
+def _search_soft(clips, faces, width, height, k, cull_backfaces, radii, params, perspective,
+                 threads):
     """(ids [views, H * W, k] int32, dropped [views]): _search_soft_into's results in new
     arrays."""
     all_ids = np.empty((clips.shape[0], width * height, k), np.int32)
     dropped = _search_soft_into(clips, faces, width, height, k, cull_backfaces, radii, params,
-                                perspective, all_ids)
+                                perspective, all_ids, threads)
     return all_ids, dropped
+
+
+@intrinsic
+def _claim(typingctx, counter):
+    """The next item of a counter shared by threads (counter [1] int64): its value before an
+    atomic increment, so that each item goes to exactly one of the threads claiming them."""
+    if not (isinstance(counter, types.Array) and counter.dtype == types.int64
+            and counter.ndim == 1):
+        return None
+
+    def codegen(context, builder, signature, args):
+        data = context.make_array(signature.args[0])(context, builder, args[0]).data
+        return builder.atomic_rmw("add", data, ir.Constant(ir.IntType(64), 1), "monotonic")
+    return types.int64(counter), codegen
+
+
+@numba.njit(cache=True, nogil=True)
+def _tile_order(start):
+    """The (view, tile) items (view * tiles + tile) of a soft search, those with the most
+    binned faces first (start [B, T + 1]: _bin_faces'), so that the threads claiming them
+    one at a time end together: the last items are the cheapest."""
+    views, tiles = start.shape[0], start.shape[1] - 1
+    work = np.empty(views * tiles, np.int64)
+    for item in range(views * tiles):
+        view, t = item // tiles, item % tiles
+        work[item] = start[view, t] - start[view, t + 1]  # negated: the most first
+    return np.argsort(work, kind="mergesort")
+
+
+@numba.njit(cache=True, nogil=True)
+def _search_tile(setup, binned, first_slot, last_slot, tile_r0, tile_c0, width, height, k,
+                 radius_px, soft, ids_out):
+    """Search one tile of one view: its lists from its faces binned[first_slot:last_slot]
+    (setup: one view's scr, edge, inv_len, zndc, box and lowest_key of _soft_setup), copied
+    into ids_out [H * W, k]; returns the fragments dropped. A tile's pixel (row, col) is
+    (row - tile_r0) * TILE_W + col - tile_c0 (TILE_W columns even where the image ends).
+    Per face: its rows in reach of the tile's columns (_strip_rows), evaluated without
+    branches (_soft_block), the pixels in reach gathered (_gather_reached); per GROUP of
+    those, keys and insertions."""
+    scr, edge, inv_len, zndc, box, lowest_key = setup
+    tile_r1, tile_c1 = min(tile_r0 + TILE_H, height) - 1, min(tile_c0 + TILE_W, width) - 1
+    tile_w = tile_c1 - tile_c0 + 1
+    if first_slot == last_slot:  # no face reaches the tile: no lists
+        for row in range(tile_r0, tile_r1 + 1):
+            ids_out[row * width + tile_c0:row * width + tile_c1 + 1] = -1
+        return 0
+    # the tile's arrays, fresh: a thread's arrays passed in and reused tile after tile
+    # measured slower (LLVM cannot assume that arrays passed in do not alias)
+    ids = np.full((TILE_H * TILE_W, k), -1, np.int32)
+    keys = np.full((TILE_H * TILE_W, k), np.inf)
+    filled = np.zeros(TILE_H * TILE_W, np.int32)
+    worst_key = np.full(TILE_H * TILE_W, np.inf)
+    worst_id = np.full(TILE_H * TILE_W, -1, np.int64)
+    out = np.empty((2, TILE_H * TILE_W))
+    capacity = GROUP + TILE_H * TILE_W
+    fragments = np.empty(capacity, np.int64)
+    depth, signed_d2, bound = np.empty(capacity), np.empty(capacity), np.empty(capacity)
+    key_lo, key_hi = np.empty(capacity), np.empty(capacity)
+    scratch_ids, scratch_keys = np.empty(k, np.int32), np.empty(k)
+    dropped, count = 0, 0
+    for slot in range(first_slot, last_slot):
+        f = binned[slot]
+        fb = box[f]
+        c0, c1 = max(int(fb[2]), tile_c0), min(int(fb[3]), tile_c1)
+        r0, r1 = _strip_rows(scr[f], c0, c1, radius_px, height)
+        r0, r1 = max(r0, int(max(fb[0], tile_r0))), min(r1, int(min(fb[1], tile_r1)))
+        if r0 <= r1:
+            face = _face_scalars(scr[f], edge[f], inv_len[f], zndc[f])
+            lane0 = (r0 - tile_r0) * TILE_W
+            dropped += _soft_block(face, tile_c0, r0, c0, c1, radius_px, out,
+                                   (r1 - r0 + 1) * TILE_W, lowest_key[f], worst_key[lane0:])
+            first = f * (TILE_H * TILE_W) + lane0
+            for lane in range(0, (r1 - r0 + 1) * TILE_W, TILE_W):  # the pixels in reach
+                count = _gather_reached(out, lane, first, fragments, depth, signed_d2, count)
+        if count >= GROUP or (slot == last_slot - 1 and count > 0):
+            _soft_keys(depth, signed_d2, bound, key_lo, key_hi, count, soft)
+            dropped += _insert_group(ids, keys, filled, worst_key, worst_id, fragments, depth,
+                                     signed_d2, bound, key_lo, key_hi, count, soft[0],
+                                     scratch_ids, scratch_keys)
+            count = 0
+    for pixel in range(ids.shape[0] if k != 8 else 0):  # lists of 8 stay sorted
+        if filled[pixel] < k:
+            _sort_list(ids, keys, pixel, filled[pixel], scratch_ids, scratch_keys)
+    for row in range(tile_r0, tile_r1 + 1):
+        ids_out[row * width + tile_c0:row * width + tile_c1 + 1] = \
+            ids[(row - tile_r0) * TILE_W:(row - tile_r0) * TILE_W + tile_w]
+    return dropped
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _search_soft_into(clips, faces, width, height, k, cull_backfaces, radii, params,
-                      perspective, all_ids):
-    """The soft search of every view into all_ids [views, H * W, k] (XLA's buffer, ffi.py);
-    returns dropped [views]."""
+                      perspective, all_ids, threads):
+    """The soft search of every view into all_ids [views, H * W, k] (XLA's buffer, ffi.py)
+    by `threads` threads (numba's thread count: numba.get_num_threads here would keep numba
+    from caching the kernel); returns dropped [views]."""
     views = clips.shape[0]
     scr, edge, inv_len, zndc, box, reach, lowest_key = _soft_setup(
         clips, faces, width, height, cull_backfaces, radii, params, perspective)
@@ -998,67 +1130,27 @@ def _search_soft_into(clips, faces, width, height, k, cull_backfaces, radii, par
     # (key, face), so the result does not depend on this order)
     start, binned = _bin_faces(box, reach, zndc, width, height)
     tiles_x, tiles_y = (width + TILE_W - 1) // TILE_W, (height + TILE_H - 1) // TILE_H
-    all_dropped = np.zeros((views, tiles_x * tiles_y), np.int64)
-    # one item per (view, tile): the views of a batch share one parallel loop; a tile's
-    # lists are its own until they are copied out. A tile's pixel (row, col) is
-    # (row - tile_r0) * TILE_W + col - tile_c0 (TILE_W columns even where the image ends).
-    # Per face: its rows in reach of the tile's columns (_strip_rows), evaluated without
-    # branches (_soft_block), the pixels in reach gathered (_gather_reached); per GROUP of
-    # those, keys and insertions.
-    for item in prange(views * tiles_x * tiles_y):
-        view, t = item // (tiles_x * tiles_y), item % (tiles_x * tiles_y)
-        radius_px = radii[view]
-        soft = (params[view, 0], params[view, 1], params[view, 2], params[view, 3], perspective)
-        tile_r0, tile_c0 = t // tiles_x * TILE_H, t % tiles_x * TILE_W
-        tile_r1, tile_c1 = min(tile_r0 + TILE_H, height) - 1, min(tile_c0 + TILE_W, width) - 1
-        tile_w = tile_c1 - tile_c0 + 1
-        if start[view, t] == start[view, t + 1]:  # no face reaches the tile: no lists
-            for row in range(tile_r0, tile_r1 + 1):
-                all_ids[view, row * width + tile_c0:row * width + tile_c1 + 1] = -1
-            continue
-        ids = np.full((TILE_H * TILE_W, k), -1, np.int32)
-        keys = np.full((TILE_H * TILE_W, k), np.inf)
-        filled = np.zeros(TILE_H * TILE_W, np.int32)
-        worst_key = np.full(TILE_H * TILE_W, np.inf)
-        worst_id = np.full(TILE_H * TILE_W, -1, np.int64)
-        dropped = 0
-        out = np.empty((2, TILE_H * TILE_W))
-        capacity = GROUP + TILE_H * TILE_W
-        fragments = np.empty(capacity, np.int64)
-        depth, signed_d2, bound = np.empty(capacity), np.empty(capacity), np.empty(capacity)
-        key_lo, key_hi = np.empty(capacity), np.empty(capacity)
-        scratch_ids, scratch_keys = np.empty(k, np.int32), np.empty(k)
-        count = 0
-        for slot in range(start[view, t], start[view, t + 1]):
-            f = binned[view, slot]
-            fb = box[view, f]
-            c0, c1 = max(int(fb[2]), tile_c0), min(int(fb[3]), tile_c1)
-            r0, r1 = _strip_rows(scr[view, f], c0, c1, radius_px, height)
-            r0, r1 = max(r0, int(max(fb[0], tile_r0))), min(r1, int(min(fb[1], tile_r1)))
-            if r0 <= r1:
-                face = _face_scalars(scr[view, f], edge[view, f], inv_len[view, f],
-                                     zndc[view, f])
-                lane0 = (r0 - tile_r0) * TILE_W
-                dropped += _soft_block(face, tile_c0, r0, c0, c1, radius_px, out,
-                                       (r1 - r0 + 1) * TILE_W, lowest_key[view, f],
-                                       worst_key[lane0:])
-                first = f * (TILE_H * TILE_W) + lane0
-                for lane in range(0, (r1 - r0 + 1) * TILE_W, TILE_W):  # the pixels in reach
-                    count = _gather_reached(out, lane, first, fragments, depth, signed_d2,
-                                            count)
-            if count >= GROUP or (slot == start[view, t + 1] - 1 and count > 0):
-                _soft_keys(depth, signed_d2, bound, key_lo, key_hi, count, soft)
-                dropped += _insert_group(ids, keys, filled, worst_key, worst_id, fragments,
-                                         depth, signed_d2, bound, key_lo, key_hi, count,
-                                         soft[0], scratch_ids, scratch_keys)
-                count = 0
-        for pixel in range(ids.shape[0] if k != 8 else 0):  # lists of 8 stay sorted
-            if filled[pixel] < k:
-                _sort_list(ids, keys, pixel, filled[pixel], scratch_ids, scratch_keys)
-        for row in range(tile_r0, tile_r1 + 1):
-            all_ids[view, row * width + tile_c0:row * width + tile_c1 + 1] = \
-                ids[(row - tile_r0) * TILE_W:(row - tile_r0) * TILE_W + tile_w]
-        all_dropped[view, t] = dropped
+    tiles = tiles_x * tiles_y
+    all_dropped = np.empty((views, tiles), np.int64)  # each item writes its own
+    # the (view, tile) items (the views of a batch share one parallel loop; a tile's lists
+    # are its own until they are copied out), claimed one at a time by each thread, the
+    # costliest first: the threads stay busy until the last few cheap items, whatever the
+    # tiles' costs (a face-dense tile costs a hundred sparse ones) and however the threads
+    # are scheduled (a static split waits for a thread the system has paused)
+    order, counter = _tile_order(start), np.empty(1, np.int64)
+    counter[0] = 0
+    for _ in prange(max(1, min(threads, views * tiles))):
+        item = _claim(counter)
+        while item < views * tiles:
+            view, t = order[item] // tiles, order[item] % tiles
+            setup = (scr[view], edge[view], inv_len[view], zndc[view], box[view],
+                     lowest_key[view])
+            soft = (params[view, 0], params[view, 1], params[view, 2], params[view, 3],
+                    perspective)
+            all_dropped[view, t] = _search_tile(
+                setup, binned[view], start[view, t], start[view, t + 1], t // tiles_x * TILE_H,
+                t % tiles_x * TILE_W, width, height, k, radii[view], soft, all_ids[view])
+            item = _claim(counter)
     return all_dropped.sum(1)
 
 
@@ -1090,7 +1182,7 @@ def find_candidates(clip, faces, near=0.1, far=100.0, *, width, height, k,
     if np.any(radii > 0.0):
         params = np.stack([per_view(sigma), per_view(gamma), per_view(near), per_view(far)], 1)
         ids, dropped = _search_soft(clips, faces, width, height, k, cull_backfaces, radii,
-                                    params, bool(perspective))
+                                    params, bool(perspective), numba.get_num_threads())
     else:
         bands = min(height, 2 * numba.get_num_threads())
         ids, dropped = _search_hard(clips, faces, width, height, k, cull_backfaces, bands)

@@ -326,7 +326,7 @@ def _write_group(ids, dropped, g, per_group, found, lost):
 @numba.njit(cache=True, nogil=True)
 def _search_soft(frame, values, dtype, face_dtype):
     (ids, dropped, views, faces, clips, radii, params, width, height, k, cull, perspective,
-     _) = _search_inputs(frame, values, dtype, face_dtype)
+     threads) = _search_inputs(frame, values, dtype, face_dtype)
     per_group = views // faces.shape[0]
     pixels = width * height
     for g in range(faces.shape[0]):
@@ -334,7 +334,7 @@ def _search_soft(frame, values, dtype, face_dtype):
         found = ids[g * per_group * pixels * k:(g + 1) * per_group * pixels * k]
         lost = candidates._search_soft_into(clips[chosen], faces[g], width, height, k, cull,
                                             radii[chosen], params[chosen], perspective,
-                                            found.reshape((per_group, pixels, k)))
+                                            found.reshape((per_group, pixels, k)), threads)
         for v in range(per_group):
             dropped[g * per_group + v] = lost[v]
 
