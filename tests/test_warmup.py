@@ -92,6 +92,10 @@ def test_a_cold_run_compiles_for_a_quick_start(tmp_path):
                                               "warmup.start =")
     went, flags = _run(started, _env(tmp_path, XLA_FLAGS=""))
     assert went and flags == []
+    # several CPU devices: 'auto' means the JAX kernels anyway, no cold start, no flags
+    went, flags = _run(_FLAGS_AFTER_COLD_START, _env(tmp_path, XLA_FLAGS="",
+                                                     JAX_NUM_CPU_DEVICES="2"))
+    assert not went and flags == []
 
 
 def test_only_a_single_cpu_device_ahead_gets_the_quick_start(monkeypatch):
@@ -108,6 +112,7 @@ def test_only_a_single_cpu_device_ahead_gets_the_quick_start(monkeypatch):
         jax.config.update("jax_platforms", "cpu")
         monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=4")
         assert warmup._one_cpu_device_ahead() is False
+
     finally:
         jax.config.update("jax_platforms", was)
 

@@ -141,13 +141,16 @@ def _xla_started() -> bool:
 def _one_cpu_device_ahead() -> bool:
     """Whether XLA, once started, will run on a single CPU device (where 'auto' means the
     host kernels), judged before it starts: the first platform JAX_PLATFORMS names, else
-    no accelerator plugin of JAX's installed; and no forced count of host devices."""
+    no accelerator plugin of JAX's installed; and no count of host devices asked for (in
+    XLA_FLAGS or jax_num_cpu_devices)."""
     import importlib.metadata
     import importlib.util
 
     import jax
 
     if "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", ""):
+        return False
+    if getattr(jax.config, "jax_num_cpu_devices", -1) not in (-1, 1):
         return False
     if jax.config.jax_platforms:
         return jax.config.jax_platforms.split(",")[0].strip() == "cpu"
