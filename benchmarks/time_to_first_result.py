@@ -42,8 +42,8 @@ two processes, timed together), each the median over --runs. The CPU time is tha
 those processes: it leaves out the background compilations they start (the host kernels',
 and synth's compilation of the fit's programs, data_synth.background, whose programs the
 fit waits for). On a fresh install a run
-takes the JAX kernels while the host kernels compile in the background
-(diffshade.host.warmup); the benchmark waits for that warm-up after each run (it is not
+takes the JAX kernels, compiled for a quick start, while the host kernels compile in the
+background (diffshade.host.warmup); the benchmark waits for that warm-up after each run (it is not
 part of the figure, but it shares the machine with the run it was started by), then times
 the same render once more: the run after the warm-up. Writes
 benchmarks/results/time_to_first_result_fresh_install.json by default.
@@ -97,8 +97,10 @@ _PER_PROGRAM = {"tracing_s": r"Finished tracing (\S+) for jit" + _SECONDS,
 
 
 RENDER = ["render", "--builtin", "sphere", "-o", "out/first.png"]
-#: what a user's environment may set that would change a fresh install's run
-_USER_CHOICES = ("DIFFSHADE_WARMUP", "DIFFSHADE_KERNELS", "JAX_COMPILATION_CACHE_DIR")
+#: what a user's environment may set that would change a fresh install's run (XLA_FLAGS:
+#: a first run adds its own, diffshade.host.warmup.COLD_XLA_FLAGS, unless they name them)
+_USER_CHOICES = ("DIFFSHADE_WARMUP", "DIFFSHADE_KERNELS", "JAX_COMPILATION_CACHE_DIR",
+                 "XLA_FLAGS")
 
 
 def _env(cache_dir, numba_dir):

@@ -12,14 +12,23 @@ with its public face: `fitting.spec` (the parameter maps), `fitting.data` (datas
 internals (lm_step, normal_equations, ...) stay in their modules.
 """
 
-from fitting import data, model, report, solve, spec
-from fitting.data.folder import load_dataset, save_dataset
-from fitting.data.views import Dataset, View, dataset_of_scene, view_scene
-from fitting.driver import FitResult, fit
-from fitting.report.misfit import Misfit
-from fitting.report.uncertainty import IdentifiabilityWarning, UncertaintyReport
-from fitting.solve.options import FitOptions
-from fitting.spec.params import DEFAULT_INIT, FitSpec
+import importlib
+
+# Imported on first use (module __getattr__): a program that needs one floor, as `diffshade
+# synth` needs the dataset format (fitting.data) and not the solvers, optax or the
+# reports, does not import the others at start.
+_FLOORS = ("data", "model", "report", "solve", "spec")
+_NAMES = {
+    "load_dataset": "fitting.data.folder", "save_dataset": "fitting.data.folder",
+    "Dataset": "fitting.data.views", "View": "fitting.data.views",
+    "dataset_of_scene": "fitting.data.views", "view_scene": "fitting.data.views",
+    "FitResult": "fitting.driver", "fit": "fitting.driver",
+    "Misfit": "fitting.report.misfit",
+    "IdentifiabilityWarning": "fitting.report.uncertainty",
+    "UncertaintyReport": "fitting.report.uncertainty",
+    "FitOptions": "fitting.solve.options",
+    "DEFAULT_INIT": "fitting.spec.params", "FitSpec": "fitting.spec.params",
+}
 
 __all__ = [
     # fitting
@@ -31,3 +40,17 @@ __all__ = [
     # the floors, each a namespace with its own __all__
     "data", "model", "report", "solve", "spec",
 ]
+
+
+def __getattr__(name):
+    if name in _FLOORS:
+        return importlib.import_module(f"{__name__}.{name}")
+    if name not in _NAMES:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(_NAMES[name]), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))

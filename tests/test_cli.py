@@ -200,6 +200,21 @@ def test_a_command_registers_only_its_own_parser():
     assert done.stdout.strip() == f"{['render']} [] {every} {every}"
 
 
+def test_synth_imports_no_solver_and_a_render_no_scipy():
+    """`diffshade synth` imports the dataset format, not the fit's solvers and reports
+    (fitting's floors load on first use), and lowering a render on the JAX kernels (a
+    fresh install's first runs) imports no SciPy (the normals' inverse transpose is not
+    LAPACK's): each takes a fresh process a tenth of a second or more."""
+    code = ("import sys, jax; from diffshade import cli; cli.build_parser('synth'); "
+            "import diffshade as ds; "
+            "jax.jit(ds.render).lower(ds.builtin_scene('sphere', 16, 16)); "
+            "print(sorted(m for m in ('optax', 'fitting.solve', 'fitting.report', "
+            "'scipy.linalg', 'scipy.optimize') if m in sys.modules))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          check=True, timeout=300, env=os.environ | {"DIFFSHADE_KERNELS": "jax"})
+    assert done.stdout.strip() == "[]"
+
+
 def test_a_command_in_the_table_is_dispatched(monkeypatch, capsys):
     monkeypatch.setitem(cli.COMMANDS, "hello", hello_command)
     assert cli.main(["hello", "world"]) == 7

@@ -519,6 +519,23 @@ def test_a_program_with_custom_calls_is_not_stored(store, monkeypatch):
     np.testing.assert_allclose(program(matrix), np.eye(2), atol=1e-6)
 
 
+def test_the_projection_program_is_stored_whole(store, monkeypatch):
+    """project transforms normals without LAPACK's inverse (a custom call): the fit's
+    projection program loads from the store, untraced, in a later process."""
+    from diffshade.raster.projection import project
+    from diffshade.scene.builtin import builtin_scene
+
+    scene = builtin_scene("sphere", 32, 32)
+    program = compile_cache.StoredProgram(project)
+    first = program(scene)
+    (path,) = entries(store)
+    assert _head_and_code(path)[0]["program"] is not None
+    program.loaded.clear()
+    no_compiling(monkeypatch)
+    again = program(scene)
+    np.testing.assert_array_equal(np.asarray(first.normals), np.asarray(again.normals))
+
+
 # ---- another process compiling into the caches (a fit's background precompile) ----
 
 

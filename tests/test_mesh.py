@@ -25,6 +25,7 @@ from diffshade.scene.mesh import (
     transform_mesh,
     vertex_normals,
 )
+from diffshade.scene.transform import inverse_transpose
 
 
 def np_face_normals(vertices, faces):
@@ -295,6 +296,18 @@ def test_transform_matches_numpy_homogeneous_reference():
     expected = np.asarray(mesh.normals) @ inv_t.T
     expected /= np.linalg.norm(expected, axis=1, keepdims=True)
     np.testing.assert_allclose(moved.normals, expected, atol=1e-5)
+
+
+@pytest.mark.usefixtures("x64")
+@pytest.mark.parametrize("seed", range(4))
+def test_inverse_transpose_matches_numpy(seed):
+    """The closed form (cofactors over the determinant) against LAPACK's inverse, float64,
+    for a general matrix, a mirror (negative determinant) and a badly scaled one."""
+    block = np.random.default_rng(seed).normal(size=(3, 3))
+    for matrix in (block, block @ np.diag([-1.0, 1.0, 1.0]), block * [1e-3, 1.0, 1e3]):
+        got = np.asarray(inverse_transpose(jnp.asarray(matrix)))
+        np.testing.assert_allclose(got, np.linalg.inv(matrix).T, rtol=1e-12,
+                                   atol=1e-12 * np.abs(np.linalg.inv(matrix)).max())
 
 
 def test_transform_gradients_are_finite_even_for_singular_matrix():

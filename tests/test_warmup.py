@@ -68,6 +68,64 @@ def test_cold_start_on_an_empty_numba_cache(tmp_path):
     assert _run(_COLD_START, _env(tmp_path, DIFFSHADE_KERNELS="host")) == [[], "host", []]
 
 
+_FLAGS_AFTER_COLD_START = """
+import json, os
+from diffshade.host import warmup
+warmup.start = lambda targets: None
+missing = warmup.cold_start()
+flags = os.environ.get("XLA_FLAGS", "").split()
+print(json.dumps([bool(missing), [f for f in flags if "ynn_fusion" not in f]]))
+"""
+
+
+def test_a_cold_run_compiles_for_a_quick_start(tmp_path):
+    """Where it goes cold, a run adds COLD_XLA_FLAGS before XLA starts; the user's own
+    choice of an option stands; a warm numba cache, a platform other than the CPU, or
+    XLA started already leave XLA_FLAGS as they were (diffshade.host.cputune's flag
+    aside; another platform: the next test)."""
+    went, flags = _run(_FLAGS_AFTER_COLD_START, _env(tmp_path, XLA_FLAGS=""))
+    assert went and flags == list(warmup.COLD_XLA_FLAGS)
+    mine = "--xla_backend_optimization_level=2"
+    went, flags = _run(_FLAGS_AFTER_COLD_START, _env(tmp_path, XLA_FLAGS=mine))
+    assert went and flags == [mine, "--xla_cpu_use_fusion_emitters=false"]
+    started = _FLAGS_AFTER_COLD_START.replace("warmup.start =", "import jax; jax.devices(); "
+                                              "warmup.start =")
+    went, flags = _run(started, _env(tmp_path, XLA_FLAGS=""))
+    assert went and flags == []
+    # several CPU devices: 'auto' means the JAX kernels anyway, no cold start, no flags
+    went, flags = _run(_FLAGS_AFTER_COLD_START, _env(tmp_path, XLA_FLAGS="",
+                                                     JAX_NUM_CPU_DEVICES="2"))
+    assert not went and flags == []
+
+
+def test_only_a_single_cpu_device_ahead_gets_the_quick_start(monkeypatch):
+    """The flags are for the CPU's programs of a run on the JAX kernels: not where
+    JAX_PLATFORMS puts another platform first, nor with several host devices."""
+    import jax
+
+    monkeypatch.setenv("XLA_FLAGS", "")
+    was = jax.config.jax_platforms
+    try:
+        for platforms, ahead in (("cpu", True), ("cuda,cpu", False), ("tpu", False)):
+            jax.config.update("jax_platforms", platforms)
+            assert warmup._one_cpu_device_ahead() is ahead
+        jax.config.update("jax_platforms", "cpu")
+        monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=4")
+        assert warmup._one_cpu_device_ahead() is False
+
+    finally:
+        jax.config.update("jax_platforms", was)
+
+
+def test_the_quick_start_flags_are_known_to_this_xla():
+    """jaxlib aborts the process on an XLA flag it does not know."""
+    code = ("import os; os.environ['XLA_FLAGS'] = " + repr(" ".join(warmup.COLD_XLA_FLAGS))
+            + "; import jax, jax.numpy as jnp; print(float(jax.jit(jnp.sin)(0.5)))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=300, check=True)
+    assert abs(float(done.stdout) - 0.479425538604203) < 1e-6
+
+
 def test_a_textured_command_warms_the_texture_lookup_too(tmp_path):
     """fit/synth --texture add the texture lookup's handlers; other commands do not."""
     plain, textures = list(warmup.COMMAND_TARGETS), list(warmup.TEXTURE_TARGETS)

@@ -13,6 +13,17 @@ detached process of low priority that compiles the pending handlers into numba's
 (`start`). The runs after it find them there and use the host kernels. The two paths
 render the same images (to float rounding: tests/test_tile_search.py, test_transforms.py).
 
+A cold run's programs are compiled for a quick start (`COLD_XLA_FLAGS`, added to XLA_FLAGS
+where the user's do not name them): they run once or a few times, the host kernels take over
+from the next run on, so their compile time matters more than their speed. XLA's loop
+emitters in place of its MLIR fusion emitters take about a third off a README synth's CPU
+time, LLVM's -O1 a little more. The flags are the process's (and its children's: synth's
+background compilation of its fit), so that every program of the run, `diffshade.render`'s
+included, is compiled alike: synth's targets stay the render's bit for bit, and the fit
+loads the programs its synth's background compiled (the program store's key holds
+XLA_FLAGS). The test suite compiles with the same emitters (tests/conftest.py), so the JAX
+kernels' images are held to the host kernels' with them.
+
 The warm-up runs at the lowest priority (`NICENESS`): on a machine of few cores it takes
 little from the run that started it, nor from the next command of a script, which finds
 the warm-up still running (its lock held) and starts no second one.
@@ -42,6 +53,8 @@ COMMAND_TARGETS = ("diffshade_search_hard_f32_i32", "diffshade_geometry_forward_
 #: --texture, render of a scene with a texture): the others neither wait for them nor
 #: compile them
 TEXTURE_TARGETS = ("diffshade_texture_forward_f32", "diffshade_texture_backward_f32")
+#: XLA's flags for a cold run's programs (module docstring)
+COLD_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimization_level=1")
 #: the warm-up process's niceness, the lowest priority: where it shares a core with the run
 #: it was started by, it takes ~1.5 % of it (niceness 10: ~10 %); not the idle scheduling
 #: policy, under which a busy machine would starve it for hours
@@ -70,15 +83,19 @@ def pending(targets=COMMAND_TARGETS):
         return []
 
 
-def applies():
-    """Whether a command run may start cold (module docstring: what turns it off)."""
+def _switched_on():
+    """Whether the environment leaves the cold start on (module docstring)."""
     from diffshade.host import ffi, hostcall
 
     if os.environ.get(SWITCH) == "0" or os.environ.get(AUTO_KERNELS):
         return False
-    if os.environ.get(hostcall.FFI_SWITCH) == "0":
-        return False
-    return RenderSettings().use_host_kernels() and ffi.unavailable() is None
+    return os.environ.get(hostcall.FFI_SWITCH) != "0" and ffi.unavailable() is None
+
+
+def applies():
+    """Whether a command run may start cold (module docstring: what turns it off). Asks
+    which backend 'auto' kernels find, which starts XLA."""
+    return _switched_on() and RenderSettings().use_host_kernels()
 
 
 def command_targets(argv):
@@ -91,17 +108,64 @@ def command_targets(argv):
 
 def cold_start(targets=COMMAND_TARGETS):
     """For a command run: where the host kernels it uses (`targets`) are not compiled
-    yet, run this process on the JAX kernels and start compiling them in the background
+    yet, run this process on the JAX kernels, compiled for a quick start where XLA has not
+    started yet (COLD_XLA_FLAGS), and start compiling the host kernels in the background
     (unless a warm-up of this cache is compiling already: a later run compiles the rest).
     Returns the targets not compiled yet (empty: nothing changed)."""
-    if not applies():
+    if not _switched_on():
         return []
     missing = pending(targets)
-    if missing:
-        os.environ[AUTO_KERNELS] = "jax"
-        if not running():
-            start(missing)
+    if not missing:
+        return []
+    if not _xla_started() and _one_cpu_device_ahead():
+        compile_for_a_quick_start()  # before applies() starts XLA, which reads the flags once
+    if not applies():
+        return []
+    os.environ[AUTO_KERNELS] = "jax"
+    if not running():
+        start(missing)
     return missing
+
+
+def _xla_started() -> bool:
+    """Whether XLA's client has started in this process (it has read XLA_FLAGS then);
+    unknown (another JAX's internals): True."""
+    try:
+        from jax._src import xla_bridge
+
+        return xla_bridge.backends_are_initialized()
+    except (ImportError, AttributeError):
+        return True
+
+
+def _one_cpu_device_ahead() -> bool:
+    """Whether XLA, once started, will run on a single CPU device (where 'auto' means the
+    host kernels), judged before it starts: the first platform JAX_PLATFORMS names, else
+    no accelerator plugin of JAX's installed; and no count of host devices asked for (in
+    XLA_FLAGS or jax_num_cpu_devices)."""
+    import importlib.metadata
+    import importlib.util
+
+    import jax
+
+    if "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", ""):
+        return False
+    if getattr(jax.config, "jax_num_cpu_devices", -1) not in (-1, 1):
+        return False
+    if jax.config.jax_platforms:
+        return jax.config.jax_platforms.split(",")[0].strip() == "cpu"
+    return (importlib.util.find_spec("jax_plugins") is None
+            and importlib.util.find_spec("libtpu") is None
+            and not importlib.metadata.entry_points(group="jax_plugins"))
+
+
+def compile_for_a_quick_start():
+    """Add COLD_XLA_FLAGS to XLA_FLAGS, each unless XLA_FLAGS names its option already
+    (the user's choice stands)."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    named = {flag.split("=")[0].lstrip("-") for flag in flags.split()}
+    added = [flag for flag in COLD_XLA_FLAGS if flag.split("=")[0].lstrip("-") not in named]
+    os.environ["XLA_FLAGS"] = " ".join([flags, *added]).strip()
 
 
 def start(targets):

@@ -49,6 +49,7 @@ from diffshade.io import LIGHT_COMPILE, stored_jit
 from diffshade.scene import Texture
 from fitting.model.batch import batched, view_map
 from fitting.model.cache import FitData, pixel_parts
+from fitting.solve.bounded import minimize_bounded
 from fitting.solve.distribute import ShardedViews, fit_data
 from fitting.spec.gains import fitted_gains
 from fitting.spec.params import COEFFICIENTS, FitSpec, values_to_material
@@ -308,13 +309,8 @@ def _search_shininess(data, spec, shininess_range, grid_size, gains=None):
     grid = np.linspace(np.log(shininess_range[0]), np.log(shininess_range[1]), grid_size)
     best, profile = _grid_minimum(misfit, grid)
     lo, hi = grid[max(best - 1, 0)], grid[min(best + 1, grid_size - 1)]
-    # imported here: SciPy's optimize takes longer to import than the rest of a
-    # `diffshade synth`, which imports this module (through fitting) but never searches
-    from scipy.optimize import minimize_scalar
-
-    refined = minimize_scalar(misfit, bounds=(lo, hi), method="bounded",
-                              options={"xatol": 1e-6})
-    return float(refined.x) if refined.fun <= profile[best] else float(grid[best])
+    x, fun = minimize_bounded(misfit, lo, hi, xatol=1e-6)
+    return float(x) if fun <= profile[best] else float(grid[best])
 
 
 def _split(coef, spec, dtype):
