@@ -156,6 +156,19 @@ def _chunk(chunk, chunks, npix):
     return chunk * step, min(npix, (chunk + 1) * step)
 
 
+#: fragments per block where the parts take blocks in turn (_dealt): the compacted active
+#: slots are padded at their end, so equal ranges would give the first part the most work
+#: (interpolate_backward; interpolate_at gained nothing from it and keeps equal ranges)
+_BLOCK = 1024
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _dealt(block, n):
+    """The range [start, stop) of block number `block` of n fragments; part c of `chunks`
+    takes blocks c, c + chunks, c + 2 chunks, ..."""
+    return block * _BLOCK, min(n, (block + 1) * _BLOCK)
+
+
 @numba.njit(cache=True, nogil=True)
 def geometry_forward(ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny, chunks):
     """bary [P, K, 3], depth [P, K] = bary . corner_z, the signed squared pixel distance
@@ -521,28 +534,30 @@ def interpolate_backward_into(ids, bary, corners, g_out, chunks, g_bary, g_corne
     nfaces, _, nc = corners.shape
     dtype = corners.dtype
     # one loop over the fragments, not one over pixels and one over their slots: the
-    # compacted active slots arrive as pixels of one slot each (shading.compact)
+    # compacted active slots arrive as pixels of one slot each (shading.compact), padded at
+    # the end, so the parts take blocks of fragments in turn (_dealt)
     count = npix * k
     fids, b, g = ids.reshape(count), bary.reshape(count, 3), g_out.reshape(count, nc)
     g_b = g_bary.reshape(count, 3)
     acc = np.zeros((chunks, nfaces, 3, nc), dtype)
     for chunk in prange(chunks):
-        start, stop = _chunk(chunk, chunks, npix)  # whole pixels
         part = acc[chunk]
-        for i in range(start * k, stop * k):
-            f = fids[i]
-            if f < 0:
-                g_b[i, 0] = g_b[i, 1] = g_b[i, 2] = 0.0
-                continue
-            b0, b1, b2 = b[i, 0], b[i, 1], b[i, 2]
-            t0 = t1 = t2 = 0.0
-            for ch in range(nc):
-                v = g[i, ch]
-                t0 += v * corners[f, 0, ch]
-                t1 += v * corners[f, 1, ch]
-                t2 += v * corners[f, 2, ch]
-                part[f, 0, ch] += b0 * v
-                part[f, 1, ch] += b1 * v
-                part[f, 2, ch] += b2 * v
-            g_b[i, 0], g_b[i, 1], g_b[i, 2] = t0, t1, t2
+        for block in range(chunk, (count + _BLOCK - 1) // _BLOCK, chunks):
+            start, stop = _dealt(block, count)
+            for i in range(start, stop):
+                f = fids[i]
+                if f < 0:
+                    g_b[i, 0] = g_b[i, 1] = g_b[i, 2] = 0.0
+                    continue
+                b0, b1, b2 = b[i, 0], b[i, 1], b[i, 2]
+                t0 = t1 = t2 = 0.0
+                for ch in range(nc):
+                    v = g[i, ch]
+                    t0 += v * corners[f, 0, ch]
+                    t1 += v * corners[f, 1, ch]
+                    t2 += v * corners[f, 2, ch]
+                    part[f, 0, ch] += b0 * v
+                    part[f, 1, ch] += b1 * v
+                    part[f, 2, ch] += b2 * v
+                g_b[i, 0], g_b[i, 1], g_b[i, 2] = t0, t1, t2
     g_corners[:] = acc.sum(0)
