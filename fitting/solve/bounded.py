@@ -18,7 +18,7 @@ def _sign(value):
     return 1.0 if value >= 0 else -1.0
 
 
-def _parabolic_step(xf, fx, nfc, fnfc, fulc, ffulc, e):
+def _parabolic_step(xf, fx, nfc, fnfc, fulc, ffulc):
     """(p, q) of the parabola through the three best points: the step is p / q."""
     r = (xf - nfc) * (fx - ffulc)
     q = (xf - fulc) * (fx - fnfc)
@@ -43,7 +43,7 @@ def minimize_bounded(fun, lo, hi, xatol=1e-5, maxiter=500):
     while abs(xf - xm) > tol2 - 0.5 * (b - a):
         golden = True
         if abs(e) > tol1:  # try a parabolic step
-            p, q = _parabolic_step(xf, fx, nfc, fnfc, fulc, ffulc, e)
+            p, q = _parabolic_step(xf, fx, nfc, fnfc, fulc, ffulc)
             r, e = e, rat
             if abs(p) < abs(0.5 * q * r) and q * (a - xf) < p < q * (b - xf):
                 golden = False
