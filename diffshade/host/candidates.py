@@ -1057,8 +1057,21 @@ def _tile_order(start):
 
 
 @numba.njit(cache=True, nogil=True)
+def _tile_scratch(k):
+    """A thread's arrays for _search_tile, allocated once per search and reused tile after
+    tile (fresh arrays per tile cost thousands of mallocs a search)."""
+    capacity = GROUP + TILE_H * TILE_W
+    return (np.empty((TILE_H * TILE_W, k), np.int32), np.empty((TILE_H * TILE_W, k)),
+            np.empty(TILE_H * TILE_W, np.int32), np.empty(TILE_H * TILE_W),
+            np.empty(TILE_H * TILE_W, np.int64), np.empty((2, TILE_H * TILE_W)),
+            np.empty(capacity, np.int64), np.empty(capacity), np.empty(capacity),
+            np.empty(capacity), np.empty(capacity), np.empty(capacity),
+            np.empty(k, np.int32), np.empty(k))
+
+
+@numba.njit(cache=True, nogil=True)
 def _search_tile(setup, binned, first_slot, last_slot, tile_r0, tile_c0, width, height, k,
-                 radius_px, soft, ids_out):
+                 radius_px, soft, ids_out, scratch):
     """Search one tile of one view: its lists from its faces binned[first_slot:last_slot]
     (setup: one view's scr, edge, inv_len, zndc, box and lowest_key of _soft_setup), copied
     into ids_out [H * W, k]; returns the fragments dropped. A tile's pixel (row, col) is
@@ -1073,19 +1086,13 @@ def _search_tile(setup, binned, first_slot, last_slot, tile_r0, tile_c0, width, 
         for row in range(tile_r0, tile_r1 + 1):
             ids_out[row * width + tile_c0:row * width + tile_c1 + 1] = -1
         return 0
-    # the tile's arrays, fresh: a thread's arrays passed in and reused tile after tile
-    # measured slower (LLVM cannot assume that arrays passed in do not alias)
-    ids = np.full((TILE_H * TILE_W, k), -1, np.int32)
-    keys = np.full((TILE_H * TILE_W, k), np.inf)
-    filled = np.zeros(TILE_H * TILE_W, np.int32)
-    worst_key = np.full(TILE_H * TILE_W, np.inf)
-    worst_id = np.full(TILE_H * TILE_W, -1, np.int64)
-    out = np.empty((2, TILE_H * TILE_W))
-    capacity = GROUP + TILE_H * TILE_W
-    fragments = np.empty(capacity, np.int64)
-    depth, signed_d2, bound = np.empty(capacity), np.empty(capacity), np.empty(capacity)
-    key_lo, key_hi = np.empty(capacity), np.empty(capacity)
-    scratch_ids, scratch_keys = np.empty(k, np.int32), np.empty(k)
+    (ids, keys, filled, worst_key, worst_id, out, fragments, depth, signed_d2, bound, key_lo,
+     key_hi, scratch_ids, scratch_keys) = scratch
+    ids[:] = -1
+    keys[:] = np.inf
+    filled[:] = 0
+    worst_key[:] = np.inf
+    worst_id[:] = -1
     dropped, count = 0, 0
     for slot in range(first_slot, last_slot):
         f = binned[slot]
@@ -1140,6 +1147,7 @@ def _search_soft_into(clips, faces, width, height, k, cull_backfaces, radii, par
     order, counter = _tile_order(start), np.empty(1, np.int64)
     counter[0] = 0
     for _ in prange(max(1, min(threads, views * tiles))):
+        scratch = _tile_scratch(k)
         item = _claim(counter)
         while item < views * tiles:
             view, t = order[item] // tiles, order[item] % tiles
@@ -1149,7 +1157,8 @@ def _search_soft_into(clips, faces, width, height, k, cull_backfaces, radii, par
                     perspective)
             all_dropped[view, t] = _search_tile(
                 setup, binned[view], start[view, t], start[view, t + 1], t // tiles_x * TILE_H,
-                t % tiles_x * TILE_W, width, height, k, radii[view], soft, all_ids[view])
+                t % tiles_x * TILE_W, width, height, k, radii[view], soft, all_ids[view],
+                scratch)
             item = _claim(counter)
     return all_dropped.sum(1)
 
