@@ -834,17 +834,17 @@ GROUP = 1024
 
 @numba.njit(cache=True, nogil=True)
 def _insert_group8(ids, keys, worst_key, fragments, depth, signed_d2, bound, key_lo, key_hi,
-                   count, sigma):
+                   count, sigma, straddling):
     """_insert_group for lists of 8 (the soft search's default), without branches: the
     keys that need libm (where the bracket straddles a rounding boundary) are computed
     first, in a loop of their own (so the insertions' loop has no branch and no call),
     into key_lo; then every fragment goes through _insert8, whose lists are always sorted
     (so neither the counts of filled entries nor a sort at the end are needed); returns
-    how many fragments were dropped."""
+    how many fragments were dropped. straddling: scratch of at least `count` int64."""
     depth_bits = depth.view(np.int64)
     # those fragments listed first, without branches (a few in a hundred: a branch per
     # fragment would be mispredicted at each of them)
-    straddling, listed = np.empty(count, np.int64), 0
+    listed = 0
     for i in range(count):
         straddling[listed] = i
         listed += key_lo[i] != key_hi[i]
@@ -867,7 +867,7 @@ def _insert_group8(ids, keys, worst_key, fragments, depth, signed_d2, bound, key
 @numba.njit(cache=True, nogil=True)
 def _insert_group(ids, keys, filled, worst_key, worst_id, fragments, depth, signed_d2,
                   bound, key_lo, key_hi, count, sigma, scratch_ids,
-                  scratch_keys):
+                  scratch_keys, straddling):
     """Insert `count` gathered fragments (fragments[i] = face * TILE_H * TILE_W + pixel;
     _soft_keys' depth, signed d2, bound and key bracket) in order; returns how many were
     dropped. A full list whose last entry (worst_key, worst_id: copies, so one cache line
@@ -879,7 +879,7 @@ def _insert_group(ids, keys, filled, worst_key, worst_id, fragments, depth, sign
     k = ids.shape[1]
     if k == 8:
         return _insert_group8(ids, keys, worst_key, fragments, depth, signed_d2, bound, key_lo,
-                              key_hi, count, sigma)
+                              key_hi, count, sigma, straddling)
     dropped = 0
     depth_bits = depth.view(np.int64)
     for i in range(count):
@@ -1066,7 +1066,7 @@ def _tile_scratch(k):
             np.empty(TILE_H * TILE_W, np.int64), np.empty((2, TILE_H * TILE_W)),
             np.empty(capacity, np.int64), np.empty(capacity), np.empty(capacity),
             np.empty(capacity), np.empty(capacity), np.empty(capacity),
-            np.empty(k, np.int32), np.empty(k))
+            np.empty(k, np.int32), np.empty(k), np.empty(capacity, np.int64))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -1087,7 +1087,7 @@ def _search_tile(setup, binned, first_slot, last_slot, tile_r0, tile_c0, width, 
             ids_out[row * width + tile_c0:row * width + tile_c1 + 1] = -1
         return 0
     (ids, keys, filled, worst_key, worst_id, out, fragments, depth, signed_d2, bound, key_lo,
-     key_hi, scratch_ids, scratch_keys) = scratch
+     key_hi, scratch_ids, scratch_keys, straddling) = scratch
     ids[:] = -1
     keys[:] = np.inf
     filled[:] = 0
@@ -1112,7 +1112,7 @@ def _search_tile(setup, binned, first_slot, last_slot, tile_r0, tile_c0, width, 
             _soft_keys(depth, signed_d2, bound, key_lo, key_hi, count, soft)
             dropped += _insert_group(ids, keys, filled, worst_key, worst_id, fragments, depth,
                                      signed_d2, bound, key_lo, key_hi, count, soft[0],
-                                     scratch_ids, scratch_keys)
+                                     scratch_ids, scratch_keys, straddling)
             count = 0
     for pixel in range(ids.shape[0] if k != 8 else 0):  # lists of 8 stay sorted
         if filled[pixel] < k:
