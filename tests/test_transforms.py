@@ -211,6 +211,73 @@ def test_geometry_forward_kernel_equals_the_jax_geometry(soft):
     assert np.all(outs[0][0][ids < 0] == 0.0) and np.all(outs[0][1][ids < 0] == 0.0)
 
 
+def _projected_faces(height, width, rng):
+    """fragment_geometry's per-face inputs of triangles in clip space: one with its corners
+    on pixel centres (W = 1; on an image whose sides are powers of two, the pixels along
+    its edges lie exactly on them), a zero-area one (corners on a line), a tiny one (a
+    millionth of a pixel) and random ones behind the camera's plane, perspective among
+    them."""
+    from diffshade.raster import fragments as raster
+
+    ndc = lambda col, row: [(2.0 * col + 1.0) / width - 1.0, 1.0 - (2.0 * row + 1.0) / height]
+    on_centres = [ndc(0, 0) + [0.0, 1.0], ndc(width - 1, 0) + [0.1, 1.0],
+                  ndc(0, height - 1) + [0.2, 1.0]]
+    line = [[-0.5, -0.5, 0.0, 1.0], [0.0, 0.0, 0.1, 1.0], [0.5, 0.5, 0.2, 1.0]]
+    tiny_face = [[0.1, 0.1, 0.0, 1.0], [0.1 + 1e-6 / width, 0.1, 0.0, 1.0],
+                 [0.1, 0.1 + 1e-6 / height, 0.0, 1.0]]
+    w = rng.uniform(0.5, 3.0, (9, 1))
+    random = np.concatenate([rng.uniform(-1.2, 1.2, (9, 2)) * w, rng.uniform(-1, 1, (9, 1)), w],
+                            -1)
+    clip = jnp.asarray(np.concatenate([on_centres, line, tiny_face, random]))
+    faces = jnp.arange(clip.shape[0]).reshape(-1, 3)
+    depth = -jnp.asarray(rng.uniform(1.0, 5.0, clip.shape[0]))
+    return (jnp.take(clip[:, 3], faces), jnp.take(depth, faces),
+            raster.face_edge_coefficients(clip, faces)[0],
+            jnp.take(raster._screen_positions(clip, width, height), faces, axis=0))
+
+
+@pytest.mark.parametrize("soft", [False, True])
+@pytest.mark.parametrize("batch, height, width, k", [(1, 1, 1, 1), (1, 1, 1, 9), (2, 4, 8, 5),
+                                                    (1, 8, 2, 3), (3, 3, 5, 2), (1, 2, 3, 130)])
+def test_geometry_forward_kernel_on_awkward_fragments(soft, batch, height, width, k):
+    """The forward kernel against the jax.numpy geometry (fragment_geometry's native form)
+    where its loops have edges: 1-pixel and non-square images, a batch of images folded
+    into one call's rows, K of 1, odd and more than the kernels' blocks
+    (fragment_kernels._BLOCK), pixels with every slot empty or every slot full, pixels
+    exactly on a triangle's edge, zero-area and tiny triangles. Empty slots are zeros."""
+    from diffshade.host import fragment_kernels as kernels
+    from diffshade.numerics import tiny
+    from diffshade.raster.fragments import _geometry_native
+
+    rng = np.random.default_rng(height * 1000 + width * 10 + k)
+    per_face = _projected_faces(height, width, rng)
+    nfaces = per_face[0].shape[0]
+    ids = rng.integers(0, nfaces, (batch * height, width, k)).astype(np.int32)
+    ids[rng.random(ids.shape) < 0.3] = -1
+    ids[0, 0] = -1  # a pixel without faces
+    ids[-1, -1] = np.arange(k) % nfaces  # one with every slot full, every face among them
+    want = _geometry_native(jnp.asarray(ids), *per_face, width=width, height=height,
+                            soft=soft)
+    for chunks in (1, 2):
+        *got, edge = kernels.geometry_forward(ids.reshape(-1, k), *map(np.asarray, per_face),
+                                              width, height, soft, tiny(np.float64), chunks)
+        for g, w in zip(got, want, strict=True):
+            np.testing.assert_allclose(g.reshape(w.shape), w, rtol=1e-9, atol=1e-9)
+        empty = ids.reshape(-1, k) < 0
+        assert np.all(got[0][empty] == 0.0) and np.all(got[1][empty] == 0.0)
+        assert np.all(got[2][empty] == 0.0) and np.all(edge[empty] == 0)
+        assert np.all(edge == 0) if not soft else np.array_equal(
+            edge >= kernels.OUTSIDE, np.signbit(got[2]) & ~empty)
+    if soft and (width, height) == (8, 4):
+        # the pixels on the first face's edges are inside it, at distance 0 (up to the
+        # rounding of the nearest point's parameter on the edge)
+        on_edge = (ids[:height] == 0) & ((np.arange(height)[:, None, None] == 0)
+                                         | (np.arange(width)[None, :, None] == 0))
+        assert on_edge.any()
+        dist = np.asarray(got[2]).reshape(ids.shape)[:height][on_edge]
+        assert np.all(dist >= 0.0) and np.all(dist < 1e-28), dist
+
+
 @pytest.mark.parametrize("soft", [False, True])
 def test_geometry_backward_kernel_equals_reverse_mode_of_the_jax_geometry(soft):
     """fragment_geometry's backward kernel against jax.vjp of its jax.numpy form on random
