@@ -242,9 +242,10 @@ def _projected_faces(height, width, rng):
 def test_geometry_forward_kernel_on_awkward_fragments(soft, batch, height, width, k):
     """The forward kernel against the jax.numpy geometry (fragment_geometry's native form)
     where its loops have edges: 1-pixel and non-square images, a batch of images folded
-    into one call's rows, K of 1, odd and more than the kernels' blocks
-    (fragment_kernels._BLOCK), pixels with every slot empty or every slot full, pixels
-    exactly on a triangle's edge, zero-area and tiny triangles. Empty slots are zeros."""
+    into one call's rows, one or two parts (chunks), K of 1, odd and above 128 (one
+    pixel's slots over several of fragment_kernels._BLOCK, for a kernel that gathers its
+    fragments in blocks), pixels with every slot empty or every slot full, pixels exactly
+    on a triangle's edge, zero-area and tiny triangles. Empty slots are zeros."""
     from diffshade.host import fragment_kernels as kernels
     from diffshade.numerics import tiny
     from diffshade.raster.fragments import _geometry_native
