@@ -132,6 +132,29 @@ def test_interpolation_targets_equal_the_kernels(x64):
                                    else 1e-5, atol=1e-12 if x64 else 1e-5)
 
 
+@pytest.mark.parametrize("chunks", [1, 2, 3])
+def test_interpolate_backward_equals_a_loop_over_several_blocks(chunks):
+    """interpolate_backward against a NumPy loop on more fragments than its parts' blocks
+    (kernels._DEALT, dealt in turn): a ragged last block, empty slots (-1) in the middle
+    and a padded end as the compacted active slots have, faces shared across blocks."""
+    rng = np.random.default_rng(8)
+    n, faces, c = 5 * kernels._DEALT + 37, 11, 4
+    ids = rng.integers(0, faces, (n, 1)).astype(np.int32)
+    ids[rng.random(n) < 0.2] = -1
+    ids[-300:] = -1
+    bary = rng.uniform(size=(n, 1, 3))
+    corners, g_out = rng.normal(size=(faces, 3, c)), rng.normal(size=(n, 1, c))
+    want_bary, want_corners = np.zeros((n, 1, 3)), np.zeros((faces, 3, c))
+    for i in range(n):
+        f = ids[i, 0]
+        if f >= 0:
+            want_bary[i, 0] = corners[f] @ g_out[i, 0]
+            want_corners[f] += bary[i, 0][:, None] * g_out[i, 0][None, :]
+    g_bary, g_corners = kernels.interpolate_backward(ids, bary, corners, g_out, chunks)
+    np.testing.assert_allclose(g_bary, want_bary, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(g_corners, want_corners, rtol=1e-12, atol=1e-12)
+
+
 @pytest.mark.parametrize("x64", [False, True])
 @pytest.mark.parametrize("clamp", [0, 1])
 def test_texture_targets_equal_the_kernels(x64, clamp):

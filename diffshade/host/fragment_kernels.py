@@ -159,14 +159,14 @@ def _chunk(chunk, chunks, npix):
 #: fragments per block where the parts take blocks in turn (_dealt): the compacted active
 #: slots are padded at their end, so equal ranges would give the first part the most work
 #: (interpolate_backward; interpolate_at gained nothing from it and keeps equal ranges)
-_BLOCK = 1024
+_DEALT = 1024
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _dealt(block, n):
     """The range [start, stop) of block number `block` of n fragments; part c of `chunks`
     takes blocks c, c + chunks, c + 2 chunks, ..."""
-    return block * _BLOCK, min(n, (block + 1) * _BLOCK)
+    return block * _DEALT, min(n, (block + 1) * _DEALT)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -542,7 +542,7 @@ def interpolate_backward_into(ids, bary, corners, g_out, chunks, g_bary, g_corne
     acc = np.zeros((chunks, nfaces, 3, nc), dtype)
     for chunk in prange(chunks):
         part = acc[chunk]
-        for block in range(chunk, (count + _BLOCK - 1) // _BLOCK, chunks):
+        for block in range(chunk, (count + _DEALT - 1) // _DEALT, chunks):
             start, stop = _dealt(block, count)
             for i in range(start, stop):
                 f = fids[i]
