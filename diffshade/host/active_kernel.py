@@ -15,6 +15,8 @@ import numba
 import numpy as np
 from numba import prange
 
+from diffshade.host import numba_cache  # noqa: F401 (numba's cache saves, locked)
+
 
 @numba.njit(cache=True, nogil=True)
 def first_active(mask, capacity):

@@ -45,6 +45,8 @@ from numba import prange, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+from diffshade.host import numba_cache  # noqa: F401 (numba's cache saves, locked)
+
 EDGES = ((1, 2), (2, 0), (0, 1))
 
 

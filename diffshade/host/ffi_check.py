@@ -18,6 +18,7 @@ are bytes written into a uint8 buffer (numba's unicode strings cost seconds to c
 import numba
 import numpy as np
 
+from diffshade.host import numba_cache  # noqa: F401 (numba's cache saves, locked)
 from diffshade.host.xla_ffi import (
     API_MAJOR,
     API_MINOR,

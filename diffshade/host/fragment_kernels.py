@@ -33,6 +33,8 @@ import numba
 import numpy as np
 from numba import prange
 
+from diffshade.host import numba_cache  # noqa: F401 (numba's cache saves, locked)
+
 
 def chunks() -> int:
     """How many parts the pixels are split into: one per numba thread."""

@@ -28,6 +28,8 @@ import numba
 import numpy as np
 from numba import prange
 
+from diffshade.host import numba_cache  # noqa: F401 (numba's cache saves, locked)
+
 #: samples per block: a block's cells (texel rows and weights) are computed in one loop
 #: over the block, which LLVM vectorizes (several samples per instruction: one at a time,
 #: the coordinates' arithmetic took most of the lookup's time), into scratch rows that

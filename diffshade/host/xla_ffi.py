@@ -28,6 +28,8 @@ from numba import carray, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+from diffshade.host import numba_cache  # noqa: F401 (numba's cache saves, locked)
+
 #: the header the layout comes from, under jax.ffi.include_dir()
 HEADER = os.path.join("xla", "ffi", "api", "c_api.h")
 #: XLA_FFI_API_MAJOR, XLA_FFI_API_MINOR of that header: what the handlers declare

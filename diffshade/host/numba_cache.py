@@ -1,0 +1,56 @@
+"""numba's on-disk cache, made safe for processes that compile the same kernel at once.
+
+numba keeps, per function, an index (signature -> data file) and numbered data files. Its
+`IndexDataCacheFile.save` reads the index, picks the first unused number, writes the index
+and then the data, with nothing held between: two processes that compile two signatures
+of one kernel at once (pytest's workers on an empty cache, the CLI's background warm-up
+beside a notebook) can both pick number 1, and the index can end up naming a data file
+the other process wrote, for the other signature. The next process then loads machine
+code compiled for other argument types, and crashes.
+
+`install` (run on import by every module that defines cached kernels) holds an exclusive
+`flock` on the cache folder for the whole of each save, so that a save sees the index the
+one before it wrote. Loads need no lock: each file is replaced whole (numba writes a
+temporary file and renames it). Where `fcntl` is missing (Windows) nothing changes.
+numba is pinned to one minor version (pyproject.toml); should its class change, the
+cache is left as numba ships it.
+"""
+
+import functools
+import os
+
+try:
+    import fcntl
+except ImportError:  # not POSIX
+    fcntl = None
+
+from numba.core import caching
+
+
+def _locked(save):
+    @functools.wraps(save)
+    def locked_save(self, key, data):
+        try:
+            folder = os.open(self._cache_path, os.O_RDONLY)
+        except OSError:  # no folder to lock: numba's own error, if any, follows
+            return save(self, key, data)
+        try:
+            fcntl.flock(folder, fcntl.LOCK_EX)
+            return save(self, key, data)
+        finally:
+            os.close(folder)  # releases the lock
+    locked_save.diffshade_locked = True
+    return locked_save
+
+
+def install():
+    """Wrap numba's cache saves in the folder's lock (once per process)."""
+    cls = getattr(caching, "IndexDataCacheFile", None)
+    save = getattr(cls, "save", None)
+    if (fcntl is None or save is None or getattr(save, "diffshade_locked", False)
+            or not hasattr(cls, "_load_index")):
+        return
+    cls.save = _locked(save)
+
+
+install()
