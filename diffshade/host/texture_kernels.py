@@ -17,11 +17,13 @@ coordinates and weights are computed in float64, the blend in the texels' dtype.
 Every read is in range whatever the UV: a coordinate that is not finite (NaN, or an
 infinite one under 'repeat') reads texel 0 of its axis with weight NaN, so the value is
 NaN, as in the jax.numpy lookup; an offset whose texture would end past the texels reads
-nothing (zeros). Kernels split the samples into blocks (_BLOCK), dealt in turn to
-`chunks` parts run in parallel: a part's blocks are spread over the samples, so that the
-parts do the same work where the samples that read a texture come first (the compacted
-active slots: one part would have them all); the backward kernel accumulates the texels'
-gradient in one buffer per part (no races).
+nothing (zeros). Kernels split the samples into blocks (_BLOCK) for `chunks` parts run in
+parallel. The forward's parts claim the blocks one at a time from a shared counter: they
+end together where the samples that read a texture come first (the compacted active
+slots: a fixed split would give one part them all) and where XLA runs other work beside
+the kernel (a part whose thread waits for a core takes fewer blocks). The backward's parts
+take the blocks in turn (block c, c + chunks, ...), each accumulating the texels' gradient
+in a buffer of its own (no races), so that its sums run in the same order at every call.
 """
 
 import numba
@@ -29,6 +31,7 @@ import numpy as np
 from numba import prange
 
 from diffshade.host import numba_cache  # noqa: F401 (numba's cache saves, locked)
+from diffshade.host.candidates import _claim
 
 #: samples per block: a block's cells (texel rows and weights) are computed in one loop
 #: over the block, which LLVM vectorizes (several samples per instruction: one at a time,
@@ -193,9 +196,12 @@ def sample_forward(ids, uv, texels, height, width, clamp, chunks):
 def sample_forward_into(ids, uv, texels, height, width, clamp, chunks, out):
     """sample_forward writing every element of out [M, C]."""
     n, nc = ids.shape[0], texels.shape[1]
-    for chunk in prange(chunks):
+    blocks, counter = (n + _BLOCK - 1) // _BLOCK, np.empty(1, np.int64)
+    counter[0] = 0
+    for _ in prange(chunks):
         scratch = _scratch(texels.dtype)
-        for block in range(chunk, (n + _BLOCK - 1) // _BLOCK, chunks):
+        block = _claim(counter)
+        while block < blocks:
             lo, hi = _block(block, n)
             if not _block_cells(ids, uv, lo, hi, height, width, clamp, texels.shape[0],
                                 scratch):  # none reads a texture (the compacted tail)
@@ -204,6 +210,7 @@ def sample_forward_into(ids, uv, texels, height, width, clamp, chunks, out):
                 _blend(texels, scratch, out[lo:hi], 3)
             else:
                 _blend(texels, scratch, out[lo:hi], nc)
+            block = _claim(counter)
     return out
 
 
@@ -227,6 +234,8 @@ def sample_backward_into(ids, uv, texels, g_out, height, width, clamp, uv_grad, 
     for chunk in prange(chunks):
         part, scratch = acc[chunk], _scratch(texels.dtype)
         part[:] = 0.0  # here, not before the loop: the parts in parallel
+        # dealt in turn, not claimed: which part sums which samples stays fixed, so the
+        # texels' gradient is the same bit for bit from call to call
         for block in range(chunk, (n + _BLOCK - 1) // _BLOCK, chunks):
             lo, hi = _block(block, n)
             # count: how many of the block's samples read a texture (none in the
