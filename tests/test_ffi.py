@@ -155,6 +155,25 @@ def test_interpolate_backward_equals_a_loop_over_several_blocks(chunks):
     np.testing.assert_allclose(g_corners, want_corners, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("chunks", [1, 2, 3])
+def test_interpolate_at_equals_a_loop_over_several_blocks(chunks):
+    """interpolate_at against a NumPy loop on thousands of rows split into 1 to 3 parts:
+    rows in any order, empty slots (-1), and the padding (N) at the end that the
+    compacted active slots have."""
+    rng = np.random.default_rng(9)
+    n, m, faces, c = 4 * kernels._DEALT, 5 * kernels._DEALT + 37, 11, 5
+    ids = rng.integers(-1, faces, n).astype(np.int32)
+    bary, corners = rng.uniform(size=(n, 3)), rng.normal(size=(faces, 3, c))
+    rows = rng.integers(0, n, m).astype(np.int32)
+    rows[-300:] = n
+    want = np.zeros((m, c))
+    for i, r in enumerate(rows):
+        if r < n and ids[r] >= 0:
+            want[i] = bary[r] @ corners[ids[r]]
+    got = kernels.interpolate_at(rows, ids, bary, corners, chunks)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+
+
 @pytest.mark.parametrize("x64", [False, True])
 @pytest.mark.parametrize("clamp", [0, 1])
 def test_texture_targets_equal_the_kernels(x64, clamp):

@@ -2,6 +2,9 @@
 signature saved stays in the index, and names the data saved for it."""
 
 import multiprocessing
+import os
+import subprocess
+import sys
 
 from numba.core import caching
 
@@ -39,3 +42,34 @@ def test_saves_at_once_keep_each_signature_with_its_own_data(tmp_path):
     assert len(set(index.values())) == len(keys)  # one data file each
     for key in keys:
         assert cache.load(key) == ("code",) + key[1:]
+
+
+_CALL = """
+import sys
+import numpy as np
+from diffshade.host import fragment_kernels as kernels
+rng = np.random.default_rng(3)
+ids = rng.integers(-1, 7, 300).astype(np.int32)
+bary, corners = rng.uniform(size=(300, 3)), rng.normal(size=(7, 3, 4))
+rows = rng.integers(0, 310, 500).astype(np.int32)
+if sys.argv[1] == "into":
+    out = np.empty((500, 4))
+    kernels.interpolate_at_into(rows, ids, bary, corners, 2, out)
+else:
+    out = kernels.interpolate_at(rows, ids, bary, corners, 2)
+want = np.array([bary[r] @ corners[ids[r]] if r < 300 and ids[r] >= 0 else np.zeros(4)
+                 for r in rows])
+assert np.allclose(out, want, rtol=1e-12, atol=1e-12)
+"""
+
+
+def test_a_kernel_first_called_in_another_process_still_loads(tmp_path):
+    """The parallel interpolate_at_into compiled and cached by one process; its NumPy form
+    then called in a second process (which loads the kernel from the cache) and in a
+    third: each runs and gives the loop's values. With the NumPy form compiled and cached
+    too, the third process crashed (numba issue #8578)."""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    for form in ("into", "wrapper", "wrapper"):
+        run = subprocess.run([sys.executable, "-c", _CALL, form], env=env,
+                             capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, (form, run.stderr[-2000:])

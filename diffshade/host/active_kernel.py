@@ -42,7 +42,6 @@ def first_active_into(mask, idx, count):
     count[0] = found
 
 
-@numba.njit(cache=True, nogil=True)
 def put_rows(idx, rows, count, clip, chunks):
     """out [count, D]: rows [C, D] put at out[idx[i]] (indices in [0, count) distinct),
     zeros elsewhere. A row whose index is out of range is dropped, or with `clip` added to

@@ -1020,7 +1020,6 @@ def _sort_full(ids, keys, pixel, scratch_ids, scratch_keys):
     ids[pixel, 4], ids[pixel, 5], ids[pixel, 6], ids[pixel, 7] = i4, i5, i6, i7
 
 
-@numba.njit(cache=True, nogil=True)
 def _search_soft(clips, faces, width, height, k, cull_backfaces, radii, params, perspective,
                  threads):
     """(ids [views, H * W, k] int32, dropped [views]): _search_soft_into's results in new

@@ -171,7 +171,6 @@ def _dealt(block, n):
     return block * _DEALT, min(n, (block + 1) * _DEALT)
 
 
-@numba.njit(cache=True, nogil=True)
 def geometry_forward(ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny, chunks):
     """bary [P, K, 3], depth [P, K] = bary . corner_z, the signed squared pixel distance
     [P, K] (soft; zeros in hard mode) and the nearest edge [P, K] int8 (soft; zeros in hard
@@ -266,7 +265,6 @@ def _dist_grad(acc, chunk, f, px, py, table, g_m, code):
     acc[chunk, f, _S + 1 + 2 * j] += g_m * t * dy
 
 
-@numba.njit(cache=True, nogil=True)
 def geometry_backward(ids, corner_w, corner_z, coeffs, scr, width, height, soft, tiny, chunks,
                       edge, g_bary, g_depth, g_dist):
     """Gradients of geometry_forward: (g_w [F, 3], g_z [F, 3], g_coeffs [F, 3, 3],
@@ -458,7 +456,6 @@ def geometry_backward_into(ids, corner_w, corner_z, coeffs, scr, width, height, 
                 out_scr[f, i, j] = total[f, _S + 2 * i + j]
 
 
-@numba.njit(cache=True, nogil=True)
 def interpolate_forward(ids, bary, corners, chunks):
     """sum_i bary_i * corners[f, i]: [P, K, C] for corners [F, 3, C]."""
     npix, k = ids.shape
@@ -488,7 +485,6 @@ def interpolate_forward_into(ids, bary, corners, chunks, out):
     return out
 
 
-@numba.njit(cache=True, nogil=True)
 def interpolate_at(rows, ids, bary, corners, chunks):
     """interpolate_forward at some fragments only: out[i] = sum_j bary[r, j] *
     corners[ids[r], j] with r = rows[i]: [M, C] for rows [M] int32, ids [N] int32 and
@@ -519,7 +515,6 @@ def interpolate_at_into(rows, ids, bary, corners, chunks, out):
                     f, 2, ch]
 
 
-@numba.njit(cache=True, nogil=True)
 def interpolate_backward(ids, bary, corners, g_out, chunks):
     """Gradients of interpolate_forward: (g_bary [P, K, 3], g_corners [F, 3, C])."""
     npix, k = ids.shape

@@ -14,6 +14,13 @@ one before it wrote. Loads need no lock: each file is replaced whole (numba writ
 temporary file and renames it). Where `fcntl` is missing (Windows) nothing changes.
 numba is pinned to one minor version (pyproject.toml); should its class change, the
 cache is left as numba ships it.
+
+A second flaw of numba's cache is avoided by how the kernels are written: a cached
+function that calls a parallel one, compiled in a process that loaded the parallel one
+from the cache, is saved broken, and the next process that loads it crashes (numba issue
+#8578; tests/test_numba_cache.py repeats it). So the NumPy-facing forms of the parallel
+kernels (geometry_forward, interpolate_at, put_rows, sample_forward, ...: new arrays, then
+the `_into` kernel) are plain Python, not compiled.
 """
 
 import functools

@@ -184,7 +184,6 @@ def _block(block, n):
     return block * _BLOCK, min(n, (block + 1) * _BLOCK)
 
 
-@numba.njit(cache=True, nogil=True)
 def sample_forward(ids, uv, texels, height, width, clamp, chunks):
     """Bilinear values [M, C] of the samples (module docstring)."""
     out = np.empty((ids.shape[0], texels.shape[1]), texels.dtype)
@@ -214,7 +213,6 @@ def sample_forward_into(ids, uv, texels, height, width, clamp, chunks, out):
     return out
 
 
-@numba.njit(cache=True, nogil=True)
 def sample_backward(ids, uv, texels, g_out, height, width, clamp, uv_grad, chunks):
     """Gradients of sample_forward: (g_uv [M, 2], g_texels [T, C]); g_uv is zeros unless
     uv_grad (the texels are then not read)."""
