@@ -1,8 +1,9 @@
 """diffshade.shading.compact.on_active: values and gradients at the active entries equal a plain
 evaluation, whether the active entries fit the capacity (compacted) or not (everywhere);
-take_rows and put_rows (each the other's transpose; host: the compiled kernel) against
-NumPy loops; interpolate_rows_at (host: the compiled kernel reading the fragments at the rows)
-against a loop and, for its derivatives, central differences."""
+take_rows and put_rows (each the other's transpose; host: the compiled kernel) and sum_rows
+(on_active's group) against NumPy loops; interpolate_rows_at (host: the compiled kernel
+reading the fragments at the rows) against a loop and, for its derivatives, central
+differences."""
 
 import jax
 import jax.extend.core as jex_core
@@ -16,6 +17,7 @@ from diffshade.shading.compact import (
     interpolate_rows_at,
     on_active,
     put_rows,
+    sum_rows,
     take_rows,
 )
 
@@ -186,6 +188,86 @@ def test_take_rows_and_put_rows_equal_loops(dtype, tail, clip, host):
     np.testing.assert_array_equal(np.asarray(pull_back(t)[0]), _take_loop(t, idx, clip))
     _, tangent = jax.jvp(lambda x: take_rows(x, idx, host, clip), (x,), (t,))
     np.testing.assert_array_equal(np.asarray(tangent), _take_loop(t, idx, clip))
+
+
+def _sum_loop(rows, idx, count, group):
+    """sum_rows one row at a time: row i added to out[idx[i] // group] where in range."""
+    out = np.zeros((count,) + rows.shape[1:], rows.dtype)
+    for i, j in enumerate(idx):
+        if 0 <= j < count * group:
+            out[j // group] += rows[i]
+    return out
+
+
+@pytest.mark.parametrize("host", [True, False])
+@pytest.mark.parametrize("tail", [(3,), (2,), ()])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_sum_rows_equals_a_loop(dtype, tail, host):
+    """Ascending indices with negative ones first, runs of one group (up to its 4 rows),
+    empty groups (the first and last among them) and padding past the end; the transpose
+    is the gather by idx // group (0 for the rows out of range), the tangent the same sum."""
+    rng = np.random.default_rng(5)
+    idx = np.array([-4, -1, 4, 5, 7, 8, 12, 13, 14, 15, 17, 28, 28 + 3, 32, 40],
+                   np.int32)  # groups of 4, count 8: 0 and 2 empty, 3 full; 32, 40 padding
+    rows = rng.normal(size=(idx.size,) + tail).astype(dtype)
+    got, pull = jax.vjp(lambda r: sum_rows(r, idx, 8, 4, host), rows)
+    tol = 1e-6 if dtype == np.float32 else 1e-15
+    np.testing.assert_allclose(np.asarray(got), _sum_loop(rows, idx, 8, 4), rtol=tol,
+                               atol=tol)
+    ct = rng.normal(size=(8,) + tail).astype(dtype)
+    want = np.stack([ct[j // 4] if 0 <= j < 32 else np.zeros_like(ct[0]) for j in idx])
+    np.testing.assert_array_equal(np.asarray(jax.jit(pull)(ct)[0]), want)
+    _, tangent = jax.jvp(lambda r: sum_rows(r, idx, 8, 4, host), (rows,), (2.0 * rows,))
+    np.testing.assert_allclose(np.asarray(tangent), 2.0 * _sum_loop(rows, idx, 8, 4),
+                               rtol=tol, atol=tol)
+
+
+def test_sum_rows_under_vmap():
+    """The batch rides along as an axis of the rows (one set of indices), or each member
+    has its own indices (one call of the kernel on the members' lists joined), negative
+    ones and padding dropped."""
+    rng = np.random.default_rng(6)
+    idx = np.array([0, 1, 5, 6, 7, 11, 12], np.int32)
+    rows = rng.normal(size=(2, 7, 3))
+    got = jax.jit(jax.vmap(lambda r: sum_rows(r, idx, 3, 4, True)))(rows)
+    for b in range(2):
+        np.testing.assert_allclose(np.asarray(got[b]), _sum_loop(rows[b], idx, 3, 4),
+                                   rtol=1e-15)
+    idxs = np.stack([idx, np.array([-1, 3, 4, 8, 9, 11, 12], np.int32)])
+    got = jax.jit(jax.vmap(lambda r, i: sum_rows(r, i, 3, 4, True)))(rows, idxs)
+    for b in range(2):
+        np.testing.assert_allclose(np.asarray(got[b]), _sum_loop(rows[b], idxs[b], 3, 4),
+                                   rtol=1e-15)
+
+
+@pytest.mark.parametrize("host", [True, False])
+@pytest.mark.parametrize("capacity", [40, 60, 200, (20, 40), (40, 60), (50, 100)])
+def test_grouped_values_and_gradients_equal_plain_sums(capacity, host):
+    """on_active's group: fn's values (0 where inactive, as a weight of 0 makes them)
+    summed over the last axis, compacted, by tiers or everywhere; and their gradients."""
+    x, y, flag, active = _inputs(0.4)
+    weight = jnp.where(active, jnp.asarray(np.random.default_rng(7).uniform(
+        0.5, 1.0, active.shape)), 0.0)
+
+    def weighted(x, y, flag, w):
+        return _fn(x, y, flag)["a"] * w[:, None]
+
+    def summed(x, y, compact):
+        if compact:
+            return on_active(weighted, active, capacity, x, y, flag, weight, host=host,
+                             group=True)
+        out = weighted(x.reshape(-1, 3), y.reshape(-1), flag.reshape(-1), weight.reshape(-1))
+        return out.reshape(x.shape).sum(-2)
+    got = jax.jit(lambda x, y: summed(x, y, True))(x, y)
+    assert got.shape == (6, 5, 3)
+    np.testing.assert_allclose(np.asarray(got), np.asarray(summed(x, y, False)), rtol=1e-13,
+                               atol=1e-15)
+    ct = jnp.asarray(np.random.default_rng(8).normal(size=(6, 5, 3)))
+    loss = lambda x, y, compact: jnp.sum(summed(x, y, compact) * ct)
+    g_got = jax.jit(jax.grad(lambda x, y: loss(x, y, True), argnums=(0, 1)))(x, y)
+    g_want = jax.grad(lambda x, y: loss(x, y, False), argnums=(0, 1))(x, y)
+    for a, b in zip(g_got, g_want, strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-14)
 
 
 @pytest.mark.parametrize("batched_idx", [False, True])

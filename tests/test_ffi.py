@@ -232,6 +232,47 @@ def test_put_rows_target_equals_the_kernel(x64):
         np.testing.assert_array_equal(np.asarray(jax.jit(put)(ct)), want)
 
 
+@pytest.mark.parametrize("x64", [False, True])
+def test_sum_rows_target_equals_the_kernel(x64):
+    """compact.sum_rows (rows of 3 floats) is the sum_rows target."""
+    with jax.enable_x64(x64):
+        dtype = np.float64 if x64 else np.float32
+        rng = np.random.default_rng(9)
+        idx = np.sort(rng.choice(80, 30, replace=False)).astype(np.int32)
+        idx = np.concatenate([[-2], idx, [80] * 4]).astype(np.int32)
+        rows = rng.normal(size=(35, 3)).astype(dtype)
+        fn = lambda r: compact.sum_rows(r, idx, 10, 8, True)
+        assert _targets(fn, rows) == {f"diffshade_sum_rows_{'f64' if x64 else 'f32'}"}
+        want = active_kernel.sum_rows(idx, rows, 10, 8, kernels.chunks())
+        np.testing.assert_array_equal(np.asarray(jax.jit(fn)(rows)), want)
+        # a batch with indices of their own: one call of the target
+        idxs = np.stack([idx, np.concatenate([idx[1:], [80]]).astype(np.int32)])
+        batched = jax.vmap(lambda r, i: compact.sum_rows(r, i, 10, 8, True))
+        assert _targets(batched, np.stack([rows, -rows]), idxs) == {
+            f"diffshade_sum_rows_{'f64' if x64 else 'f32'}"}
+        got = jax.jit(batched)(np.stack([rows, -rows]), idxs)
+        np.testing.assert_array_equal(np.asarray(got[0]), want)
+        np.testing.assert_array_equal(np.asarray(got[1]), active_kernel.sum_rows(
+            idxs[1], -rows, 10, 8, kernels.chunks()))
+
+
+@pytest.mark.parametrize("chunks", [1, 2, 3, 7])
+def test_sum_rows_equals_a_loop_over_several_parts(chunks):
+    """active_kernel.sum_rows against a NumPy loop, thousands of rows in 1 to 7 parts (a
+    part's first row found by bisection), whatever falls on the parts' borders."""
+    rng = np.random.default_rng(chunks)
+    count, group = 1000, 8
+    idx = np.sort(rng.choice(count * group, 3000, replace=False)).astype(np.int32)
+    idx = np.concatenate([[-5, -1], idx, [count * group] * 50]).astype(np.int32)
+    rows = rng.normal(size=(idx.size, 3))
+    want = np.zeros((count, 3))
+    for i, j in enumerate(idx):
+        if 0 <= j < count * group:
+            want[j // group] += rows[i]
+    got = active_kernel.sum_rows(idx, rows, count, group, chunks)
+    np.testing.assert_allclose(got, want, rtol=1e-14, atol=1e-15)
+
+
 @pytest.mark.parametrize("capacity", [1, 10, 40])
 def test_active_target_equals_flatnonzero(capacity):
     mask = np.random.default_rng(3).uniform(size=30) < 0.4

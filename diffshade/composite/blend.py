@@ -78,12 +78,16 @@ def soft_alpha(frags, sigma):
     return 1.0 - jnp.exp(log_clear)
 
 
-def soft_blend(colours, frags, background, near, far, sigma, gamma, weights=None):
+def soft_blend(colours, frags, background, near, far, sigma, gamma, weights=None,
+               summed=None):
     """colours: [H, W, K, 3]; background: [3]; sigma (pixels^2), gamma: scalars
     -> [H, W, 4] RGBA by SoftRas aggregation (module docstring). The colours of fragments
     whose weight is exactly 0 do not matter (render may leave them 0). weights: the
-    soft_weights, when the caller has them already."""
+    soft_weights, when the caller has them already. summed: sum_k w_k c_k [H, W, 3], when
+    the caller has it (colours are then not read)."""
     slots, bg_weight = soft_weights(frags, near, far, sigma, gamma) if weights is None \
         else weights
-    rgb = jnp.sum(slots[..., None] * colours, -2) + bg_weight[..., None] * background
+    if summed is None:
+        summed = jnp.sum(slots[..., None] * colours, -2)
+    rgb = summed + bg_weight[..., None] * background
     return jnp.concatenate([rgb, soft_alpha(frags, sigma)[..., None]], axis=-1)

@@ -84,3 +84,30 @@ def put_rows_into(idx, rows, clip, chunks, out):
         for c in range(width):
             out[0, c] += ends[chunk, 0, c]
             out[n - 1, c] += ends[chunk, 1, c]
+
+
+def sum_rows(idx, rows, count, group, chunks):
+    """out [count, D]: out[p] = the sum of the rows [C, D] whose idx // group == p, for idx
+    [C] ascending (active_indices' order); rows of other entries (the padding) are dropped.
+    The transpose of a gather of rows by idx // group."""
+    out = np.empty((count, rows.shape[1]), rows.dtype)
+    sum_rows_into(idx, rows, group, chunks, out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def sum_rows_into(idx, rows, group, chunks, out):
+    """sum_rows writing every element of out [P, D], in `chunks` parallel parts of out's
+    rows: each part finds its first row by bisection (idx is ascending), then adds its
+    rows in index order (the same sums, bit for bit, whatever the number of parts)."""
+    count, width = out.shape
+    for chunk in prange(chunks):
+        start, stop = _part(chunk, chunks, count)
+        i = np.searchsorted(idx, start * group)
+        for p in range(start, stop):
+            out[p] = 0.0
+            end = (p + 1) * group
+            while i < idx.shape[0] and idx[i] < end:
+                for c in range(width):
+                    out[p, c] += rows[i, c]
+                i += 1

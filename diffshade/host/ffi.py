@@ -235,6 +235,16 @@ def _put_rows(frame, values, dtype):
                                 values[1], _array2(frame, FRAME_RETS, 0, 3, dtype))
 
 
+# -- rows summed per group (compact.sum_rows) -------------------------------------------------
+# arguments: idx [C] int32 (ascending), rows [C, 3]; result out [P, 3]; attribute: group
+
+@numba.njit(cache=True, nogil=True)
+def _sum_rows(frame, values, dtype):
+    active_kernel.sum_rows_into(_flat(frame, FRAME_ARGS, 0, np.int32),
+                                _array2(frame, FRAME_ARGS, 1, 3, dtype), values[0],
+                                values[1], _array2(frame, FRAME_RETS, 0, 3, dtype))
+
+
 # -- candidate search (raster.search.search_faces) ------------------------------------------
 # arguments: clip [*B, V, 4], faces [*B, F, 3] int32 or int64, near, far, radius, sigma and
 # gamma [*B] (each broadcast against the batch shape B); attributes: width, height, k,
@@ -354,7 +364,7 @@ def _search_hard(frame, values, dtype, face_dtype):
 #: the handlers' bodies, by the number a handler is made with (_handler)
 _BODIES = ("active", "geometry_forward", "geometry_backward", "interpolate_forward",
            "interpolate_backward", "search_soft", "search_hard", "texture_forward",
-           "texture_backward", "put_rows", "interpolate_at")
+           "texture_backward", "put_rows", "interpolate_at", "sum_rows")
 
 
 class Target(NamedTuple):
@@ -455,8 +465,10 @@ def _handler(name, target):
             _texture_backward(frame, values, dtype)
         elif body == 9:
             _put_rows(frame, values, dtype)
-        else:
+        elif body == 10:
             _interpolate_at(frame, values, dtype)
+        else:
+            _sum_rows(frame, values, dtype)
         return pointer(0)
     handler.__name__ = handler.__qualname__ = f"_handler_{name}"
     return handler
@@ -477,6 +489,9 @@ for _width, _f, _dtype, _tiny in (("f32", F32, np.float32, _TINY32),
     TARGETS[f"diffshade_put_rows_{_width}"] = Target(
         9, _dtype, 0, (spec(S32, 1), spec(_f, 2, (3,), TIMES, 0, 3)), (spec(_f, 2, (3,)),),
         ("clip", THREADS))
+    TARGETS[f"diffshade_sum_rows_{_width}"] = Target(
+        11, _dtype, 0, (spec(S32, 1), spec(_f, 2, (3,), TIMES, 0, 3)), (spec(_f, 2, (3,)),),
+        ("group", THREADS))
     TARGETS[f"diffshade_interpolate_at_{_width}"] = Target(
         10, _dtype, 0, (spec(S32, 1), spec(S32, 1), spec(_f, 2, (3,), TIMES, 1, 3),
                         spec(_f, 3, (0, 3))), (spec(_f, 2, (), PER_LAST, 0, 3),), (THREADS,))

@@ -43,7 +43,7 @@ from diffshade.scene.materials import Material, has_textures
 from diffshade.scene.objects import take_material
 from diffshade.scene.scene import Scene
 from diffshade.settings import RenderSettings
-from diffshade.shading.compact import on_active
+from diffshade.shading.compact import on_active, take_rows
 from diffshade.shading.lighting import ShadingParts, reads_points, shade
 from diffshade.shading.samples import Samples, phong_samples_at, read, shading_samples
 from diffshade.shading.shadows import shadow_maps
@@ -126,11 +126,7 @@ def shade_fragments(scene, proj: Projected, frags: Fragments, settings, active=N
     active: optional [H, W, K] bool, the fragments whose colour matters; Phong shading
     then interpolates and lights only those (the others' values are 0 or unspecified;
     see _shade_active, and diffshade.shading.compact's axis_name for a batch of views)."""
-    host = settings.use_host_kernels()
-    maps = shadow_maps(scene, settings)
-    light = lambda samples: shade_samples(scene, samples, settings, maps)
-    # directional and ambient light seen from afar read the normals only
-    points = scene.local_viewer or reads_points(scene.lights, maps)
+    host, light, points = _lighting(scene, settings)
     if active is not None and settings.shading == "phong":
         parts, colour = _shade_active(scene, proj, frags, active, light, axis_name, host,
                                       points)
@@ -141,22 +137,55 @@ def shade_fragments(scene, proj: Projected, frags: Fragments, settings, active=N
     return parts, clamp01(colour) if settings.clamp else colour
 
 
-def _shade_active(scene, proj, frags, active, light, axis_name, host, points=True):
+def _lighting(scene, settings):
+    """(whether host kernels run, light(Samples) -> (ShadingParts, colour) by
+    shade_samples, whether `light` reads the samples' points): directional and ambient
+    light seen from afar read the normals only."""
+    maps = shadow_maps(scene, settings)
+    light = lambda samples: shade_samples(scene, samples, settings, maps)
+    return (settings.use_host_kernels(), light,
+            scene.local_viewer or reads_points(scene.lights, maps))
+
+
+def _shade_active(scene, proj, frags, active, light, axis_name, host, points=True,
+                  weights=None):
     """Phong shading of the active fragments (active [H, W, K] bool): on_active gives
     their positions among the slots (and gathers their sides), and only those are
     interpolated (phong_samples_at reads their face ids and barycentrics there) and lit;
     light(Samples) -> (ShadingParts, colour); points: whether `light` reads the samples'
     points (phong_samples). Should on_active process every slot, the inactive ones are lit
-    too, and their weight 0 drops them."""
+    too, and their weight 0 drops them.
+
+    weights: the slots' blend weights [H, W, K] (active where > 0): then returns their
+    weighted sum of the colours per pixel, [H, W, 3], summed from the active rows
+    (on_active's group) with no [H, W, K, 3] array of colours."""
     height, width, k = frags.face_ids.shape
     capacity = tuple(sorted({height * width * min(k, tier) for tier in ACTIVE_SLOTS_PER_PIXEL}))
 
-    def lit(rows, front, face_ids, bary):
-        return light(phong_samples_at(scene, proj, rows, face_ids, bary, front, host, points))
+    def lit(rows, front, face_ids, bary, *weight):
+        shaded = light(phong_samples_at(scene, proj, rows, face_ids, bary, front, host, points))
+        if not weight:
+            return shaded
+        # the padding's rows (N) read a weight of 0
+        return shaded[1] * take_rows(weight[0], rows, host, clip=False)[:, None]
     # the face ids and barycentrics pass whole, as arguments (not closed over: a closure
     # would cross each tier's branch, and its derivative, as a separate array)
+    whole = (frags.face_ids, frags.bary) + (() if weights is None else (weights,))
     return on_active(lit, active, capacity, frags.front, axis_name=axis_name, host=host,
-                     positions=True, whole=(frags.face_ids, frags.bary))
+                     positions=True, whole=whole, group=weights is not None)
+
+
+def blended_colour(scene, proj, frags, settings, weights, axis_name=None):
+    """sum_k w_k c_k [H, W, 3] of soft_blend for the slots' weights [H, W, K] (> 0: the
+    fragments whose colour matters), the colours c by settings.shading: with Phong shading
+    only the active fragments are lit and summed per pixel (_shade_active's weights)."""
+    if settings.shading != "phong":
+        _, colours = shade_fragments(scene, proj, frags, settings, weights > 0.0, axis_name)
+        return jnp.sum(weights[..., None] * colours, -2)
+    host, light, points = _lighting(scene, settings)
+    # shade_samples' colours are clamped per sample already where settings.clamp
+    return _shade_active(scene, proj, frags, weights > 0.0, light, axis_name, host, points,
+                         weights)
 
 
 def _check_types(scene, settings):
@@ -216,16 +245,17 @@ def _composite(scene, colours, frags, settings, kt):
                           settings.sigma, settings.gamma)
 
 
-def blend(scene, colours, frags: Fragments, settings, weights=None, kt=None):
+def blend(scene, colours, frags: Fragments, settings, weights=None, kt=None, summed=None):
     """Hard (nearest fragment) or soft (SoftRas) blending by settings.raster: [H, W, 4].
     weights: blend_weights, when the caller has them already. kt: [H, W, K, 3] per-fragment
-    transparency (transparency.fragment_kt) composites the layers instead."""
+    transparency (transparency.fragment_kt) composites the layers instead. summed: soft
+    mode's sum_k w_k c_k (blended_colour), when the caller has it."""
     if settings.raster == "hard" and kt is None:
         return hard_blend(colours, frags, scene.background)
     cam = scene.camera
     image = (_composite(scene, colours, frags, settings, kt) if kt is not None else
              soft_blend(colours, frags, scene.background, cam.near, cam.far, settings.sigma,
-                        settings.gamma, weights))
+                        settings.gamma, weights, summed))
     if not settings.clamp:
         return image
     # the weights sum to 1 only up to rounding: keep a blend of clamped colours in [0, 1]
@@ -235,14 +265,16 @@ def blend(scene, colours, frags: Fragments, settings, weights=None, kt=None):
 def render_fragments(scene, frags: Fragments, settings=DEFAULT_SETTINGS, axis_name=None,
                      proj: Projected | None = None):
     """Shade and blend cached fragments: [H, W, 4] RGBA. In soft mode only the fragments
-    with a non-zero blend weight need a colour (shade_fragments' `active`); transparent
-    layers behind them may show, so a transparent scene shades every fragment. proj: the
-    scene's Projected when the caller has it (fixed geometry), else projected here."""
+    with a non-zero blend weight need a colour (blended_colour); transparent layers behind
+    them may show, so a transparent scene shades every fragment. proj: the scene's
+    Projected when the caller has it (fixed geometry), else projected here."""
     kt = fragment_kt(scene, frags)
     weights = None if kt is not None else blend_weights(scene, frags, settings)
-    active = None if weights is None else weights[0] > 0.0
     proj = project(scene) if proj is None else proj
-    _, colours = shade_fragments(scene, proj, frags, settings, active, axis_name)
+    if weights is not None:
+        summed = blended_colour(scene, proj, frags, settings, weights[0], axis_name)
+        return blend(scene, None, frags, settings, weights, summed=summed)
+    _, colours = shade_fragments(scene, proj, frags, settings, None, axis_name)
     return blend(scene, colours, frags, settings, weights, kt)
 
 

@@ -72,6 +72,18 @@ def put_rows(rows, idx, count, host=False, clip=False):
     return _put_p.bind(rows, idx, count=count, clip=clip)
 
 
+def sum_rows(rows, idx, count, group, host=False):
+    """[count, ...]: row p the sum of the rows [C, ...] whose idx [C] int32 (ascending)
+    // group is p; rows of other entries (the padding) are dropped. host: by the compiled
+    kernel where the rows are 3 floats (active_kernel.sum_rows), else jax.numpy's
+    scatter-add, whatever the transform (XLA on CPU runs a scatter-add in one thread, at
+    several times the kernel's cost). Its transpose is the gather of rows by idx // group
+    (take_rows, 0 for the padding)."""
+    if not host:
+        return _sum(rows, idx, count=count, group=group, host=False)
+    return _sum_p.bind(rows, idx, count=count, group=group)
+
+
 def interpolate_rows_at(tree, table, rows, ids, weights, host=None):
     """interpolation.interpolate_rows at some fragments only: [M, C_j] leaves, the values
     of the fragments at rows [M] int32 of ids [N] int32 (-1 = empty) and weights [N, 3];
@@ -141,10 +153,22 @@ def _put(rows, idx, *, count, clip, host=True):
     return out.reshape(shape)
 
 
-#: the float dtypes of the put_rows kernel's FFI targets
+def _sum(rows, idx, *, count, group, host=True):
+    shape = (count,) + rows.shape[1:]
+    if not host or math.prod(rows.shape[1:]) != 3 or rows.dtype not in _KERNEL_DTYPES:
+        at = jnp.where(idx < 0, count, idx // group)
+        return jnp.zeros(shape, rows.dtype).at[at].add(rows, mode="drop")
+    summed = lambda i, r: (active_kernel.sum_rows(i, r, count, group, chunks()),)
+    out, = host_call(summed, (jax.ShapeDtypeStruct((count, 3), rows.dtype),), idx,
+                     rows.reshape(-1, 3), ffi=("sum_rows", (group,)))
+    return out.reshape(shape)
+
+
+#: the float dtypes of the put_rows and sum_rows kernels' FFI targets
 _KERNEL_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
 _take_p = jex_core.Primitive("take_rows")
 _put_p = jex_core.Primitive("put_rows")
+_sum_p = jex_core.Primitive("sum_rows")
 
 
 def _linear_jvp(prim, primals, tangents, **params):
@@ -167,6 +191,12 @@ def _put_transpose(ct, rows, idx, *, count, clip):
     return _take_p.bind(ct, idx, clip=clip), None
 
 
+def _sum_transpose(ct, rows, idx, *, count, group):
+    if type(ct) is ad.Zero:
+        return ad.Zero(rows.aval), None
+    return _take_p.bind(ct, idx // group, clip=False), None
+
+
 def _take_batch(args, dims, *, clip):
     (x, idx), (x_dim, idx_dim) = args, dims
     if idx_dim is None:  # one set of indices: the batch rides along as an axis of the rows
@@ -183,11 +213,31 @@ def _put_batch(args, dims, *, count, clip):
     return jax.vmap(put, in_axes=(rows_dim, idx_dim))(rows, idx), 0
 
 
+def _sum_batch(args, dims, *, count, group):
+    """One call for the batch. Indices of their own per member (a batch of views' active
+    slots): member b's groups become groups b * (count + 1) onwards of one ascending list,
+    its padding (and any index past its slots) the extra group after its own, dropped."""
+    (rows, idx), (rows_dim, idx_dim) = args, dims
+    if idx_dim is None:
+        return _sum_p.bind(jnp.moveaxis(rows, rows_dim, 1), idx, count=count, group=group), 1
+    rows, idx = jnp.moveaxis(rows, rows_dim, 0), jnp.moveaxis(idx, idx_dim, 0)
+    members, slots = rows.shape[0], count * group
+    first = jnp.arange(members, dtype=idx.dtype)[:, None] * (slots + group)
+    # negative indices (first in a member's ascending list) go to the group before its
+    # own (the previous member's extra one), those past its slots to its extra one
+    flat = (first + jnp.where(idx < 0, -1, jnp.minimum(idx, slots))).reshape(-1)
+    out = _sum_p.bind(rows.reshape((-1,) + rows.shape[2:]), flat,
+                      count=members * (count + 1), group=group)
+    return out.reshape((members, count + 1) + out.shape[1:])[:, :count], 0
+
+
 for _prim, _impl, _shape, _transpose, _batch in (
         (_take_p, _take, lambda x, idx, clip: (idx.shape[0],) + x.shape[1:], _take_transpose,
          _take_batch),
         (_put_p, _put, lambda rows, idx, count, clip: (count,) + rows.shape[1:],
-         _put_transpose, _put_batch)):
+         _put_transpose, _put_batch),
+        (_sum_p, _sum, lambda rows, idx, count, group: (count,) + rows.shape[1:],
+         _sum_transpose, _sum_batch)):
     _prim.def_impl(_impl)
     _prim.def_abstract_eval(lambda *args, _shape=_shape, **params: jax.core.ShapedArray(
         _shape(*args, **params), args[0].dtype))
@@ -198,13 +248,16 @@ for _prim, _impl, _shape, _transpose, _batch in (
 
 
 def on_active(fn, active, capacity, *arrays, axis_name=None, host=None, positions=False,
-              whole=()):
+              whole=(), group=False):
     """fn(*arrays) -> pytree of [N, ...] arrays, for arrays [*S, ...] and active [*S] bool
     (N = prod(S)); returns the pytree reshaped to [*S, ...]. Entries where `active` is
     False are 0 or fn's value (the caller must not depend on them). positions: fn takes
     first the positions among the N of the entries it is given, [M] int32 (the active
     ones, padded with N, or all; no gather of an index array). whole: more arrays [*S, ...], handed
     to fn after the others as [N, ...], whole (fn reads them at its positions itself).
+    group: return fn's values summed over the last axis of S (a pixel's K slots), each
+    leaf [*S[:-1], ...]: the compacted rows are summed per group (sum_rows), never put
+    back into all N (fn must then be 0 where `active` is False).
 
     capacity: an int, or a tuple of ints in ascending order (tiers): fn runs on the
     smallest tier that holds the active entries (`lax.switch` picks at run time; each tier
@@ -220,26 +273,35 @@ def on_active(fn, active, capacity, *arrays, axis_name=None, host=None, position
     flat = [a.reshape((n,) + a.shape[len(shape):]) for a in arrays + tuple(whole)]
     tiers = tuple(c for c in (capacity if isinstance(capacity, tuple) else (capacity,))
                   if c < n)
+    group = shape[-1] if group else 0
+    lead = shape[:-1] if group else shape
     if not tiers:
         everywhere = (jnp.arange(n, dtype=jnp.int32),) if positions else ()
-        return jax.tree.map(lambda o: o.reshape(shape + o.shape[1:]), fn(*everywhere, *flat))
+        out = jax.tree.map(partial(_grouped, group=group), fn(*everywhere, *flat))
+        return jax.tree.map(lambda o: o.reshape(lead + o.shape[1:]), out)
     idx, count = active_indices(jax.lax.stop_gradient(active).reshape(n), tiers[-1], host)
-    rows = (positions, len(whole))
+    rows = (positions, len(whole), group)
     if len(tiers) == 1:
         out = _on_tiers(lambda size: fn, tiers, axis_name, idx, count, flat, host, rows)
     else:
         out = _forward_tiers(fn, tiers, axis_name, idx, count, flat, host, rows)
-    return jax.tree.map(lambda o: o.reshape(shape + o.shape[1:]), out)
+    return jax.tree.map(lambda o: o.reshape(lead + o.shape[1:]), out)
 
 
-def _on_tiers(fn, tiers, axis_name, idx, count, flat, host, rows=(False, 0)):
+def _grouped(o, group):
+    """o [N, ...] summed over groups of `group` consecutive rows (0: o itself)."""
+    return o.reshape((-1, group) + o.shape[1:]).sum(1) if group else o
+
+
+def _on_tiers(fn, tiers, axis_name, idx, count, flat, host, rows=(False, 0, 0)):
     """fn on the first `size` of the active entries' indices idx (padded with N) for the
-    smallest size in tiers that holds all `count`, scattered back to N rows; or on every
-    row when none does. fn(size): the function for `size` rows (N: every row). host: the
-    float arrays are gathered by take_rows' primitive. rows: (on_active's positions, how
-    many of the last flat arrays are its `whole`)."""
+    smallest size in tiers that holds all `count`, scattered back to N rows (or with a
+    group, summed into N / group); or on every row when none does. fn(size): the function
+    for `size` rows (N: every row). host: the float arrays are gathered by take_rows'
+    primitive. rows: (on_active's positions, how many of the last flat arrays are its
+    `whole`, its group size or 0)."""
     n = flat[0].shape[0]
-    positions, whole = rows
+    positions, whole, group = rows
 
     def compacted(size):
         def branch(flat):
@@ -251,6 +313,8 @@ def _on_tiers(fn, tiers, axis_name, idx, count, flat, host, rows=(False, 0)):
                                      for a in gathered], *flat[len(gathered):])
             # the padding (N) is dropped. XLA's scatter-set (its zero fill apart) costs
             # no more than the kernel here, and the forward pass then compiles no kernel
+            if group:
+                return jax.tree.map(lambda o: sum_rows(o, part, n // group, group, host), out)
             return jax.tree.map(lambda o: put_rows(o, part, n), out)
         return branch
 
@@ -260,7 +324,8 @@ def _on_tiers(fn, tiers, axis_name, idx, count, flat, host, rows=(False, 0)):
         # arrays of N rows, which every call of the compacted branch would write as zeros.
         # Checkpointed, it keeps only its operands and recomputes the rest when taken.
         everywhere = (jnp.arange(n, dtype=jnp.int32),) if positions else ()
-        return jax.checkpoint(fn(n))(*everywhere, *flat)
+        out = jax.checkpoint(fn(n))(*everywhere, *flat)
+        return jax.tree.map(partial(_grouped, group=group), out)
 
     # the smallest tier that holds them all; len(tiers): none does
     tier = sum((count > size).astype(jnp.int32) for size in tiers)
@@ -269,7 +334,7 @@ def _on_tiers(fn, tiers, axis_name, idx, count, flat, host, rows=(False, 0)):
     return jax.lax.switch(tier, [compacted(size) for size in tiers] + [everywhere], flat)
 
 
-def _forward_tiers(fn, tiers, axis_name, idx, count, flat, host, rows=(False, 0)):
+def _forward_tiers(fn, tiers, axis_name, idx, count, flat, host, rows=(False, 0, 0)):
     """_on_tiers with every tier in the forward pass, and only the largest (and
     everywhere) in a derivative: under reverse mode a `lax.switch` keeps the residuals of
     every branch (zeros for those that did not run), and the tiers' residuals differ in
@@ -278,7 +343,7 @@ def _forward_tiers(fn, tiers, axis_name, idx, count, flat, host, rows=(False, 0)
     passed across the custom_jvp boundary explicitly: fn is traced once per number of
     rows, and its jaxpr's constants become arguments. rows: as _on_tiers'."""
     sizes = tiers + (flat[0].shape[0],)
-    positions, whole = rows
+    positions, whole, _ = rows
     where = lambda size: (jax.ShapeDtypeStruct((size,), jnp.int32),) if positions else ()
     gathered = len(flat) - whole
     traced = {size: jax.make_jaxpr(fn, return_shape=True)(
