@@ -57,6 +57,22 @@ def test_active_indices_equal_numpy(capacity, host):
     np.testing.assert_array_equal(np.asarray(idx)[n:], active.size)
 
 
+@pytest.mark.parametrize("size", [1003, 4096, 7])
+@pytest.mark.parametrize("capacity", [0, 1, 7, 8, 9, 300, 5000])
+def test_active_indices_of_long_masks_equal_numpy(capacity, size):
+    """The kernel takes eight entries at a time while eight more fit, then one at a time:
+    masks of lengths that are and are not multiples of 8, runs of True and False, and
+    capacities below, at and above the count."""
+    rng = np.random.default_rng(size + capacity)
+    mask = np.repeat(rng.random(size // 5 + 1) < 0.5, 5)[:size] ^ (rng.random(size) < 0.1)
+    want = np.flatnonzero(mask)
+    idx, count = active_indices(jnp.asarray(mask), capacity, host=True)
+    assert int(count) == want.size
+    n = min(capacity, want.size)
+    np.testing.assert_array_equal(np.asarray(idx)[:n], want[:n])
+    np.testing.assert_array_equal(np.asarray(idx)[n:], size)
+
+
 @pytest.mark.parametrize("host", [True, False])
 @pytest.mark.parametrize("capacity", [40, 60, 120, 200, (20, 40), (40, 60), (50, 100)])
 def test_values_and_gradients_at_active_entries(capacity, host):

@@ -545,21 +545,22 @@ def test_host_depth_order_is_front_to_back_up_to_one_class():
 
 
 def test_host_tile_claims_give_each_item_to_one_thread():
-    """candidates._claim (an atomic counter) from every thread of a parallel loop at once:
+    """intrinsics.claim (an atomic counter) from every thread of a parallel loop at once:
     each item is claimed by exactly one of them, and the items come costliest first
     (_tile_order: by the faces binned per (view, tile), against NumPy's stable argsort)."""
     import numba
 
-    from diffshade.host.candidates import _claim, _tile_order
+    from diffshade.host.candidates import _tile_order
+    from diffshade.host.intrinsics import claim
 
     @numba.njit(parallel=True)
     def claim_all(items, threads):
         counter, hits = np.zeros(1, np.int64), np.zeros((threads, items), np.uint8)
         for worker in numba.prange(threads):
-            item = _claim(counter)
+            item = claim(counter)
             while item < items:
                 hits[worker, item] = 1
-                item = _claim(counter)
+                item = claim(counter)
         return hits
 
     hits = claim_all(2_000_000, numba.get_num_threads())

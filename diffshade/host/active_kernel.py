@@ -13,9 +13,12 @@ under jit.
 
 import numba
 import numpy as np
-from numba import prange
+from llvmlite import ir
+from numba import prange, types
+from numba.extending import intrinsic
 
 from diffshade.host import numba_cache  # noqa: F401 (numba's cache saves, locked)
+from diffshade.host.intrinsics import compress, popcount
 
 
 @numba.njit(cache=True, nogil=True)
@@ -27,12 +30,51 @@ def first_active(mask, capacity):
     return idx, count[0]
 
 
+@intrinsic
+def _active8(typingctx, mask, start, idx, found):
+    """Write the positions among start..start + 7 where mask [N] bool is True to idx [C]
+    int32 from index `found`, in order, as vector operations without branches (a
+    compress); returns found plus their number. It writes 8 entries from found whatever
+    that number (the caller keeps found + 8 <= C; those past the new found are
+    overwritten next)."""
+    if not (isinstance(mask, types.Array) and mask.dtype == types.boolean and mask.ndim == 1
+            and mask.layout == "C" and isinstance(idx, types.Array)
+            and idx.dtype == types.int32 and idx.ndim == 1 and idx.layout == "C"):
+        return None
+
+    def codegen(context, builder, signature, args):
+        mask_type, _, idx_type, _ = signature.args
+        mask, start, idx, found = args
+        start = context.cast(builder, start, signature.args[1], types.int64)
+        found = context.cast(builder, found, signature.args[3], types.int64)
+        byte, word = ir.IntType(8), ir.IntType(32)
+        lanes = lambda element: ir.PointerType(ir.VectorType(element, 8))
+        data = context.make_array(mask_type)(context, builder, mask).data
+        flags = builder.load(builder.bitcast(builder.gep(data, [start]), lanes(byte)), align=1)
+        on = builder.icmp_unsigned("!=", flags, ir.Constant(flags.type, [0] * 8))
+        first = builder.insert_element(ir.Constant(ir.VectorType(word, 8), None),
+                                       builder.trunc(start, word), ir.Constant(word, 0))
+        splat = builder.shuffle_vector(first, ir.Constant(first.type, None),
+                                       ir.Constant(ir.VectorType(word, 8), [0] * 8))
+        positions = builder.add(splat, ir.Constant(splat.type, list(range(8))))
+        out = context.make_array(idx_type)(context, builder, idx).data
+        builder.store(compress(builder, positions, on),
+                      builder.bitcast(builder.gep(out, [found]), lanes(word)), align=4)
+        return builder.add(found, popcount(builder, on))
+    return types.int64(mask, start, idx, found), codegen
+
+
 @numba.njit(cache=True, nogil=True)
 def first_active_into(mask, idx, count):
-    """first_active writing into idx [capacity] and count [1] (the FFI handler's form)."""
+    """first_active writing into idx [capacity] and count [1] (the FFI handler's form):
+    eight entries at a time (_active8) while eight more positions fit, then one at a
+    time (a branch per entry was mispredicted wherever the mask changes)."""
     n = mask.shape[0]
-    found = 0
-    for i in range(n):
+    found, start = 0, 0
+    while start + 8 <= n and found + 8 <= idx.shape[0]:
+        found = _active8(mask, start, idx, found)
+        start += 8
+    for i in range(start, n):
         if mask[i]:
             if found < idx.shape[0]:
                 idx[found] = i

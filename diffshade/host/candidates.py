@@ -46,6 +46,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from diffshade.host import numba_cache  # noqa: F401 (numba's cache saves, locked)
+from diffshade.host.intrinsics import claim, compress, popcount
 
 EDGES = ((1, 2), (2, 0), (0, 1))
 
@@ -768,16 +769,6 @@ def _face_scalars(scr, edge, inv_len, zndc):
             inv_len[0], inv_len[1], inv_len[2], zndc[0], zndc[1], zndc[2])
 
 
-def _compress(builder, vector, mask):
-    """The elements of `vector` where `mask`, first (LLVM's vector compress: one
-    instruction where the CPU has one, AVX-512's vcompress; elsewhere LLVM expands it)."""
-    kind = "f64" if vector.type.element == ir.DoubleType() else "i64"
-    function = cgutils.get_or_insert_function(
-        builder.module, ir.FunctionType(vector.type, [vector.type, mask.type, vector.type]),
-        f"llvm.experimental.vector.compress.v8{kind}")
-    return builder.call(function, [vector, mask, ir.Constant(vector.type, None)])
-
-
 @intrinsic
 def _gather_reached(typingctx, out, lane, first, fragments, depth, signed_d2, count):
     """Append the fragments in reach (out[0] < inf) among lanes lane..lane + 7 (one row
@@ -818,13 +809,9 @@ def _gather_reached(typingctx, out, lane, first, fragments, depth, signed_d2, co
                 (fragments_type, fragments, index, i64), (depth_type, depth, z, double),
                 (signed_d2_type, signed_d2, d2, double)):
             data = context.make_array(array_type)(context, builder, array).data
-            builder.store(_compress(builder, vector, reached), vector_at(data, count, element),
+            builder.store(compress(builder, vector, reached), vector_at(data, count, element),
                           align=8)
-        bits = builder.bitcast(reached, ir.IntType(8))
-        popcount = builder.call(cgutils.get_or_insert_function(
-            builder.module, ir.FunctionType(ir.IntType(8), [ir.IntType(8)]), "llvm.ctpop.i8"),
-            [bits])
-        return builder.add(count, builder.zext(popcount, i64))
+        return builder.add(count, popcount(builder, reached))
     return types.int64(out, lane, first, fragments, depth, signed_d2, count), codegen
 
 
@@ -1030,20 +1017,6 @@ def _search_soft(clips, faces, width, height, k, cull_backfaces, radii, params, 
     return all_ids, dropped
 
 
-@intrinsic
-def _claim(typingctx, counter):
-    """The next item of a counter shared by threads (counter [1] int64): its value before an
-    atomic increment, so that each item goes to exactly one of the threads claiming them."""
-    if not (isinstance(counter, types.Array) and counter.dtype == types.int64
-            and counter.ndim == 1):
-        return None
-
-    def codegen(context, builder, signature, args):
-        data = context.make_array(signature.args[0])(context, builder, args[0]).data
-        return builder.atomic_rmw("add", data, ir.Constant(ir.IntType(64), 1), "monotonic")
-    return types.int64(counter), codegen
-
-
 @numba.njit(cache=True, nogil=True)
 def _tile_order(start):
     """The (view, tile) items (view * tiles + tile) of a soft search, those with the most
@@ -1149,7 +1122,7 @@ def _search_soft_into(clips, faces, width, height, k, cull_backfaces, radii, par
     counter[0] = 0
     for _ in prange(max(1, min(threads, views * tiles))):
         scratch = _tile_scratch(k)
-        item = _claim(counter)
+        item = claim(counter)
         while item < views * tiles:
             view, t = order[item] // tiles, order[item] % tiles
             setup = (scr[view], edge[view], inv_len[view], zndc[view], box[view],
@@ -1160,7 +1133,7 @@ def _search_soft_into(clips, faces, width, height, k, cull_backfaces, radii, par
                 setup, binned[view], start[view, t], start[view, t + 1], t // tiles_x * TILE_H,
                 t % tiles_x * TILE_W, width, height, k, radii[view], soft, all_ids[view],
                 scratch)
-            item = _claim(counter)
+            item = claim(counter)
     return all_dropped.sum(1)
 
 

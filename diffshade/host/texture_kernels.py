@@ -31,7 +31,7 @@ import numpy as np
 from numba import prange
 
 from diffshade.host import numba_cache  # noqa: F401 (numba's cache saves, locked)
-from diffshade.host.candidates import _claim
+from diffshade.host.intrinsics import claim
 
 #: samples per block: a block's cells (texel rows and weights) are computed in one loop
 #: over the block, which LLVM vectorizes (several samples per instruction: one at a time,
@@ -199,7 +199,7 @@ def sample_forward_into(ids, uv, texels, height, width, clamp, chunks, out):
     counter[0] = 0
     for _ in prange(chunks):
         scratch = _scratch(texels.dtype)
-        block = _claim(counter)
+        block = claim(counter)
         while block < blocks:
             lo, hi = _block(block, n)
             if not _block_cells(ids, uv, lo, hi, height, width, clamp, texels.shape[0],
@@ -209,7 +209,7 @@ def sample_forward_into(ids, uv, texels, height, width, clamp, chunks, out):
                 _blend(texels, scratch, out[lo:hi], 3)
             else:
                 _blend(texels, scratch, out[lo:hi], nc)
-            block = _claim(counter)
+            block = claim(counter)
     return out
 
 
