@@ -128,28 +128,29 @@ def put_rows_into(idx, rows, clip, chunks, out):
             out[n - 1, c] += ends[chunk, 1, c]
 
 
-def sum_rows(idx, rows, count, group, chunks):
-    """out [count, D]: out[p] = the sum of the rows [C, D] whose idx // group == p, for idx
+def sum_rows(idx, rows, count, group):
+    """out [count, 3]: out[p] = the sum of the rows [C, 3] whose idx // group == p, for idx
     [C] ascending (active_indices' order); rows of other entries (the padding) are dropped.
     The transpose of a gather of rows by idx // group."""
-    out = np.empty((count, rows.shape[1]), rows.dtype)
-    sum_rows_into(idx, rows, group, chunks, out)
+    out = np.empty((count, 3), rows.dtype)
+    sum_rows_into(idx, rows, group, out)
     return out
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
-def sum_rows_into(idx, rows, group, chunks, out):
-    """sum_rows writing every element of out [P, D], in `chunks` parallel parts of out's
-    rows: each part finds its first row by bisection (idx is ascending), then adds its
-    rows in index order (the same sums, bit for bit, whatever the number of parts)."""
-    count, width = out.shape
-    for chunk in prange(chunks):
-        start, stop = _part(chunk, chunks, count)
-        i = np.searchsorted(idx, start * group)
-        for p in range(start, stop):
-            out[p] = 0.0
-            end = (p + 1) * group
-            while i < idx.shape[0] and idx[i] < end:
-                for c in range(width):
-                    out[p, c] += rows[i, c]
-                i += 1
+@numba.njit(cache=True, nogil=True)
+def sum_rows_into(idx, rows, group, out):
+    """sum_rows writing every element of out [P, 3]: one pass over the rows (idx is
+    ascending), in the calling thread. A parallel form (a part of the pixels per thread,
+    its first row found by bisection) took longer in the render, where waking the threads
+    from the XLA thread that calls it costs more than the pass; the sums, in index order,
+    are the same bit for bit either way."""
+    i = np.searchsorted(idx, 0)
+    for p in range(out.shape[0]):
+        end = (p + 1) * group
+        a0, a1, a2 = rows.dtype.type(0.0), rows.dtype.type(0.0), rows.dtype.type(0.0)
+        while i < idx.shape[0] and idx[i] < end:
+            a0 += rows[i, 0]
+            a1 += rows[i, 1]
+            a2 += rows[i, 2]
+            i += 1
+        out[p, 0], out[p, 1], out[p, 2] = a0, a1, a2

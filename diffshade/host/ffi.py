@@ -242,7 +242,7 @@ def _put_rows(frame, values, dtype):
 def _sum_rows(frame, values, dtype):
     active_kernel.sum_rows_into(_flat(frame, FRAME_ARGS, 0, np.int32),
                                 _array2(frame, FRAME_ARGS, 1, 3, dtype), values[0],
-                                values[1], _array2(frame, FRAME_RETS, 0, 3, dtype))
+                                _array2(frame, FRAME_RETS, 0, 3, dtype))
 
 
 # -- candidate search (raster.search.search_faces) ------------------------------------------

@@ -158,7 +158,7 @@ def _sum(rows, idx, *, count, group, host=True):
     if not host or math.prod(rows.shape[1:]) != 3 or rows.dtype not in _KERNEL_DTYPES:
         at = jnp.where(idx < 0, count, idx // group)
         return jnp.zeros(shape, rows.dtype).at[at].add(rows, mode="drop")
-    summed = lambda i, r: (active_kernel.sum_rows(i, r, count, group, chunks()),)
+    summed = lambda i, r: (active_kernel.sum_rows(i, r, count, group),)
     out, = host_call(summed, (jax.ShapeDtypeStruct((count, 3), rows.dtype),), idx,
                      rows.reshape(-1, 3), ffi=("sum_rows", (group,)))
     return out.reshape(shape)
