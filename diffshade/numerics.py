@@ -18,13 +18,6 @@ __all__ = ["clamp01", "dot", "float_dtype", "float_dtype_of", "representable", "
            "safe_norm", "safe_normalize", "safe_pow", "safe_sqrt", "tiny"]
 
 
-def rounded(product):
-    """The product, rounded before any addition it feeds: the select hides it from LLVM's
-    mul-add fusion (XLA on CPU contracts a * b + c into one FMA in some fusions and not in
-    others), so that the same sum gives the same bits in every program (NaN stays NaN)."""
-    return jnp.where(product == product, product, jnp.nan)
-
-
 def tiny(dtype) -> float:
     """A threshold well above underflow for `dtype`: 1e-12 for float32, 1e-30 for float64."""
     return 1e-30 if jnp.dtype(dtype) == jnp.float64 else 1e-12

@@ -43,12 +43,17 @@ import jax.numpy as jnp
 from jax import lax
 
 from diffshade.host.candidates import DEPTH_TIE
-from diffshade.numerics import rounded as _rounded
 
 NEXT = (1, 2, 0)   # vertex i's edge runs to NEXT[i]
 PREV = (2, 0, 1)
 TILE_ELEMENTS = 1 << 20   # (pixel, candidate) pairs evaluated per lax.map step
 BIN_ELEMENTS = 1 << 21    # (tile, face) pairs tested per lax.map step
+
+
+def _rounded(product):
+    """The product, rounded before any addition it feeds: the select hides it from LLVM's
+    mul-add fusion, so results match the host kernel bit for bit (NaN stays NaN)."""
+    return jnp.where(product == product, product, jnp.nan)
 
 
 def _mul_sub(a, b, c, d):

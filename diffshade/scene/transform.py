@@ -12,20 +12,17 @@ projects them (diffshade.raster.projection).
 
 import jax.numpy as jnp
 
-from diffshade.numerics import rounded, safe_normalize
+from diffshade.numerics import safe_normalize
 
 
 def apply_matrix(matrix, vectors):
     """matrix [m, n] times each of vectors [..., n]: [..., m], as n multiply-adds of
     broadcast columns, not a dot: XLA on CPU hands a dot to YNNPACK, whose call costs
     ~45 us on a mesh's 2,562 x 3 vertices, where the elementwise loop fuses with its
-    neighbours (the judged scene's projection made three such calls per render). Each
-    product is rounded before it is added (numerics.rounded), so that a render's
-    projection has the same bits in every program that computes it (rasterize_scene and
-    render_fragments apart, or render)."""
-    total = rounded(vectors[..., 0, None] * matrix[:, 0])
+    neighbours (the judged scene's projection made three such calls per render)."""
+    total = vectors[..., 0, None] * matrix[:, 0]
     for j in range(1, matrix.shape[1]):
-        total = total + rounded(vectors[..., j, None] * matrix[:, j])
+        total = total + vectors[..., j, None] * matrix[:, j]
     return total
 
 
