@@ -9,9 +9,10 @@ eye-space depth feed interpolation and shading.
 import dataclasses
 
 import jax
+import jax.numpy as jnp
 
 from diffshade.scene.camera import projection_matrix, view_matrix
-from diffshade.scene.transform import apply_matrix, transform_normals, transform_points
+from diffshade.scene.transform import transform_normals, transform_points
 
 
 @jax.tree_util.register_dataclass
@@ -31,7 +32,6 @@ def project(scene) -> Projected:
     world = transform_points(scene.model, scene.mesh.vertices)
     normals = transform_normals(scene.model, scene.mesh.normals)
     eye = transform_points(view_matrix(scene.camera), world)
-    projection = projection_matrix(scene.camera)
-    # the homogeneous w of the eye-space points is 1: the last column adds as it is
-    clip = apply_matrix(projection[:, :3], eye) + projection[:, 3]
+    homog = jnp.concatenate([eye, jnp.ones_like(eye[:, :1])], axis=1)
+    clip = homog @ projection_matrix(scene.camera).T
     return Projected(clip=clip, world=world, normals=normals, depth=-eye[:, 2])
