@@ -1,14 +1,16 @@
 """The compiled kernels of diffshade.shading.compact: the positions of the first `capacity`
 True entries of a boolean mask and how many there are (`first_active`, behind
-compact.active_indices), and the scatter of gathered rows back into a zeroed array
-(`put_rows`, the transpose of compact.take_rows).
+compact.active_indices), the scatter of gathered rows back into a zeroed array
+(`put_rows`, the transpose of compact.take_rows), and the sums of rows per group of
+consecutive indices (`sum_rows`: a soft render's weighted colours per pixel).
 
-`first_active` is one pass over the mask, written for numba: XLA's own `jnp.nonzero` (a
-cumulative sum and a scatter) costs more than lighting the active slots it finds.
-`put_rows` zeroes and scatters in parallel chunks, where XLA on CPU runs the transpose of
-a gather (a zero fill and a scatter-add) in one thread. Each is called from NumPy on the
-callback path and through its FFI handler (the `_into` form, writing into XLA's buffers)
-under jit.
+`first_active` is one pass over the mask, eight entries at a time, written for numba:
+XLA's own `jnp.nonzero` (a cumulative sum and a scatter) costs more than lighting the
+active slots it finds. `put_rows` zeroes and scatters in parallel chunks, where XLA on CPU
+runs the transpose of a gather (a zero fill and a scatter-add) in one thread; `sum_rows`
+is one pass in the calling thread, where XLA's scatter-add costs several times as much.
+Each is called from NumPy on the callback path and through its FFI handler (the `_into`
+form, writing into XLA's buffers) under jit.
 """
 
 import numba
