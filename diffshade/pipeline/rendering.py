@@ -180,7 +180,7 @@ def blended_colour(scene, proj, frags, settings, weights, axis_name=None):
     fragments whose colour matters), the colours c by settings.shading: with Phong shading
     only the active fragments are lit and summed per pixel (_shade_active's weights)."""
     if settings.shading != "phong":
-        _, colours = shade_fragments(scene, proj, frags, settings, weights > 0.0, axis_name)
+        _, colours = shade_fragments(scene, proj, frags, settings, None, axis_name)
         return jnp.sum(weights[..., None] * colours, -2)
     host, light, points = _lighting(scene, settings)
     # shade_samples' colours are clamped per sample already where settings.clamp
