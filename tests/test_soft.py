@@ -399,6 +399,39 @@ def test_tied_fragments_keep_the_lower_face_id_first():
         assert np.all(kept[..., :count][pairs])
 
 
+@pytest.mark.parametrize("sigma, tier", [(0.05, 3), (0.15, 4), (0.2, None)])
+def test_phong_blend_of_the_active_slots_equals_the_oracle_in_each_branch(sigma, tier):
+    """The Phong soft render lights only the slots of non-zero weight and sums their
+    weighted colours per pixel (rendering.blended_colour): with at most 3 or 4 active
+    slots per pixel on average (the compacted branches) or more (every slot), on a
+    non-square image, the image and its gradients with respect to the material and the
+    vertices equal the dense oracle's (which blends all H x W x F pairs)."""
+    from diffshade.pipeline.rendering import ACTIVE_SLOTS_PER_PIXEL, blend_weights
+
+    scene = sphere_scene()
+    settings = soft(faces_per_pixel=20, sigma=sigma, gamma=1e-4, shading="phong")
+    frags = rasterize_scene(scene, settings)
+    assert int(frags.dropped) == 0
+    active = int((np.asarray(blend_weights(scene, frags, settings)[0]) > 0.0).sum())
+    pixels = scene.camera.width * scene.camera.height
+    branch = next((t for t in sorted(ACTIVE_SLOTS_PER_PIXEL) if active <= t * pixels), None)
+    assert branch == tier, (active / pixels, branch)
+    target = np.random.default_rng(3).uniform(size=(20, 24, 4))
+
+    def loss(render_fn, kd, vertices):
+        moved = replace(scene, material=replace(scene.material, kd=kd),
+                        mesh=replace(scene.mesh, vertices=vertices))
+        return jnp.sum((render_fn(moved, settings) - target) ** 2)
+    args = (scene.material.kd, scene.mesh.vertices)
+    np.testing.assert_allclose(np.asarray(render(scene, settings)),
+                               np.asarray(soft_reference(scene, settings)), rtol=0, atol=1e-5)
+    got = jax.jit(jax.grad(lambda *a: loss(render, *a), argnums=(0, 1)))(*args)
+    want = jax.grad(lambda *a: loss(soft_reference, *a), argnums=(0, 1))(*args)
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-4,
+                                   atol=1e-6 * float(np.abs(np.asarray(w)).max()))
+
+
 def test_overflowing_render_equals_the_oracle_on_the_kept_faces():
     scene, k = triangles_scene(), 2
     settings = soft(faces_per_pixel=k, sigma=1.0, gamma=1e-3)
