@@ -73,3 +73,44 @@ def test_a_kernel_first_called_in_another_process_still_loads(tmp_path):
         run = subprocess.run([sys.executable, "-c", _CALL, form], env=env,
                              capture_output=True, text=True, timeout=300)
         assert run.returncode == 0, (form, run.stderr[-2000:])
+
+
+_CALLER = """
+import sys
+sys.path.insert(0, sys.argv[1])
+from diffshade.host import numba_cache
+if sys.argv[2] == "stamped":
+    numba_cache.FOLDERS.add(sys.argv[1])
+import caller
+print(caller.twice())
+"""
+
+
+def _write_kernels(folder, value):
+    (folder / "callee.py").write_text(
+        f"import numba\n\n\n@numba.njit(cache=True)\ndef value():\n    return {value}\n")
+    (folder / "caller.py").write_text(
+        "import numba\n\nfrom callee import value\n\n\n@numba.njit(cache=True)\n"
+        "def twice():\n    return 2 * value()\n")
+
+
+def test_a_kernel_recompiles_when_another_module_of_its_folder_changes(tmp_path):
+    """A cached kernel (caller.twice) that compiles in one from another module of its
+    folder (callee.value): after callee.py changes, a new process must not load the
+    caller's stale code. With the folder stamped (numba_cache.FOLDERS, as the host
+    kernels' folder is) it gives the new value; with numba's own stamp (the caller's file
+    only) it still gives the old one, which shows the test can tell them apart."""
+    assert getattr(caching._SourceFileBackedLocatorMixin.get_source_stamp,
+                   "diffshade_folder", False)
+    for mode, after in (("stamped", 14), ("numba's", 6)):
+        folder = tmp_path / mode.strip("'")
+        folder.mkdir()
+        env = dict(os.environ, NUMBA_CACHE_DIR=str(folder / "cache"))
+        outputs = []
+        for value in (3, 7):
+            _write_kernels(folder, value)
+            run = subprocess.run([sys.executable, "-c", _CALLER, str(folder), mode], env=env,
+                                 capture_output=True, text=True, timeout=300)
+            assert run.returncode == 0, run.stderr[-2000:]
+            outputs.append(int(run.stdout.split()[-1]))
+        assert outputs == [6, after], (mode, outputs)
