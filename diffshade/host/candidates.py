@@ -27,11 +27,11 @@ plane are culled in soft mode (their screen-space triangle is not defined).
 Each pixel keeps its k best faces in a small list: hard mode nearest first by NDC depth,
 depths within DEPTH_TIE tied and ordered by face id (_depth_after); soft mode sorted by
 (blend weight key, face id). Every candidate fragment that does not fit is counted in
-`dropped`. The soft key is a float64 sum with libm's log1p and exp; the soft search
-brackets it first without libm (_key_bracket) and calls libm only where the bracket does
-not decide its bits. A soft fragment that cannot beat its pixel's full list (by a lower
-bound of its key: its face's nearest corner, _face_key_bound) is dropped before its key
-is computed.
+`dropped`. The soft key is a float64 sum whose log1p(exp(-|x|)) is the search's own
+polynomial (_softplus_neg, within 5e-16 of libm's: LLVM vectorizes it, where numba calls
+libm one value at a time), so all keys are computed in one vectorized loop. A soft
+fragment that cannot beat its pixel's full list (by a lower bound of its key: its face's
+nearest corner, _face_key_bound) is dropped before its key is computed.
 
 The parallel kernels hold nothing but their prange loops: under parallel=True numba turns
 np.zeros, reductions and array expressions into parallel loops of their own, each one more
@@ -353,41 +353,6 @@ def _depth_logit(z_ndc, soft):
     return min(max((inv_depth - 1.0 / far) / (1.0 / near - 1.0 / far), 0.0), 1.0) / gamma
 
 
-@numba.njit(cache=True, nogil=True)
-def _coverage_logit(signed_d2, sigma):
-    """log D = log_sigmoid(d2 / sigma) of soft_blend (<= 0)."""
-    x = signed_d2 / sigma
-    return -np.log1p(np.exp(-x)) if x >= 0.0 else x - np.log1p(np.exp(x))
-
-
-@numba.njit(cache=True, nogil=True)
-def _fragment_key(depth, signed_d2, bound, depth_bits, sigma):
-    """The ranking key depth - _coverage_logit(signed_d2, sigma) of a lane of
-    _soft_block's out (out[0], out[1], out[2] = bound), bit for bit, without the logarithm
-    where adding log D cannot change the float64 key; depth_bits: depth's bits as int64.
-
-    Proof that the shortcuts are exact (round to nearest; libm exp and log1p within one
-    ulp, so their computed u = log1p(exp(-|x|)) <= 4 exp(-|x|); a = depth <= 0 finite):
-    - x = signed_d2 / sigma >= 0 (the slow path returns a - (-u) = a + u, u >= 0): with
-      biased exponent E >= 1 of a (normal, nonzero), |a| >= 2^(E-1023), the doubles just
-      below |a| are at least 2^(E-1076) apart, so a + u rounds to a when
-      u < 2^(E-1077), which holds when exp(-x) < 2^(E-1079), i.e. x > (1079 - E) ln 2;
-      we ask x > (1082 - E) ln 2 (a margin of 8x for the rounding of the threshold).
-    - x <= -40 (the slow path returns a - (x - u)): |x| >= 40, the doubles just above |x|
-      are more than |x| 2^-53 apart, and u <= 4 e^-40 < 2e-17 < 40 * 2^-55 (< half that
-      spacing, by 100x), so x - u rounds to x and the key is a - x, which _soft_block
-      already computed the same way (-d2 / sigma is exactly d2 / sigma negated) as bound.
-    Elsewhere (a = 0, subnormal or -0.0 included) it takes the slow path."""
-    x = signed_d2 / sigma
-    if x >= 0.0:
-        biased = (depth_bits >> 52) & 0x7FF
-        if biased >= 1 and x > (1082 - biased) * 0.6931471805599453:
-            return depth
-    elif x <= -40.0:
-        return bound
-    return depth - _coverage_logit(signed_d2, sigma)
-
-
 @intrinsic
 def _two_pow_neg(typingctx, k):
     """2^-k for an int64 k in 0..52 (_softplus_neg's range reduction), exactly: the float64
@@ -403,19 +368,11 @@ def _two_pow_neg(typingctx, k):
     return types.float64(k), codegen
 
 
-#: bracket half-width of _key_bracket: _softplus_neg is within ~6e-16 of log1p(exp(-a))
-#: (a dozen roundings of ~1.1e-16 relative, on values <= ln 2 < 1; truncation < 1e-17)
-#: and libm's exp then log1p within ~3.3e-16 (one ulp each); 2^-49 = 1.8e-15 is twice
-#: their sum, and 8x the largest difference between the two seen on 32 million
-#: arguments (2.2e-16, tests/test_tile_search.py)
-KEY_SLACK = 2.0 ** -49
-
-
 @numba.njit(cache=True, nogil=True, inline="always")
 def _softplus_neg(a):
-    """log1p(exp(-a)) for a >= 0 without libm (LLVM vectorizes it), absolute error
-    < 1e-15 (tests/test_tile_search.py): exp(-a) = 2^-k exp(-r), |r| <= ln2 / 2, by its
-    Taylor polynomial of degree 13 (truncation < 5e-18 relative); log(z) for z = 1 + exp(-a)
+    """log1p(exp(-a)) for a >= 0 without libm (LLVM vectorizes it), never negative, within
+    5e-16 of libm's (tests/test_tile_search.py): exp(-a) = 2^-k exp(-r), |r| <= ln2 / 2, by
+    its Taylor polynomial of degree 13 (truncation < 5e-18 relative); log(z) for z = 1 + exp(-a)
     in [1, 2], halved above sqrt(2), as 2 atanh(s), s = (z - 1) / (z + 1), |s| <= 0.172,
     by the series to s^19 (truncation < 1e-17). a is clamped to 36 (log1p(exp(-36)) <
     2.4e-16). Both polynomials by Estrin's scheme with FMAs: a chain of 4 or 5 steps
@@ -447,22 +404,19 @@ def _softplus_neg(a):
              _fma(t2, 1.0 / 11.0, 1.0 / 9.0))
     q = _fma(q, t4 * t4, _fma(_fma(t2, 1.0 / 7.0, 1.0 / 5.0), t4,
                               _fma(t2, 1.0 / 3.0, 1.0)))
-    return _fma(2.0 * t, q, 0.6931471805599453 if big else 0.0)
+    return max(_fma(2.0 * t, q, 0.6931471805599453 if big else 0.0), 0.0)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _key_bracket(depth, signed_d2, sigma):
-    """(lo, hi) with lo <= _fragment_key(depth, signed_d2, ...) <= hi, without libm: the
-    key's two float64 formulas (depth - (-u) inside, depth - (x - u) outside, with
-    u = libm's log1p(exp(-|x|)), x = signed_d2 / sigma) evaluated at u's bracket
-    _softplus_neg(|x|) -+ KEY_SLACK. Rounding is monotonic and both formulas grow with u,
-    so where lo == hi that is the key, bit for bit (else _fragment_key computes it)."""
+def _fragment_key(depth, signed_d2, sigma):
+    """The ranking key -(log D + zt / gamma) of a fragment from its depth part
+    depth = -_depth_logit(z) and its signed squared distance: log D = log_sigmoid(x),
+    x = signed_d2 / sigma, is -u inside (x >= 0) and x - u outside, with
+    u = log1p(exp(-|x|)) by _softplus_neg. The key is at least depth (u >= 0), and
+    outside at least depth - x (rounding is monotonic): _face_key_bound relies on it."""
     x = signed_d2 / sigma
     u = _softplus_neg(abs(x))
-    u_lo, u_hi = u - KEY_SLACK, u + KEY_SLACK
-    if x >= 0.0:
-        return depth - (-u_lo), depth - (-u_hi)
-    return depth - (x - u_lo), depth - (x - u_hi)
+    return depth - (-u) if x >= 0.0 else depth - (x - u)
 
 
 #: the soft search's tiles, in pixels: a row of a tile is one AVX-512 vector of float64
@@ -706,20 +660,13 @@ def _face_key_bound(zndc, soft):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _soft_keys(depth, signed_d2, bound, key_lo, key_hi, count, soft):
+def _soft_keys(depth, signed_d2, count, soft):
     """For `count` fragments in reach (gathered from _soft_block's out), without branches
     (LLVM vectorizes the loop; numpy's error model lets it divide by sigma, which Python's
-    checks for zero): depth[i] (NDC z on entry) becomes -_depth_logit, the depth part of
-    the ranking key; bound[i] a lower bound of the key -(log D + zt / gamma): log D <= 0,
-    and outside log D = x - log1p(exp(x)) <= x with x = -d2 / sigma (= signed_d2 / sigma:
-    the negation is exact), and rounding is monotonic, so depth - x computed in float64 is
-    <= the key computed in float64; key_lo[i], key_hi[i]: the key's _key_bracket."""
+    checks for zero): depth[i] (NDC z on entry) becomes the ranking key (_fragment_key of
+    its depth part -_depth_logit and signed_d2[i])."""
     for i in range(count):
-        depth_key = -_depth_logit(depth[i], soft)
-        inside = np.copysign(1.0, signed_d2[i]) > 0.0
-        depth[i] = depth_key
-        bound[i] = depth_key if inside else depth_key - signed_d2[i] / soft[0]
-        key_lo[i], key_hi[i] = _key_bracket(depth_key, signed_d2[i], soft[0])
+        depth[i] = _fragment_key(-_depth_logit(depth[i], soft), signed_d2[i], soft[0])
 
 
 #: the margin by which _strip_rows grows a footprint: ROW_MARGIN pixels plus
@@ -822,72 +769,46 @@ GROUP = 1024
 
 
 @numba.njit(cache=True, nogil=True)
-def _insert_group8(ids, keys, worst_key, fragments, depth, signed_d2, bound, key_lo, key_hi,
-                   count, sigma, straddling):
-    """_insert_group for lists of 8 (the soft search's default), without branches: the
-    keys that need libm (where the bracket straddles a rounding boundary) are computed
-    first, in a loop of their own (so the insertions' loop has no branch and no call),
-    into key_lo; then every fragment goes through _insert8, whose lists are always sorted
-    (so neither the counts of filled entries nor a sort at the end are needed); returns
-    how many fragments were dropped. straddling: scratch of at least `count` int64."""
-    depth_bits = depth.view(np.int64)
-    # those fragments listed first, without branches (a few in a hundred: a branch per
-    # fragment would be mispredicted at each of them)
-    listed = 0
-    for i in range(count):
-        straddling[listed] = i
-        listed += key_lo[i] != key_hi[i]
-    for i in straddling[:listed]:
-        lowest = max(bound[i], key_lo[i])
-        if lowest > worst_key[fragments[i] % (TILE_H * TILE_W)]:
-            # its list, full before the group, already holds 8 better: it falls off
-            key_lo[i] = lowest
-        else:
-            key_lo[i] = _fragment_key(depth[i], signed_d2[i], bound[i], depth_bits[i], sigma)
+def _insert_group8(ids, keys, worst_key, fragments, key, count):
+    """_insert_group for lists of 8 (the soft search's default), without branches: every
+    fragment goes through _insert8, whose lists are always sorted (so neither the counts
+    of filled entries nor a sort at the end are needed); returns how many fragments were
+    dropped."""
     dropped = 0
     for i in range(count):
         pixel, f = fragments[i] % (TILE_H * TILE_W), fragments[i] // (TILE_H * TILE_W)
-        dropped += _insert8(keys, ids, pixel, key_lo[i], f)
+        dropped += _insert8(keys, ids, pixel, key[i], f)
     for pixel in range(keys.shape[0]):
         worst_key[pixel] = keys[pixel, 7]
     return dropped
 
 
 @numba.njit(cache=True, nogil=True)
-def _insert_group(ids, keys, filled, worst_key, worst_id, fragments, depth, signed_d2,
-                  bound, key_lo, key_hi, count, sigma, scratch_ids,
-                  scratch_keys, straddling):
+def _insert_group(ids, keys, filled, worst_key, worst_id, fragments, key, count, scratch_ids,
+                  scratch_keys):
     """Insert `count` gathered fragments (fragments[i] = face * TILE_H * TILE_W + pixel;
-    _soft_keys' depth, signed d2, bound and key bracket) in order; returns how many were
-    dropped. A full list whose last entry (worst_key, worst_id: copies, so one cache line
-    holds those of 8 pixels) ranks before a lower bound of the fragment's key (the larger of
-    its bound and its bracket's low end) rejects it without its key (nor libm); the key is
-    the bracket's where its ends agree, else libm's (_fragment_key). A list is
-    appended to unsorted until full, then sorted once (_sort_full) and kept sorted by
-    _insert; the others are sorted at the end of the tile."""
+    key[i]: _soft_keys' key) in order; returns how many were dropped. A full list whose
+    last entry (worst_key, worst_id: copies, so one cache line holds those of 8 pixels)
+    ranks before the fragment rejects it. A list is appended to unsorted until full, then
+    sorted once (_sort_full) and kept sorted by _insert; the others are sorted at the end
+    of the tile."""
     k = ids.shape[1]
     if k == 8:
-        return _insert_group8(ids, keys, worst_key, fragments, depth, signed_d2, bound, key_lo,
-                              key_hi, count, sigma, straddling)
+        return _insert_group8(ids, keys, worst_key, fragments, key, count)
     dropped = 0
-    depth_bits = depth.view(np.int64)
     for i in range(count):
         pixel, f = fragments[i] % (TILE_H * TILE_W), fragments[i] // (TILE_H * TILE_W)
-        key = key_lo[i]
-        if filled[pixel] == k and _ranks_after(max(bound[i], key), f, worst_key[pixel],
-                                               worst_id[pixel]):
+        if filled[pixel] == k and _ranks_after(key[i], f, worst_key[pixel], worst_id[pixel]):
             dropped += 1
             continue
-        if key != key_hi[i]:  # the bracket straddles a rounding boundary: libm
-            key = _fragment_key(depth[i], signed_d2[i], bound[i], depth_bits[i], sigma)
         if filled[pixel] < k:  # appended unsorted; sorted once full
-            ids[pixel, filled[pixel]], keys[pixel, filled[pixel]] = f, key
+            ids[pixel, filled[pixel]], keys[pixel, filled[pixel]] = f, key[i]
             filled[pixel] += 1
             if filled[pixel] < k:
                 continue
             _sort_full(ids, keys, pixel, scratch_ids, scratch_keys)
         else:
-            dropped += _insert(ids, keys, filled, pixel, f, key)
+            dropped += _insert(ids, keys, filled, pixel, f, key[i])
         worst_key[pixel], worst_id[pixel] = keys[pixel, k - 1], ids[pixel, k - 1]
     return dropped
 
@@ -1039,8 +960,7 @@ def _tile_scratch(k):
             np.empty(TILE_H * TILE_W, np.int32), np.empty(TILE_H * TILE_W),
             np.empty(TILE_H * TILE_W, np.int64), np.empty((2, TILE_H * TILE_W)),
             np.empty(capacity, np.int64), np.empty(capacity), np.empty(capacity),
-            np.empty(capacity), np.empty(capacity), np.empty(capacity),
-            np.empty(k, np.int32), np.empty(k), np.empty(capacity, np.int64))
+            np.empty(k, np.int32), np.empty(k))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -1060,8 +980,8 @@ def _search_tile(setup, binned, first_slot, last_slot, tile_r0, tile_c0, width, 
         for row in range(tile_r0, tile_r1 + 1):
             ids_out[row * width + tile_c0:row * width + tile_c1 + 1] = -1
         return 0
-    (ids, keys, filled, worst_key, worst_id, out, fragments, depth, signed_d2, bound, key_lo,
-     key_hi, scratch_ids, scratch_keys, straddling) = scratch
+    (ids, keys, filled, worst_key, worst_id, out, fragments, depth, signed_d2, scratch_ids,
+     scratch_keys) = scratch
     ids[:] = -1
     keys[:] = np.inf
     filled[:] = 0
@@ -1083,10 +1003,9 @@ def _search_tile(setup, binned, first_slot, last_slot, tile_r0, tile_c0, width, 
             for lane in range(0, (r1 - r0 + 1) * TILE_W, TILE_W):  # the pixels in reach
                 count = _gather_reached(out, lane, first, fragments, depth, signed_d2, count)
         if count >= GROUP or (slot == last_slot - 1 and count > 0):
-            _soft_keys(depth, signed_d2, bound, key_lo, key_hi, count, soft)
+            _soft_keys(depth, signed_d2, count, soft)
             dropped += _insert_group(ids, keys, filled, worst_key, worst_id, fragments, depth,
-                                     signed_d2, bound, key_lo, key_hi, count, soft[0],
-                                     scratch_ids, scratch_keys, straddling)
+                                     count, scratch_ids, scratch_keys)
             count = 0
     for pixel in range(ids.shape[0] if k != 8 else 0):  # lists of 8 stay sorted
         if filled[pixel] < k:

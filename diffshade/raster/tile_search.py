@@ -30,9 +30,10 @@ halves the search's compile time, which a fresh install's first render waits for
 Bit-exactness: the arithmetic mirrors candidates.py operation by operation, and every
 product that feeds an addition goes through `_rounded`, because XLA's CPU backend would
 otherwise fuse it into an FMA (one rounding instead of two) and move coverage decisions
-and near-tied keys by an ulp. With float64 input the face ids then equal the host's; exp
-and log1p (soft ranking only) are XLA's, not libm's, so two soft keys within an ulp or so
-of each other can still rank differently. float32 input is computed in float32 (the host
+and near-tied keys by an ulp. With float64 input the face ids then equal the host's; the
+soft key's log1p(exp(-|x|)) is XLA's here and a polynomial of the host's own there
+(candidates._softplus_neg, within 5e-16), so two soft keys within an ulp or so of each
+other can still rank differently. float32 input is computed in float32 (the host
 always computes in float64), so there pixels on edges and near-tied faces may differ.
 
 `dropped` counts, in one number, reaching fragments beyond the k kept, as the host does.
@@ -260,7 +261,7 @@ def _depth_logit(z_ndc, near, far, gamma, perspective):
 
 
 def _coverage_logit(signed_d2, sigma):
-    """log_sigmoid(d2 / sigma), as the host writes it (candidates._coverage_logit)."""
+    """log_sigmoid(d2 / sigma), in the host's two branches (candidates._fragment_key)."""
     x = signed_d2 / sigma
     return jnp.where(x >= 0.0, -jnp.log1p(jnp.exp(-jnp.abs(x))),
                      x - jnp.log1p(jnp.exp(jnp.minimum(x, 0.0))))
