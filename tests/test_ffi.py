@@ -155,13 +155,15 @@ def test_interpolate_backward_equals_a_loop_over_several_blocks(chunks):
     np.testing.assert_allclose(g_corners, want_corners, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("channels", [1, 5, kernels._AT_CHANNELS])
 @pytest.mark.parametrize("chunks", [1, 2, 3])
-def test_interpolate_at_equals_a_loop_over_several_blocks(chunks):
+def test_interpolate_at_equals_a_loop_over_several_blocks(chunks, channels):
     """interpolate_at against a NumPy loop on thousands of rows split into 1 to 3 parts:
     rows in any order, empty slots (-1), and the padding (N) at the end that the
-    compacted active slots have."""
+    compacted active slots have; channel counts other than and equal to the one compiled
+    as a constant."""
     rng = np.random.default_rng(9)
-    n, m, faces, c = 4 * kernels._DEALT, 5 * kernels._DEALT + 37, 11, 5
+    n, m, faces, c = 4 * kernels._DEALT, 5 * kernels._DEALT + 37, 11, channels
     ids = rng.integers(-1, faces, n).astype(np.int32)
     bary, corners = rng.uniform(size=(n, 3)), rng.normal(size=(faces, 3, c))
     rows = rng.integers(0, n, m).astype(np.int32)

@@ -502,17 +502,30 @@ def interpolate_at_into(rows, ids, bary, corners, chunks, out):
     nfrags, nc = ids.shape[0], corners.shape[2]
     for chunk in prange(chunks):
         start, stop = _chunk(chunk, chunks, rows.shape[0])
-        for i in range(start, stop):
-            r = rows[i]
-            f = ids[r] if 0 <= r < nfrags else -1
-            if f < 0:
-                for ch in range(nc):
-                    out[i, ch] = 0.0
-                continue
-            b0, b1, b2 = bary[r, 0], bary[r, 1], bary[r, 2]
+        if nc == _AT_CHANNELS:  # a constant count: LLVM unrolls the channels' loop
+            _at_rows(rows, ids, bary, corners, out, start, stop, nfrags, _AT_CHANNELS)
+        else:
+            _at_rows(rows, ids, bary, corners, out, start, stop, nfrags, nc)
+
+
+#: the channel count interpolate_at is compiled for as a constant: the soft render's
+#: positions and normals (3 + 3)
+_AT_CHANNELS = 6
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _at_rows(rows, ids, bary, corners, out, start, stop, nfrags, nc):
+    """interpolate_at_into's rows start..stop - 1 of nc channels."""
+    for i in range(start, stop):
+        r = rows[i]
+        f = ids[r] if 0 <= r < nfrags else -1
+        if f < 0:
             for ch in range(nc):
-                out[i, ch] = b0 * corners[f, 0, ch] + b1 * corners[f, 1, ch] + b2 * corners[
-                    f, 2, ch]
+                out[i, ch] = 0.0
+            continue
+        b0, b1, b2 = bary[r, 0], bary[r, 1], bary[r, 2]
+        for ch in range(nc):
+            out[i, ch] = b0 * corners[f, 0, ch] + b1 * corners[f, 1, ch] + b2 * corners[f, 2, ch]
 
 
 def interpolate_backward(ids, bary, corners, g_out, chunks):
