@@ -32,6 +32,24 @@ def test_import_disables_ynn_reduce_fusion_on_known_jaxlib():
     assert f"'xla_flags': {known}" in tuning
 
 
+def test_import_gives_small_dots_and_reductions_to_xla_not_ynnpack():
+    """After `import diffshade` (before any JAX computation), a vertex transform's dot
+    ([V, 4] x [4, 4]) and a reduction over an axis of 3 compile to XLA's own loops, not
+    YNNPACK fusions; with DIFFSHADE_CPU_TUNING=0 the dot is YNNPACK's (which shows the
+    test can tell them apart)."""
+    if cputune._jaxlib_minor() not in cputune.YNN_JAXLIB:
+        return
+    code = ("import diffshade, jax, jax.numpy as jnp\n"
+            "f = jax.jit(lambda v, m: (v @ m, jnp.sum(v.reshape(-1, 4, 3), -1)))\n"
+            "v, m = jnp.ones((2562, 4)), jnp.ones((4, 4))\n"
+            "print(f.lower(v, m).compile().as_text().count('ynn'))")
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "DIFFSHADE_CPU_TUNING")}
+    counts = [int(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                 env={**env, **change}, cwd=ROOT, check=True).stdout.split()[-1])
+              for change in ({}, {"DIFFSHADE_CPU_TUNING": "0"})]
+    assert counts[0] == 0 and counts[1] > 0, counts
+
+
 def test_user_flags_and_opt_out_are_respected():
     flags, _ = _import_diffshade({"XLA_FLAGS": "--xla_cpu_experimental_ynn_fusion_type=reduce"})
     assert flags == "--xla_cpu_experimental_ynn_fusion_type=reduce"

@@ -5,12 +5,15 @@ environment to leave the process untouched. Both were found by profiling the sof
 rasterizer's forward + backward pass (docs/soft-rasterization.md, "How it works", "CPU
 settings"):
 
-1. XLA's YNNPACK reduce fusions. jaxlib 0.10 hands reductions to YNNPACK, which runs the
-   small reductions of a backward pass (the transpose of broadcasting a per-fragment
-   scalar to RGB: a reduce over an axis of 3) single-threaded, where XLA's own loop
-   emitter is several times faster. We add
-   `--xla_cpu_experimental_ynn_fusion_type=-reduce` to XLA_FLAGS, unless XLA_FLAGS
-   already names that flag. XLA reads its flags when its CPU client starts, so this only
+1. XLA's YNNPACK reduce and dot fusions. jaxlib 0.10 hands reductions to YNNPACK, which
+   runs the small reductions of a backward pass (the transpose of broadcasting a
+   per-fragment scalar to RGB: a reduce over an axis of 3) single-threaded, where XLA's
+   own loop emitter is several times faster; and its dots, whose call costs ~45 us even
+   for a render's [V, 4] x [4, 4] vertex transforms (the soft forward's three took
+   0.17 ms, as XLA's own dots 0.06 ms; YNNPACK pays off on large matrix products, which
+   diffshade does not compute). We add
+   `--xla_cpu_experimental_ynn_fusion_type=-reduce,-individual_dot` to XLA_FLAGS, unless
+   XLA_FLAGS already names that flag. XLA reads its flags when its CPU client starts, so this only
    takes effect when diffshade is imported before the first JAX computation. jaxlib aborts
    on a flag it does not know, so it is only added for jaxlib versions known to have it.
 2. glibc malloc returning XLA's temporary buffer to the kernel after every call. The
@@ -25,7 +28,7 @@ import ctypes
 import os
 import sys
 
-YNN_FLAG = "--xla_cpu_experimental_ynn_fusion_type=-reduce"
+YNN_FLAG = "--xla_cpu_experimental_ynn_fusion_type=-reduce,-individual_dot"
 #: jaxlib minor versions whose XLA knows the YNN flag (an unknown flag aborts the process)
 YNN_JAXLIB = ("0.10",)
 # mallopt parameters (glibc malloc.h)
@@ -45,7 +48,7 @@ def _jaxlib_minor():
 
 
 def tune_xla_flags() -> bool:
-    """Disable YNNPACK reduce fusions in XLA_FLAGS; True if the flag was added."""
+    """Disable YNNPACK reduce and dot fusions in XLA_FLAGS; True if the flag was added."""
     flags = os.environ.get("XLA_FLAGS", "")
     if "ynn_fusion_type" in flags or _jaxlib_minor() not in YNN_JAXLIB:
         return False
