@@ -26,7 +26,8 @@ ambient, no specular) against Mitsuba's image; printed: the IoU of the coverage 
 
 Each engine runs in its own process (--rounds times, alternating; Mitsuba with an empty
 kernel cache in the first round). Printed: compile seconds (the first call: tracing and
-compilation, cold) and the median of --repeats calls after a warm-up. Mitsuba is an
+compilation, cold) and the median of --repeats calls after WARMUP untimed calls (the
+first included), the same number for both. Mitsuba is an
 optional extra (pip install '.[peers]'); where it cannot run (not installed, or Dr.Jit
 finds no libLLVM: see docs/performance.md), one line says so and the script exits with
 status 0 after diffshade's figures.
@@ -47,6 +48,9 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 EYE, FOV_Y, LIGHT_DIRECTION, KD = (0.0, 0.0, 3.0), 45.0, (-0.3, -0.5, -1.0), (0.6, 0.5, 0.4)
 SPP, VARIANT, SOFT_K = 4, "llvm_ad_rgb", 8
+#: untimed calls before the timed ones, for both engines: the first (compile and run) and
+#: two more (diffshade's compile runs nothing, so it makes all three calls after it)
+WARMUP = 3
 #: (key, label, Mitsuba row it is compared with)
 ROWS = (("hard_forward", "hard forward", "forward"),
         ("hard_fb_material", "hard f+b, material", "forward_backward"),
@@ -102,7 +106,8 @@ def cached_step(scene, settings, repeats):
     params = fitting.spec.to_unconstrained(fitting.DEFAULT_INIT, spec)
     step = fitting.solve.make_step(fitting.model.make_loss(spec), optimizer)
     first, times = time_step(step, params, optimizer.init(params),
-                             fitting.model.build_cache(dataset, fitting.DEFAULT_INIT), repeats, 3)
+                             fitting.model.build_cache(dataset, fitting.DEFAULT_INIT), repeats,
+                             WARMUP - 1)
     return {"compile_s": first, "median_s": float(np.median(times))}
 
 
@@ -134,15 +139,14 @@ def diffshade_worker(args):
     soft = ds.RenderSettings(raster="soft", faces_per_pixel=SOFT_K, shading="phong")
     target = jnp.full((args.size, args.size, 4), 0.5, jnp.float32)
     render = lambda settings: (lambda s: ds.render(s, settings))
-    tasks = {"hard_forward": lambda: measure(render(hard), (scene,), args.repeats),
-             "hard_fb_material": lambda: measure(*mse_grad(scene, hard, target), args.repeats),
-             "soft_forward": lambda: measure(render(soft), (scene,), args.repeats),
-             "soft_fb_material": lambda: measure(*mse_grad(scene, soft, target), args.repeats),
-             "soft_fb_material_vertices": lambda: measure(*mse_grad(scene, soft, target, True),
-                                                          args.repeats),
+    timed = lambda fn, fn_args: measure(fn, fn_args, args.repeats, warmup=WARMUP)
+    tasks = {"hard_forward": lambda: timed(render(hard), (scene,)),
+             "hard_fb_material": lambda: timed(*mse_grad(scene, hard, target)),
+             "soft_forward": lambda: timed(render(soft), (scene,)),
+             "soft_fb_material": lambda: timed(*mse_grad(scene, soft, target)),
+             "soft_fb_material_vertices": lambda: timed(*mse_grad(scene, soft, target, True)),
              "cached_step": lambda: cached_step(scene, hard, args.repeats),
-             "soft_cached_step": lambda: measure(*soft_cached(scene, soft, target),
-                                                 args.repeats)}
+             "soft_cached_step": lambda: timed(*soft_cached(scene, soft, target))}
     out = {key: tasks[key]() for key in args.only}
     lambert = ds.render(judged_scene(args.size, args.subdivisions, lambert=True), hard)
     np.savez(args.exchange, vertices=np.asarray(scene.mesh.vertices, np.float32),
@@ -233,12 +237,13 @@ def mitsuba_worker(args):
         dr.set_grad(params[key], 0.0)
     out = {"llvm_version": ".".join(map(str, dr.detail.llvm_version())),
            "mitsuba": mi.__version__, "drjit": dr.__version__}
-    compile_s, median_s, _ = time_call(forward, repeats=args.repeats)
+    compile_s, median_s, _ = time_call(forward, repeats=args.repeats, warmup=WARMUP - 1)
     out["forward"] = {"compile_s": compile_s, "median_s": median_s}
     np.save(args.exchange.replace(".npz", "_mitsuba.npy"), np.asarray(last["image"]))
     dr.enable_grad(params[key])
     params.update()
-    compile_s, median_s, _ = time_call(forward_backward, repeats=args.repeats)
+    compile_s, median_s, _ = time_call(forward_backward, repeats=args.repeats,
+                                       warmup=WARMUP - 1)
     out["forward_backward"] = {"compile_s": compile_s, "median_s": median_s}
     return out
 

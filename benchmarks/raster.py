@@ -64,13 +64,14 @@ def loss_fn(render, settings, scene, target_image):
     return loss
 
 
-def measure(fn, args, repeats, budget_s=None, max_bytes=None):
+def measure(fn, args, repeats, budget_s=None, max_bytes=None, warmup=1):
     """Compile seconds, warm-up seconds, steady-state median seconds (wall clock, and CPU
     seconds of all the process's threads: on a loaded machine the steadier measure of the
     work done) and memory stats.
     budget_s: stop timing once the timed calls add up to this (at least one is timed);
     max_bytes: when XLA's compiled memory (temp + output) exceeds it, do not run: the
-    result then holds 'skipped' (the reason) and the compile figures only."""
+    result then holds 'skipped' (the reason) and the compile figures only. warmup: untimed
+    calls before the timed ones (warmup_s is the first's)."""
     import jax
 
     t0 = time.perf_counter()
@@ -87,6 +88,8 @@ def measure(fn, args, repeats, budget_s=None, max_bytes=None):
     t0 = time.perf_counter()
     jax.block_until_ready(compiled(*args))
     warmup_s = time.perf_counter() - t0
+    for _ in range(warmup - 1):
+        jax.block_until_ready(compiled(*args))
     times, cpu_times = [], []
     while len(times) < repeats and (budget_s is None or not times or sum(times) < budget_s):
         t0, c0 = time.perf_counter(), time.process_time()
