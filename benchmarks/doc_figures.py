@@ -65,7 +65,8 @@ def readme_rows(data):
     fresh = data["time_to_first_result_fresh_install.json"]
     adam, linear = data["memory_views.json"]["rows"], data["memory_views_linear.json"]["rows"]
     views = " / ".join(str(r["views"]) for r in adam)
-    peer_cmd = "`python benchmarks/peers.py --rounds 3` (needs `pip install '.[peers]'`), "
+    peer_cmd = (f"`python benchmarks/peers.py --rounds {data['peers.json']['rounds']}` "
+                "(needs `pip install '.[peers]'`), ")
     texture = data["texture_capture.json"]
     return [
         ("hard render of the judged scene (256², 5,120 faces, one directional light) "
