@@ -9,9 +9,9 @@ settings"):
    runs the small reductions of a backward pass (the transpose of broadcasting a
    per-fragment scalar to RGB: a reduce over an axis of 3) single-threaded, where XLA's
    own loop emitter is several times faster; and its dots, whose call costs ~45 us even
-   for a render's [V, 4] x [4, 4] vertex transforms (the soft forward's three took
-   0.17 ms, as XLA's own dots 0.06 ms; YNNPACK pays off on large matrix products, which
-   diffshade does not compute). We add
+   for a render's [V, 4] x [4, 4] vertex transforms (the judged scene's projection alone:
+   125 us with YNNPACK's dots, 62 us with XLA's; YNNPACK pays off on large matrix
+   products, which diffshade does not compute). We add
    `--xla_cpu_experimental_ynn_fusion_type=-reduce,-individual_dot` to XLA_FLAGS, unless
    XLA_FLAGS already names that flag. XLA reads its flags when its CPU client starts, so this only
    takes effect when diffshade is imported before the first JAX computation. jaxlib aborts
