@@ -27,7 +27,9 @@ ambient, no specular) against Mitsuba's image; printed: the IoU of the coverage 
 Each engine runs in its own process (--rounds times, alternating; Mitsuba with an empty
 kernel cache in the first round). Printed: compile seconds (the first call: tracing and
 compilation, cold) and the median of --repeats calls after WARMUP untimed calls (the
-first included), the same number for both. Mitsuba is an
+first included), the same number for both; the speed ratio of the pooled medians, and
+the lowest and highest ratio of a single round (each round times both engines, one
+process after the other), which shows how much the machine moved between rounds. Mitsuba is an
 optional extra (pip install '.[peers]'); where it cannot run (not installed, or Dr.Jit
 finds no libLLVM: see docs/performance.md), one line says so and the script exits with
 status 0 after diffshade's figures.
@@ -294,18 +296,35 @@ def pooled(rounds):
                   if isinstance(first[key], dict) else first[key]) for key in first}
 
 
+def round_ratios(mine, peer):
+    """The lowest and highest speed ratio of one round (round i of each engine: their
+    processes alternate, so a round's two figures were measured one after the other),
+    from the results' round_medians_s; None where either has no rounds."""
+    pairs = list(zip(peer.get("round_medians_s", ()), mine.get("round_medians_s", ()),
+                     strict=True))
+    if not pairs:
+        return None
+    ratios = [theirs / ours for theirs, ours in pairs]
+    return min(ratios), max(ratios)
+
+
 def table(ours, theirs):
-    """The markdown ratio table (Mitsuba's time over diffshade's)."""
-    lines = ["| quantity | diffshade | Mitsuba | speed ratio |", "|---|---|---|---|"]
+    """The markdown ratio table (Mitsuba's time over diffshade's), with the spread of the
+    rounds' ratios (round_ratios)."""
+    lines = ["| quantity | diffshade | Mitsuba | speed ratio | ratio per round |",
+             "|---|---|---|---|---|"]
     for key, label, peer in ROWS:
         if key not in ours:
             continue
         mine = ours[key]["median_s"]
-        cell, ratio = "—", "—"
+        cell, ratio, spread = "—", "—", "—"
         if theirs is not None and peer is not None:
             cell = f"{theirs[peer]['median_s'] * 1e3:.1f} ms"
             ratio = f"{theirs[peer]['median_s'] / mine:.2f}x"
-        lines.append(f"| {label} | {mine * 1e3:.1f} ms | {cell} | {ratio} |")
+            lowest_highest = round_ratios(ours[key], theirs[peer])
+            if lowest_highest is not None:
+                spread = "{:.2f}–{:.2f}x".format(*lowest_highest)
+        lines.append(f"| {label} | {mine * 1e3:.1f} ms | {cell} | {ratio} | {spread} |")
     return "\n".join(lines)
 
 

@@ -1,5 +1,6 @@
-"""benchmarks/peers.py without Mitsuba: diffshade's figures, one line, exit status 0; and
-its camera check (mask IoU) against a count by hand."""
+"""benchmarks/peers.py without Mitsuba: diffshade's figures, one line, exit status 0; its
+camera check (mask IoU) against a count by hand; and its table's ratios per round against
+ratios worked out by hand."""
 
 import json
 import os
@@ -11,7 +12,7 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 
-from peers import camera_check  # noqa: E402
+from peers import camera_check, table  # noqa: E402
 
 
 def broken_mitsuba_env(tmp_path):
@@ -53,3 +54,17 @@ def test_camera_check_iou_and_interior_difference():
     iou, max_diff = camera_check(ours, theirs)
     assert np.isclose(iou, 60 / 140)
     assert np.isclose(max_diff, 0.3)
+
+
+def test_table_pairs_each_round_of_the_two_engines():
+    # round i of diffshade against round i of Mitsuba: 16 / 8, 15 / 6 and 14 / 7, so
+    # 2.00-2.50x; rounds paired in sorted order instead (16 / 8, 15 / 7, 14 / 6) would
+    # give 2.00-2.33x
+    ours = {"soft_forward": {"median_s": 0.007, "round_medians_s": [0.008, 0.006, 0.007]},
+            "soft_fb_material_vertices": {"median_s": 0.02, "round_medians_s": [0.02]}}
+    theirs = {"forward": {"median_s": 0.015, "round_medians_s": [0.016, 0.015, 0.014]},
+              "forward_backward": {"median_s": 0.04, "round_medians_s": [0.04, 0.04, 0.04]}}
+    rows = {line.split(" | ")[0]: line for line in table(ours, theirs).splitlines()}
+    assert rows["| soft forward"] == "| soft forward | 7.0 ms | 15.0 ms | 2.14x | 2.00–2.50x |"
+    # no Mitsuba counterpart: no ratio either way
+    assert rows["| soft f+b, material + vertices"].endswith("| — | — | — |")
