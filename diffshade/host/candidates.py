@@ -51,6 +51,27 @@ from diffshade.host.intrinsics import claim, compress, popcount
 EDGES = ((1, 2), (2, 0), (0, 1))
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _pixel_index(v, size):
+    """A pixel coordinate v (float, whole) as an int in [-1, size]: v clamped first, so that
+    the coordinate of a vertex far outside the image (a field of view of 1e-18 degrees puts
+    it at ~1e20 pixels) never overflows int64 (whose conversion is undefined: loops over
+    garbage ranges, reads outside the arrays); -1 where v is NaN."""
+    if not v == v:
+        return -1
+    return int(min(max(v, -1.0), float(size)))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _corners_exist(faces, f, vertices):
+    """Whether face f's three vertex indices lie in [0, vertices): render refuses a mesh
+    whose do not (pipeline.rendering.check_arguments), but a mesh traced under a caller's
+    jit reaches the kernels unchecked, and a face that does not is skipped here rather
+    than read outside clip."""
+    return ((0 <= faces[f, 0] < vertices) & (0 <= faces[f, 1] < vertices)
+            & (0 <= faces[f, 2] < vertices))
+
+
 @numba.njit(cache=True, nogil=True)
 def _face_setup(clip, faces, f, tri, coeffs):
     """Fill tri [3, 4] and coeffs [3, 3] (rows v_j x v_k of [X Y W]); return det."""
@@ -91,7 +112,7 @@ def _pixel_range(lo, hi, size, radius_px, flip):
         lo, hi = -hi, -lo
     a = np.ceil((lo + 1.0) * size / 2.0 - 0.5 - radius_px)
     b = np.floor((hi + 1.0) * size / 2.0 - 0.5 + radius_px)
-    return int(max(a, 0.0)), int(min(b, size - 1.0))
+    return max(_pixel_index(a, size), 0), min(_pixel_index(b, size), size - 1)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -258,6 +279,8 @@ def _hard_setup(clips, faces, width, height, cull_backfaces):
         box = np.empty(4)
         for f in range(chunk * SETUP_CHUNK, min(count, (chunk + 1) * SETUP_CHUNK)):
             reach[view, f] = False
+            if not _corners_exist(faces, f, clips.shape[1]):
+                continue
             det = _face_setup(clips[view], faces, f, tri[view, f], coeffs[view, f])
             if not np.isfinite(det) or det == 0.0 or (cull_backfaces and det < 0.0):
                 continue
@@ -431,9 +454,11 @@ def _soft_face(clip, faces, f, width, height, cull_backfaces, radius_px, scr, ed
     """Screen-space setup of face f for the soft search: fills scr [3, 2] (vertex pixel
     coordinates), edge [3, 2] (scr[i + 1] - scr[i]), inv_len [3] (1 / edge lengths, 0 for
     a point), zndc [3] and box = (first row, last row, first column, last column) of the
-    pixels its footprint may reach (rows unclamped); False when it reaches none. The
+    pixels its footprint may reach (rows in [-1, height]); False when it reaches none. The
     corners are read from clip once, as rows (_face_setup's det, only its first row of
     coefficients, in the same order: the soft search needs no others)."""
+    if not _corners_exist(faces, f, clip.shape[0]):
+        return False
     v0, v1, v2 = clip[faces[f, 0]], clip[faces[f, 1]], clip[faces[f, 2]]
     det = ((v1[1] * v2[3] - v1[3] * v2[1]) * v0[0] + (v1[3] * v2[0] - v1[0] * v2[3]) * v0[1]
            + (v1[0] * v2[1] - v1[1] * v2[0]) * v0[3])
@@ -445,9 +470,12 @@ def _soft_face(clip, faces, f, width, height, cull_backfaces, radius_px, scr, ed
         scr[i, 0] = (v[0] / v[3] + 1.0) * width / 2.0
         scr[i, 1] = (1.0 - v[1] / v[3]) * height / 2.0
         zndc[i] = v[2] / v[3]
-    box[0] = np.ceil(min(scr[0, 1], scr[1, 1], scr[2, 1]) - 0.5 - radius_px)
-    box[1] = np.floor(max(scr[0, 1], scr[1, 1], scr[2, 1]) - 0.5 + radius_px)
-    if not int(max(box[0], 0.0)) <= int(min(box[1], height - 1.0)):
+    # rows in [-1, height] (_pixel_index), so that every later int() of them is exact
+    box[0] = _pixel_index(np.ceil(min(scr[0, 1], scr[1, 1], scr[2, 1]) - 0.5 - radius_px),
+                          height)
+    box[1] = _pixel_index(np.floor(max(scr[0, 1], scr[1, 1], scr[2, 1]) - 0.5 + radius_px),
+                          height)
+    if not max(box[0], 0.0) <= min(box[1], height - 1.0):
         return False
     area2 = ((scr[1, 0] - scr[0, 0]) * (scr[2, 1] - scr[0, 1])
              - (scr[2, 0] - scr[0, 0]) * (scr[1, 1] - scr[0, 1]))
@@ -458,9 +486,10 @@ def _soft_face(clip, faces, f, width, height, cull_backfaces, radius_px, scr, ed
         edge[i, 0], edge[i, 1] = scr[j, 0] - scr[i, 0], scr[j, 1] - scr[i, 1]
         length = np.hypot(edge[i, 0], edge[i, 1])
         inv_len[i] = 1.0 / length if length > 0.0 else 0.0
-    box[2] = int(max(np.ceil(min(scr[0, 0], scr[1, 0], scr[2, 0]) - 0.5 - radius_px), 0.0))
-    box[3] = int(min(np.floor(max(scr[0, 0], scr[1, 0], scr[2, 0]) - 0.5 + radius_px),
-                     width - 1.0))
+    box[2] = max(_pixel_index(np.ceil(min(scr[0, 0], scr[1, 0], scr[2, 0]) - 0.5 - radius_px),
+                              width), 0)
+    box[3] = min(_pixel_index(np.floor(max(scr[0, 0], scr[1, 0], scr[2, 0]) - 0.5 + radius_px),
+                              width), width - 1)
     return box[2] <= box[3]
 
 
@@ -705,7 +734,7 @@ def _strip_rows(scr, c0, c1, radius_px, height):
         return 0, -1
     first = np.ceil(y_lo - 0.5 - reach)
     last = np.floor(y_hi - 0.5 + reach)
-    return int(max(first, 0.0)), int(min(last, height - 1.0))
+    return max(_pixel_index(first, height), 0), min(_pixel_index(last, height), height - 1)
 
 
 @numba.njit(cache=True, nogil=True)
