@@ -143,7 +143,9 @@ def _check_counts(n_views, n_lights, size, noise_std):
     if size > MAX_IMAGE_SIZE:
         raise ValueError(f"size: got {size}; expected at most {MAX_IMAGE_SIZE} pixels a side")
     images = n_views * n_lights
-    check("size", size, images * image_bytes(size, size, TARGET_CHANNELS),
+    # all three settings are named: any of them can make the dataset too large
+    check("n_views, n_lights, size", f"{n_views}, {n_lights}, {size}",
+          images * image_bytes(size, size, TARGET_CHANNELS),
           f"a dataset of {images} images of {size}x{size} pixels", size * size * TARGET_CHANNELS,
           host=True)
 

@@ -105,6 +105,10 @@ MATERIALS = {
     "emission_inf": (dict(emission=INF), "emission", "inf"),
     "kd_text": (dict(kd="red"), "kd", "'red'"),
     "kd_two_channels": (dict(kd=[0.5, 0.5]), "kd", "[0.5, 0.5]"),
+    # named by its size, not printed texel by texel; and the fields that take one are said
+    "ka_texture": (dict(ka=ds.texture(np.full((4, 6, 1), 0.5))), "ka",
+                   "a texture of 6x4 texels; expected a non-negative finite number or 3 of "
+                   "them (RGB): only kd, ks, shininess take textures"),
 }
 
 
@@ -143,6 +147,11 @@ CAMERAS = {
     "eye_text": (dict(eye="here"), "eye", "'here'"),
     "projection": (dict(projection="fisheye"), "projection", "'fisheye'"),
     "ortho_height": (dict(ortho_height=0.0), "ortho_height", "0.0"),
+    # a lens that scales eye space by more than 1e8: clip coordinates' products overflow
+    # float32 (at 1e-20 degrees the images were empty, and the host search hung)
+    "fov_below_float32_reach": (dict(fov_y=1e-20), "fov_y", "1e-20"),
+    "ortho_height_below_float32_reach": (dict(projection="orthographic", ortho_height=1e-30),
+                                         "ortho_height", "1e-30"),
 }
 
 
@@ -273,6 +282,77 @@ RENDERS = {
 def test_render_rejects_what_is_not_a_scene_or_settings(call, name, value):
     with pytest.raises(TypeError) as info:
         call(ds.make_scene(ds.icosphere(0), camera()))
+    assert_clear(info, name, value)
+
+
+def test_the_narrowest_camera_accepted_renders_finite_on_both_kernel_paths():
+    narrowest = camera(fov_y=ds.scene.camera.MIN_FOV_Y)
+    scene = ds.make_scene(ds.icosphere(1), narrowest)
+    for raster in ("hard", "soft"):
+        for kernels in ("host", "jax"):
+            image = np.asarray(ds.render(scene, ds.RenderSettings(raster=raster,
+                                                                  kernels=kernels)))
+            # the view's centre is the sphere's nearest point: covered (soft coverage stays
+            # below 1 near the edges between faces, a pixel or so away at this magnification)
+            assert np.all(np.isfinite(image)) and image[4, 4, 3] > 0.9, (raster, kernels)
+
+
+def test_an_opencv_focal_length_beyond_float32_reach_is_refused():
+    K = [[1e9, 0.0, 3.0], [0.0, 100.0, 3.0], [0.0, 0.0, 1.0]]
+    with pytest.raises(ValueError) as info:
+        ds.camera_from_opencv(K, np.eye(3), [0.0, 0.0, 3.0], 6, 6)
+    assert_clear(info, "K: fx", "1000000000.0")
+
+
+def test_vertex_normals_of_a_mesh_at_1e19_are_those_at_1():
+    """Normals do not depend on the mesh's scale: float32's squares of coordinates
+    overflowed from ~1e19 (a NaN normal for finite vertices)."""
+    corners, faces = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [0.0, 1.0, 0.0]]), [[0, 1, 2]]
+    for scale in (1.0, 1e19, 1e-30):
+        normals = np.asarray(ds.mesh_from_arrays(corners * scale, faces).normals)
+        np.testing.assert_array_equal(normals, np.tile([0.0, 0.0, 1.0], (3, 1)))
+
+
+def test_a_render_that_overflows_float32_is_refused_not_returned_as_nan():
+    """Every builder takes a point light 1e20 away (a finite float32), but its squared
+    distance overflows: render raises instead of returning NaN pixels."""
+    scene = ds.make_scene(ds.icosphere(1), camera(), lights=[ds.point_light((0.0, 0.0, 1e20))])
+    with pytest.raises(ValueError) as info:
+        ds.render(scene)
+    assert_clear(info, "scene", "not finite")
+
+
+def _mesh_made_directly(change):
+    m = ds.icosphere(1)
+    return {"no_faces": lambda: ds.Mesh(m.vertices, m.faces[:0], m.normals),
+            "float_faces": lambda: ds.Mesh(m.vertices, m.faces.astype(np.float32), m.normals),
+            "lists": lambda: ds.Mesh(np.asarray(m.vertices).tolist(),
+                                     np.asarray(m.faces).tolist(),
+                                     np.asarray(m.normals).tolist()),
+            "nan_vertex": lambda: ds.replace(m, vertices=m.vertices.at[0, 0].set(NAN)),
+            "index_out_of_range": lambda: ds.replace(m, faces=m.faces.at[3, 1].set(10**8)),
+            "negative_index": lambda: ds.replace(m, faces=m.faces.at[0, 0].set(-1))}[change]()
+
+
+DIRECT_MESHES = {
+    "no_faces": (ValueError, "scene.mesh.faces", "(0, 3)"),
+    "float_faces": (TypeError, "scene.mesh.faces", "float32"),
+    "lists": (TypeError, "scene.mesh.vertices", "list"),
+    "nan_vertex": (ValueError, "scene.mesh.vertices", "nan"),
+    "index_out_of_range": (ValueError, "scene.mesh.faces", "1e+08"),
+    "negative_index": (ValueError, "scene.mesh.faces", "-1"),
+}
+
+
+@pytest.mark.parametrize("change, error, name, value", [(k, *v) for k, v in DIRECT_MESHES.items()],
+                         ids=DIRECT_MESHES)
+def test_a_mesh_made_directly_is_checked_when_rendered(change, error, name, value):
+    """make_scene takes a Mesh as it is; render checks its data as mesh_from_arrays would
+    (an index out of range made the host rasterizer read outside the vertices: a
+    segmentation fault, or a silently wrong image)."""
+    scene = ds.make_scene(_mesh_made_directly(change), camera())
+    with pytest.raises(error) as info:
+        ds.render(scene)
     assert_clear(info, name, value)
 
 
@@ -538,6 +618,9 @@ FITS = {
     "method": (lambda d: fitting.fit(d, method="newton"), ValueError, "method", "'newton'"),
     "steps": (lambda d: fitting.fit(d, steps=-1), ValueError, "steps", "-1"),
     "loss": (lambda d: fitting.fit(d, loss="l3"), ValueError, "loss", "'l3'"),
+    # finite in float64, inf in the fit's float32: it returned the starting values
+    "lr_beyond_float32": (lambda d: fitting.fit(d, method="adam", lr=1e300), ValueError, "lr",
+                          "1e+300"),
 }
 
 
@@ -620,14 +703,27 @@ def test_cli_render_size_beyond_memory_names_the_bytes(tmp_path, capsys, monkeyp
     assert os.listdir(tmp_path) == []
 
 
-@pytest.mark.parametrize("size, shown", [("16384", "6 images of 16384x16384 pixels needs 51.5 GB"),
-                                         ("100000", "expected at most 16384 pixels a side")])
+@pytest.mark.parametrize("size, named, shown", [
+    ("16384", "n_views, n_lights, size: got 3, 2, 16384;",
+     "6 images of 16384x16384 pixels needs 51.5 GB"),
+    ("100000", "size: got 100000;", "expected at most 16384 pixels a side")])
 def test_cli_synth_size_beyond_memory_is_refused_before_allocating(tmp_path, capsys,
-                                                                   monkeypatch, size, shown):
+                                                                   monkeypatch, size, named,
+                                                                   shown):
     monkeypatch.setenv("DIFFSHADE_MEMORY_LIMIT", LIMIT)
     assert cli.main(["synth", "--size", size, "-o", str(tmp_path / "data")]) == 2
     line = one_error_line(capsys)
-    assert f"size: got {size};" in line and shown in line, line
+    assert named in line and shown in line, line
+    assert os.listdir(tmp_path) == []
+
+
+def test_cli_synth_views_beyond_memory_name_the_views(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("DIFFSHADE_MEMORY_LIMIT", LIMIT)
+    assert cli.main(["synth", "--views", "100000", "--lights", "2", "--size", "64", "-o",
+                     str(tmp_path / "data")]) == 2
+    line = one_error_line(capsys)
+    assert "n_views, n_lights, size: got 100000, 2, 64;" in line, line
+    assert "a dataset of 200000 images" in line and "expected at most" in line, line
     assert os.listdir(tmp_path) == []
 
 

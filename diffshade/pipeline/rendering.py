@@ -26,6 +26,7 @@ from functools import partial
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from diffshade.composite.blend import hard_blend, soft_blend, soft_weights
 from diffshade.composite.transparency import (
@@ -40,6 +41,7 @@ from diffshade.raster.fragments import Fragments, rasterize
 from diffshade.raster.projection import Projected, project
 from diffshade.scene.camera import Camera, view_dir_infinite
 from diffshade.scene.materials import Material, has_textures
+from diffshade.scene.mesh import check_mesh
 from diffshade.scene.objects import take_material
 from diffshade.scene.scene import Scene
 from diffshade.settings import RenderSettings
@@ -196,13 +198,35 @@ def _check_types(scene, settings):
         raise TypeError(f"settings: got {type(settings).__name__}; expected RenderSettings")
 
 
+def _check_mesh_data(mesh):
+    """The scene's mesh checked as mesh_from_arrays checks its input (scene.mesh.check_mesh:
+    finite vertices and normals, at least one face, integer face indices in range), where
+    its arrays are concrete: a Mesh made directly (Mesh(...), replace) is not checked
+    before, and an index out of range would make the rasterizer read outside the
+    vertices. A mesh traced under the caller's jit is left to the kernels, which skip
+    such a face (host.candidates._corners_exist)."""
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(mesh)):
+        return
+    for field in ("vertices", "faces", "normals") + (() if mesh.uv is None else ("uv",)):
+        value = getattr(mesh, field)
+        if not isinstance(value, (jax.Array, np.ndarray)):
+            raise TypeError(f"scene.mesh.{field}: got {type(value).__name__}; expected an "
+                            "array (mesh_from_arrays makes a Mesh of any array-like data)")
+    if not jnp.issubdtype(mesh.faces.dtype, jnp.integer):
+        raise TypeError(f"scene.mesh.faces: got dtype {mesh.faces.dtype}; expected integers "
+                        "(mesh_from_arrays converts whole numbers)")
+    check_mesh(mesh, name=lambda field: f"scene.mesh.{field}")
+
+
 def check_arguments(scene, settings, views=1, factor=1, camera=None):
-    """Raise a clear TypeError unless scene is a Scene and settings a RenderSettings, and
-    budget.SizeError when rendering it (from `views` cameras of `camera`'s size, default
-    the scene's own, at `factor` x their resolution) needs more memory than is available
-    (checked before jit, at the API boundary)."""
+    """Raise a clear TypeError unless scene is a Scene and settings a RenderSettings, a
+    ValueError where the scene's mesh data is not what a Mesh holds (_check_mesh_data),
+    and budget.SizeError when rendering it (from `views` cameras of `camera`'s size,
+    default the scene's own, at `factor` x their resolution) needs more memory than is
+    available (checked before jit, at the API boundary)."""
     _check_types(scene, settings)
     settings.validate()
+    _check_mesh_data(scene.mesh)
     textured = has_textures(scene.material) or has_textures(scene.back_material)
     if textured and (scene.mesh.uv is None or scene.objects is not None):
         raise ValueError("scene.material: has a texture; expected a scene of one object whose "
@@ -211,12 +235,32 @@ def check_arguments(scene, settings, views=1, factor=1, camera=None):
     check_render(costed, settings, views, factor)
 
 
-def _checked(jitted):
-    """The public entry point of a jitted renderer: arguments checked, then the call."""
+def finite_image(image):
+    """image (a render's result), after checking that every value is finite where it is
+    concrete (called outside jit): a scene whose numbers pass every builder's check can
+    still overflow float32 on the way (vertices some 1e19 times farther out than the
+    camera is from them, a point light 1e20 away), and the caller gets a ValueError saying
+    so rather than NaN pixels. Under the caller's jit the image is returned as it is."""
+    if isinstance(image, jax.core.Tracer):
+        return image
+    bad = int(jnp.size(image) - jnp.count_nonzero(jnp.isfinite(image)))
+    if bad:
+        raise ValueError(
+            f"scene: its image has {bad} values that are not finite (NaN or inf); expected "
+            "numbers float32 can hold on the way: a coordinate, a light's position or "
+            "power, or the camera's lens at an extreme scale overflows (jax_enable_x64 "
+            "renders in float64, whose range is far wider)")
+    return image
+
+
+def _checked(jitted, image=False):
+    """The public entry point of a jitted renderer: arguments checked, then the call (its
+    result checked by finite_image where `image`)."""
     @functools.wraps(jitted)
     def entry(scene, settings=DEFAULT_SETTINGS, *args, **kwargs):
         check_arguments(scene, settings)
-        return jitted(scene, settings, *args, **kwargs)
+        out = jitted(scene, settings, *args, **kwargs)
+        return finite_image(out) if image else out
     return entry
 
 
@@ -324,7 +368,7 @@ def render_views(scene, cameras, settings=DEFAULT_SETTINGS):
     cameras = stack_cameras(cameras)
     views = jax.tree.leaves(cameras)[0].shape[0]
     check_arguments(scene, settings, views, camera=jax.tree.map(lambda a: a[0], cameras))
-    return _render_views(scene, cameras, settings)
+    return finite_image(_render_views(scene, cameras, settings))
 
 
 def downsample(image, factor: int):
@@ -344,7 +388,7 @@ def _render_supersampled(scene, settings=DEFAULT_SETTINGS, factor: int = 2):
 
 
 rasterize_scene = _checked(_rasterize_scene)
-render = _checked(_render)
+render = _checked(_render, image=True)
 render_parts = _checked(_render_parts)
 
 
@@ -354,4 +398,4 @@ def render_supersampled(scene, settings=DEFAULT_SETTINGS, factor: int = 2):
     if isinstance(factor, bool) or not isinstance(factor, int) or factor < 1:
         raise ValueError(f"factor: got {factor!r}; expected an integer >= 1")
     check_arguments(scene, settings, factor=factor)
-    return _render_supersampled(scene, settings, factor)
+    return finite_image(_render_supersampled(scene, settings, factor))

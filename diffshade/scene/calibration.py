@@ -22,7 +22,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffshade.numerics import float_dtype
-from diffshade.scene.camera import Camera, check_image_size, lens, look_at, view_matrix
+from diffshade.scene.camera import (
+    MAX_LENS_SCALE,
+    Camera,
+    check_image_size,
+    lens,
+    look_at,
+    view_matrix,
+)
 
 #: how far R^T R may be from the identity (a calibration's R, written with ~7 digits)
 ROTATION_TOLERANCE = 1e-6
@@ -146,6 +153,12 @@ def camera_from_opencv(K, R, t, width, height, dist=None, *, near=0.1, far=100.0
     dist = _check_dist(dist)
     check_unfolded(dist, K, width, height)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    for focal, size, which in ((fx, width, "fx"), (fy, height, "fy")):
+        if 2.0 * focal / size > MAX_LENS_SCALE:
+            raise ValueError(f"K: {which} = {float(focal)!r} pixels for an image {size} pixels "
+                             f"across; expected at most {MAX_LENS_SCALE * size / 2.0:g} (a "
+                             f"longer focal length scales eye space by more than "
+                             f"{MAX_LENS_SCALE:g}, past what float32 clip coordinates hold)")
     fov_y = np.rad2deg(2.0 * np.arctan(height / (2.0 * fy)))
     eye = -R.T @ t
     camera = look_at(eye, eye + R[2], -R[1], width=width, height=height, fov_y=fov_y,

@@ -23,6 +23,15 @@ PROJECTIONS = ("perspective", "orthographic")
 #: The largest image side accepted, in pixels (OpenGL's usual GL_MAX_VIEWPORT_DIMS): a
 #: typo such as 10**30 is refused here rather than failing deep inside XLA.
 MAX_IMAGE_SIZE = 16384
+#: The largest factor by which a camera's projection scales eye space into NDC
+#: (1 / tan(fov_y / 2), 2 / ortho_height, an OpenCV camera's 2 fx / width and 2 fy /
+#: height): the rasterizer multiplies clip coordinates in pairs and triples, and beyond
+#: ~1e17 those overflow float32 for a scene a few units across (a fov_y of 1e-20 degrees
+#: scales by 1e22: its images were empty or wrong). 1e8 is a lens of a 10^-6 degree view
+#: (or an ortho_height of 2e-8), far past any real one.
+MAX_LENS_SCALE = 1e8
+#: fov_y's lower bound in degrees: 1 / tan(fov_y / 2) = MAX_LENS_SCALE
+MIN_FOV_Y = float(np.rad2deg(2.0 * np.arctan(1.0 / MAX_LENS_SCALE)))
 
 
 @partial(jax.tree_util.register_dataclass,
@@ -103,19 +112,24 @@ def _check_look_at(eye, target, up):
 
 def look_at(eye, target, up=(0.0, 1.0, 0.0), *, width=256, height=256, fov_y=45.0,
             near=0.1, far=100.0, projection="perspective", ortho_height=2.0) -> Camera:
-    """Build a validated Camera. fov_y in degrees, in (0, 180); 0 < near < far."""
+    """Build a validated Camera. fov_y in degrees, in [MIN_FOV_Y, 180) (about 1.1e-6);
+    ortho_height >= 2e-8 (MAX_LENS_SCALE); 0 < near < far."""
     eye, target, up = _vec3("eye", eye), _vec3("target", target), _vec3("up", up)
     _check_look_at(eye, target, up)
     width, height = check_image_size("width", width), check_image_size("height", height)
     if projection not in PROJECTIONS:
         raise ValueError(f"projection: got {projection!r}; expected one of {PROJECTIONS}")
-    if not 0.0 < _scalar("fov_y", fov_y, "degrees in (0, 180)") < 180.0:
-        raise ValueError(f"fov_y: got {fov_y!r}; expected degrees in (0, 180)")
+    if not MIN_FOV_Y <= _scalar("fov_y", fov_y, f"degrees in [{MIN_FOV_Y:.4g}, 180)") < 180.0:
+        raise ValueError(f"fov_y: got {fov_y!r}; expected degrees in [{MIN_FOV_Y:.4g}, 180) "
+                         f"(a narrower view scales eye space by more than {MAX_LENS_SCALE:g}, "
+                         "past what float32 clip coordinates hold)")
     expected = "a finite number with 0 < near < far"
     if not 0.0 < _scalar("near", near, expected) < _scalar("far", far, expected):
         raise ValueError(f"near, far: got near={near!r}, far={far!r}; expected 0 < near < far")
-    if not _scalar("ortho_height", ortho_height, "a positive number") > 0:
-        raise ValueError(f"ortho_height: got {ortho_height!r}; expected a positive number")
+    if not _scalar("ortho_height", ortho_height, "a positive number") >= 2.0 / MAX_LENS_SCALE:
+        raise ValueError(f"ortho_height: got {ortho_height!r}; expected a number >= "
+                         f"{2.0 / MAX_LENS_SCALE:g} (a smaller one scales eye space by more "
+                         f"than {MAX_LENS_SCALE:g}, past what float32 clip coordinates hold)")
     arr = partial(jnp.asarray, dtype=float_dtype())
     return Camera(arr(eye), arr(target), arr(up), arr(fov_y), arr(near), arr(far),
                   arr(ortho_height), arr((0.0, 0.0)), arr(1.0), arr(np.zeros(5)), width,

@@ -52,6 +52,11 @@ def _floats(value):
 
 
 def _coefficient(name, value):
+    if is_texture(value):
+        raise ValueError(f"{name}: got a texture of {value.texels.shape[1]}x"
+                         f"{value.texels.shape[0]} texels; expected a non-negative finite "
+                         f"number or 3 of them (RGB): only {', '.join(TEXTURED_FIELDS)} take "
+                         "textures")
     arr = _floats(value)
     if arr is not None and arr.shape == ():
         arr = np.full(3, float(arr))

@@ -119,6 +119,12 @@ def vertex_normals(vertices, faces, weighting="angle"):
     face normals cancel, gets a zero normal; values and gradients stay finite. Under jit,
     make weighting static.
     """
+    # the normals do not change when the mesh is scaled: computed on the mesh scaled to
+    # a unit box, the cross products' squares cannot overflow (float32 did from ~1e19,
+    # giving NaN normals for finite vertices); the scale is a constant to derivatives
+    # (zero-degree homogeneity: d n(v / s) / dv at fixed s is d n / dv)
+    extent = jax.lax.stop_gradient(jnp.max(jnp.abs(vertices)))
+    vertices = vertices / jnp.where(extent > 0.0, extent, 1.0)
     weights = _corner_weights(vertices, faces, weighting)
     weighted = weights[..., None] * face_normals(vertices, faces)[:, None, :]
     summed = jax.ops.segment_sum(

@@ -10,6 +10,8 @@ at the boundary: a ValueError names it, the value and what was expected.
 import dataclasses
 import math
 
+import numpy as np
+
 from fitting.model.loss import LOSSES
 
 
@@ -51,6 +53,16 @@ def _number(x):
 
 
 MAX_EDGE_MARGIN = 16384  # diffshade's largest image side (docs/scene-format.md)
+#: a learning rate's upper bound: the fit's arithmetic is float32, where a larger one
+#: overflows to inf (--lr 1e300 returned the starting values, silently)
+MAX_RATE = float(np.finfo(np.float32).max)
+
+
+def _rate(x):
+    return _number(x) and 0 < x <= MAX_RATE
+
+
+_RATE = f"a positive learning rate of at most {MAX_RATE:.4g} (float32's largest number)"
 
 
 def _count(low):
@@ -76,12 +88,9 @@ OPTIONS = {
     "gtol": Option("converged when the gradient norm (checked every 'patience' steps) "
                    "falls below this (default: not checked)",
                    lambda x: x is None or (_number(x) and x >= 0), "a finite number >= 0"),
-    "lr": Option("Adam's learning rate for coefficients and light colours",
-                 lambda x: _number(x) and x > 0, "a positive learning rate"),
-    "lr_shininess": Option("Adam's learning rate for log-shininess",
-                           lambda x: _number(x) and x > 0, "a positive learning rate"),
-    "lr_position": Option("Adam's learning rate for light positions",
-                          lambda x: _number(x) and x > 0, "a positive learning rate"),
+    "lr": Option("Adam's learning rate for coefficients and light colours", _rate, _RATE),
+    "lr_shininess": Option("Adam's learning rate for log-shininess", _rate, _RATE),
+    "lr_position": Option("Adam's learning rate for light positions", _rate, _RATE),
     # at most the largest image side (any more leaves no pixel): the margin is eroded pixel
     # by pixel, so 10**12 would run for ever (a catalogue case, tests/test_catalogue_fit.py)
     "edge_margin": Option("silhouette pixels left out",
