@@ -13,6 +13,7 @@ import pytest
 from diffshade.composite.blend import (
     BACKGROUND_EPS,
     log_coverages,
+    normalized_inverse_depth,
     soft_alpha,
     soft_blend,
     soft_weights,
@@ -125,3 +126,18 @@ def test_float32_log_coverages_match_float64_log_sigmoid():
         np.testing.assert_allclose(np.asarray(grad, np.float64),
                                    sign * jax.nn.sigmoid(-sign * jnp.asarray(x32, jnp.float64)),
                                    rtol=1e-6, atol=2.5e-7)
+
+
+@pytest.mark.parametrize("near", [1e-20, 1e-30])
+def test_zt_derivative_for_a_tiny_near_plane_is_finite_in_float32(near):
+    """zt's derivative with respect to near against its closed form, float32 operands
+    (the module runs with x64 on; float32 arrays stay float32): written with 1 / near, its
+    derivative -1 / near^2 overflowed float32 below ~1e-19, a NaN gradient."""
+    depth = jnp.array([0.5, 3.0, 50.0], jnp.float32)
+    grad = jax.grad(lambda n: jnp.sum(normalized_inverse_depth(depth, n, jnp.float32(100.0))))(
+        jnp.float32(near))
+    assert grad.dtype == jnp.float32
+    # d/dn [n (f - z) / (z (f - n))] = (f - z) f / (z (f - n)^2)
+    z, f = np.asarray(depth, np.float64), 100.0
+    want = np.sum((f - z) * f / (z * (f - near) ** 2))
+    assert np.isfinite(float(grad)) and np.isclose(float(grad), want, rtol=1e-5), (grad, want)
