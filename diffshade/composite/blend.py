@@ -32,10 +32,12 @@ def hard_blend(colours, frags, background):
 
 def normalized_inverse_depth(depth, near, far):
     """zt in [0, 1] (1 = near plane) of eye-space depth: [...] -> [...].
-    (1/z - 1/far) / (1/near - 1/far), written (near / z) (far - z) / (far - near): the
+    (1/z - 1/far) / (1/near - 1/far), written (1/z - 1/far) near far / (far - near): the
     same number, but with no 1/near, whose derivative -1/near^2 overflows float32 for a
-    near plane below ~1e-19 (a NaN gradient with respect to near)."""
-    return jnp.clip(safe_div(near * (far - depth), depth * (far - near)), 0.0, 1.0)
+    near plane below ~1e-19 (a NaN gradient with respect to near); the per-element work
+    is as before (a reciprocal, a subtraction, a product by a scalar)."""
+    inv = safe_div(jnp.ones_like(depth), depth)
+    return jnp.clip((inv - 1.0 / far) * (near * far / (far - near)), 0.0, 1.0)
 
 
 def log_coverages(frags, sigma):
