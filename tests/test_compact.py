@@ -238,6 +238,28 @@ def test_sum_rows_equals_a_loop(dtype, tail, host):
                                rtol=tol, atol=tol)
 
 
+@pytest.mark.parametrize("group", [8, 3, 7, 1])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_sum_rows_kernel_adds_in_index_order_bit_for_bit(dtype, group):
+    """The compiled kernel (active_kernel.sum_rows) against the loop, exactly (its
+    docstring: the sums in index order, bit for bit): groups of `group` with 0 to `group`
+    rows each in random runs, -0.0 and large and tiny values (so the order of the
+    additions shows), negative indices first and padding past the end dropped."""
+    from diffshade.host import active_kernel
+
+    rng = np.random.default_rng(11)
+    count = 700
+    per = rng.integers(0, group + 1, count)
+    idx = np.concatenate([np.array([-9, -1])] + [
+        p * group + np.sort(rng.choice(group, n, replace=False)) for p, n in enumerate(per)]
+        + [np.full(37, count * group)]).astype(np.int32)
+    rows = (rng.normal(size=(idx.size, 3)) * 10.0 ** rng.integers(-8, 9, (idx.size, 3)))
+    rows[rng.random(rows.shape) < 0.05] = -0.0
+    rows = rows.astype(dtype)
+    got = active_kernel.sum_rows(idx, rows, count, group)
+    assert got.tobytes() == _sum_loop(rows, idx, count, group).tobytes()
+
+
 def test_sum_rows_under_vmap():
     """The batch rides along as an axis of the rows (one set of indices), or each member
     has its own indices (one call of the kernel on the members' lists joined), negative
