@@ -59,8 +59,12 @@ def main(argv=None):
     from diffshade.raster.projection import project
     from diffshade.raster.search import soft_radius
 
-    baseline = subprocess.run(["git", "show", f"{args.ref}:{KERNEL}"], cwd=ROOT, check=True,
-                              capture_output=True, text=True).stdout
+    shown = subprocess.run(["git", "show", f"{args.ref}:{KERNEL}"], cwd=ROOT,
+                           capture_output=True, text=True)
+    if shown.returncode != 0:
+        parser.error(f"--ref {args.ref!r}: git has no {KERNEL} there "
+                     f"({shown.stderr.strip()})")
+    baseline = shown.stdout
     with open(os.path.join(ROOT, KERNEL)) as f:
         current = f.read()
     scene = judged_scene(args.size, 4)
