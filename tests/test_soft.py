@@ -322,6 +322,42 @@ def test_signed_distance_matches_the_dense_geometry(name):
     np.testing.assert_allclose(np.asarray(frags.dist)[valid], at_ids["dist"][valid], atol=1e-9)
 
 
+def test_edge_distances_side_by_side_equal_one_edge_at_a_time():
+    """The geometry kernel's three edge distances in one vector (_edge_dist2) against
+    _segment, which the backward uses for the nearest edge, one edge at a time: the same
+    numbers bit for bit, for points inside, outside, on a corner and far away, a
+    degenerate face (a zero-length edge and a point) and a coordinate that is NaN."""
+    import numba
+
+    from diffshade.host import fragment_kernels as kernels
+
+    @numba.njit(fastmath={"contract"})
+    def both(table, points):
+        out = np.empty((2, points.shape[0], table.shape[0], 3))
+        for p in range(points.shape[0]):
+            px, py = points[p, 0], points[p, 1]
+            for f in range(table.shape[0]):
+                out[0, p, f, 0], out[0, p, f, 1], out[0, p, f, 2] = kernels._edge_dist2(
+                    table, f, px, py)
+                for i in range(3):
+                    out[1, p, f, i] = kernels._segment(px, py, table, f, i)[0]
+        return out
+
+    rng = np.random.default_rng(3)
+    scr = np.concatenate([rng.uniform(-5.0, 40.0, (30, 3, 2)),
+                          [[[3.0, 4.0], [3.0, 4.0], [9.0, 1.5]],     # a zero-length edge
+                           [[2.0, 2.0], [2.0, 2.0], [2.0, 2.0]],     # a point
+                           [[1e7, 0.5], [-1e7, 3.5], [0.5, 1e-9]]]])  # long and thin
+    faces = scr.shape[0]
+    table = kernels._face_table(np.ones((faces, 3)), np.ones((faces, 3)),
+                                rng.normal(size=(faces, 3, 3)), scr, 1e-300)
+    points = np.concatenate([rng.uniform(-20.0, 60.0, (200, 2)), scr[:, 0], scr.mean(1),
+                             [[1e9, -1e9], [np.nan, 1.0]]])
+    vector, scalar = both(table, points)
+    np.testing.assert_array_equal(vector, scalar)
+    assert np.isnan(vector[-1]).all() and np.isfinite(vector[:-1]).all()
+
+
 @pytest.mark.parametrize("name", ["triangles", "sphere"])
 def test_clamped_barycentrics_and_depth_match_the_dense_geometry(name):
     scene = SCENES[name]()

@@ -31,7 +31,9 @@ per-row and per-column tables (`_pixel_coords`).
 
 import numba
 import numpy as np
-from numba import prange
+from llvmlite import ir
+from numba import prange, types
+from numba.extending import intrinsic
 
 from diffshade.host import numba_cache  # noqa: F401 (numba's cache saves, locked)
 
@@ -48,11 +50,15 @@ def _inv(den, tiny):
 
 
 #: a row of _face_table: the edge coefficients [3, 3] (row-major) at _COEFFS, the corners'
-#: clip W [3] at _CW and their reciprocals [3] at _INV_W, then per edge i (from corner i to
-#: corner i+1 mod 3) _EDGE_WIDTH values from _EDGES + i * _EDGE_WIDTH: its start (ax, ay),
-#: its vector (ex, ey) = b - a and that vector over its squared length, e / |e|^2; then
-#: the corners' eye-space depth [3] at _CZ
-_COEFFS, _CW, _INV_W, _EDGES, _EDGE_WIDTH, _CZ, _TABLE_WIDTH = 0, 9, 12, 15, 6, 33, 36
+#: clip W [3] at _CW and their reciprocals [3] at _INV_W, the corners' eye-space depth [3]
+#: at _CZ; then the edges (edge i from corner i to corner i+1 mod 3) lane by lane, so that
+#: _edge_dist2 reads each quantity of the three as one vector of 4 doubles: from _EDGES,
+#: _LANES values (lane i = edge i, the last lane 0) of each of _EDGE_FIELDS: the edges'
+#: start x, start y, vector x, vector y (e = b - a) and e / |e|^2 (x, y). A row is 44
+#: doubles (352 bytes, a multiple of 32: where the table starts on a 32-byte boundary no
+#: vector read crosses a cache line)
+_COEFFS, _CW, _INV_W, _CZ, _EDGES, _LANES, _EDGE_FIELDS, _TABLE_WIDTH = (0, 9, 12, 15, 20, 4,
+                                                                         6, 44)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -72,11 +78,16 @@ def _face_table(corner_w, corner_z, coeffs, scr, tiny):
             table[f, _INV_W + i] = _inv(corner_w[f, i], tiny)
             j = (i + 1) % 3
             ex, ey = scr[f, j, 0] - scr[f, i, 0], scr[f, j, 1] - scr[f, i, 1]
-            edge = _EDGES + i * _EDGE_WIDTH
-            table[f, edge], table[f, edge + 1] = scr[f, i, 0], scr[f, i, 1]
-            table[f, edge + 2], table[f, edge + 3] = ex, ey
             inv = _inv(ex * ex + ey * ey, tiny)
-            table[f, edge + 4], table[f, edge + 5] = ex * inv, ey * inv
+            table[f, _EDGES + i] = scr[f, i, 0]
+            table[f, _EDGES + _LANES + i] = scr[f, i, 1]
+            table[f, _EDGES + 2 * _LANES + i] = ex
+            table[f, _EDGES + 3 * _LANES + i] = ey
+            table[f, _EDGES + 4 * _LANES + i] = ex * inv
+            table[f, _EDGES + 5 * _LANES + i] = ey * inv
+        table[f, _CZ + 3:_EDGES] = 0.0
+        for field in range(_EDGE_FIELDS):
+            table[f, _EDGES + field * _LANES + 3] = 0.0
     return table
 
 
@@ -130,11 +141,56 @@ def _soft_bary(e0, e1, e2, w0, w1, w2, table, f, tiny):
 def _segment(px, py, table, f, i):
     """(squared distance, t, dx, dy) from p to edge i of face f (_face_table):
     d = p - a - t e."""
-    edge = _EDGES + i * _EDGE_WIDTH
-    ax, ay, ex, ey = table[f, edge], table[f, edge + 1], table[f, edge + 2], table[f, edge + 3]
-    t = min(max((px - ax) * table[f, edge + 4] + (py - ay) * table[f, edge + 5], 0.0), 1.0)
+    ax, ay = table[f, _EDGES + i], table[f, _EDGES + _LANES + i]
+    ex, ey = table[f, _EDGES + 2 * _LANES + i], table[f, _EDGES + 3 * _LANES + i]
+    t = min(max((px - ax) * table[f, _EDGES + 4 * _LANES + i]
+                + (py - ay) * table[f, _EDGES + 5 * _LANES + i], 0.0), 1.0)
     dx, dy = px - ax - t * ex, py - ay - t * ey
     return dx * dx + dy * dy, t, dx, dy
+
+
+@intrinsic
+def _edge_dist2(typingctx, table, f, px, py):
+    """The squared distances (d0, d1, d2) from p to the three edges of face f, each as
+    _segment computes it (the same operations in the same order, so the same numbers), the
+    three side by side in one vector of 4 doubles (_face_table's edge lanes): one vector
+    operation where there were three scalar ones. t = min(max(v, 0), 1) as selects that
+    keep a NaN, as numba's min and max do."""
+    if not (isinstance(table, types.Array) and table.dtype == types.float64
+            and table.ndim == 2 and table.layout == "C" and px == py == types.float64):
+        return None
+
+    def codegen(context, builder, signature, args):
+        table, f, px, py = args
+        i32, i64, vector = ir.IntType(32), ir.IntType(64), ir.VectorType(ir.DoubleType(), 4)
+        f = context.cast(builder, f, signature.args[1], types.int64)
+        data = context.make_array(signature.args[0])(context, builder, table).data
+        row = builder.gep(data, [builder.mul(f, ir.Constant(i64, _TABLE_WIDTH))])
+
+        def field(number):
+            at = builder.gep(row, [ir.Constant(i64, _EDGES + number * _LANES)])
+            return builder.load(builder.bitcast(at, ir.PointerType(vector)), align=8)
+
+        def splat(scalar):
+            first = builder.insert_element(ir.Constant(vector, None), scalar,
+                                           ir.Constant(i32, 0))
+            return builder.shuffle_vector(first, ir.Constant(vector, None),
+                                          ir.Constant(ir.VectorType(i32, 4), [0] * 4))
+        # fastmath "contract", as the kernel's own arithmetic (_FUSED)
+        mul = lambda a, b: builder.fmul(a, b, flags=("contract",))
+        add = lambda a, b: builder.fadd(a, b, flags=("contract",))
+        sub = lambda a, b: builder.fsub(a, b, flags=("contract",))
+        ax, ay, ex, ey, ix, iy = (field(number) for number in range(_EDGE_FIELDS))
+        rx, ry = sub(splat(px), ax), sub(splat(py), ay)
+        t = add(mul(rx, ix), mul(ry, iy))
+        zero, one = ir.Constant(vector, [0.0] * 4), ir.Constant(vector, [1.0] * 4)
+        t = builder.select(builder.fcmp_ordered("<", t, zero), zero, t)
+        t = builder.select(builder.fcmp_ordered(">", t, one), one, t)
+        dx, dy = sub(rx, mul(t, ex)), sub(ry, mul(t, ey))
+        d = add(mul(dx, dx), mul(dy, dy))
+        return context.make_tuple(builder, signature.return_type, [
+            builder.extract_element(d, ir.Constant(i32, lane)) for lane in range(3)])
+    return types.UniTuple(types.float64, 3)(table, f, px, py), codegen
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -142,9 +198,7 @@ def _nearest_edge(px, py, table, f):
     """(edge index i: from corner i to corner i+1 mod 3, squared distance) of the nearest
     edge; ties go to the first (as jnp.where(a <= b, a, b)). Selects, not branches: which
     edge is nearest changes from fragment to fragment, past any branch predictor."""
-    d0 = _segment(px, py, table, f, 0)[0]
-    d1 = _segment(px, py, table, f, 1)[0]
-    d2 = _segment(px, py, table, f, 2)[0]
+    d0, d1, d2 = _edge_dist2(table, f, px, py)
     first = d0 <= d1
     i, d = (0, d0) if first else (1, d1)
     last = d2 < d
