@@ -155,25 +155,30 @@ def test_interpolate_backward_equals_a_loop_over_several_blocks(chunks):
     np.testing.assert_allclose(g_corners, want_corners, rtol=1e-12, atol=1e-12)
 
 
-@pytest.mark.parametrize("channels", [1, 5, kernels._AT_CHANNELS])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("channels", [1, 5, 6, kernels._CORNER_LANES, kernels._CORNER_LANES + 1])
 @pytest.mark.parametrize("chunks", [1, 2, 3])
-def test_interpolate_at_equals_a_loop_over_several_blocks(chunks, channels):
+def test_interpolate_at_equals_a_loop_over_several_blocks(chunks, channels, dtype):
     """interpolate_at against a NumPy loop on thousands of rows split into 1 to 3 parts:
     rows in any order, empty slots (-1), and the padding (N) at the end that the
-    compacted active slots have; channel counts other than and equal to the one compiled
-    as a constant."""
+    compacted active slots have; channel counts up to one vector (masked lanes) and one
+    more (the scalar loop). Bit for bit: the loop adds b0 c0 + b1 c1, then b2 c2, each
+    product and sum rounded to the dtype, as the kernel does."""
     rng = np.random.default_rng(9)
     n, m, faces, c = 4 * kernels._DEALT, 5 * kernels._DEALT + 37, 11, channels
     ids = rng.integers(-1, faces, n).astype(np.int32)
-    bary, corners = rng.uniform(size=(n, 3)), rng.normal(size=(faces, 3, c))
+    bary = rng.uniform(size=(n, 3)).astype(dtype)
+    corners = rng.normal(size=(faces, 3, c)).astype(dtype)
     rows = rng.integers(0, n, m).astype(np.int32)
     rows[-300:] = n
-    want = np.zeros((m, c))
+    want = np.zeros((m, c), dtype)
     for i, r in enumerate(rows):
         if r < n and ids[r] >= 0:
-            want[i] = bary[r] @ corners[ids[r]]
+            b, corner = bary[r], corners[ids[r]]
+            want[i] = b[0] * corner[0] + b[1] * corner[1] + b[2] * corner[2]
     got = kernels.interpolate_at(rows, ids, bary, corners, chunks)
-    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    assert got.dtype == dtype
+    np.testing.assert_array_equal(got, want)
 
 
 @pytest.mark.parametrize("x64", [False, True])

@@ -33,6 +33,7 @@ import numba
 import numpy as np
 from llvmlite import ir
 from numba import prange, types
+from numba.core import cgutils
 from numba.extending import intrinsic
 
 from diffshade.host import numba_cache  # noqa: F401 (numba's cache saves, locked)
@@ -171,17 +172,12 @@ def _edge_dist2(typingctx, table, f, px, py):
             at = builder.gep(row, [ir.Constant(i64, _EDGES + number * _LANES)])
             return builder.load(builder.bitcast(at, ir.PointerType(vector)), align=8)
 
-        def splat(scalar):
-            first = builder.insert_element(ir.Constant(vector, None), scalar,
-                                           ir.Constant(i32, 0))
-            return builder.shuffle_vector(first, ir.Constant(vector, None),
-                                          ir.Constant(ir.VectorType(i32, 4), [0] * 4))
         # fastmath "contract", as the kernel's own arithmetic (_FUSED)
         mul = lambda a, b: builder.fmul(a, b, flags=("contract",))
         add = lambda a, b: builder.fadd(a, b, flags=("contract",))
         sub = lambda a, b: builder.fsub(a, b, flags=("contract",))
         ax, ay, ex, ey, ix, iy = (field(number) for number in range(_EDGE_FIELDS))
-        rx, ry = sub(splat(px), ax), sub(splat(py), ay)
+        rx, ry = sub(_splat(builder, px, 4), ax), sub(_splat(builder, py, 4), ay)
         t = add(mul(rx, ix), mul(ry, iy))
         zero, one = ir.Constant(vector, [0.0] * 4), ir.Constant(vector, [1.0] * 4)
         t = builder.select(builder.fcmp_ordered("<", t, zero), zero, t)
@@ -556,30 +552,90 @@ def interpolate_at_into(rows, ids, bary, corners, chunks, out):
     nfrags, nc = ids.shape[0], corners.shape[2]
     for chunk in prange(chunks):
         start, stop = _chunk(chunk, chunks, rows.shape[0])
-        if nc == _AT_CHANNELS:  # a constant count: LLVM unrolls the channels' loop
-            _at_rows(rows, ids, bary, corners, out, start, stop, nfrags, _AT_CHANNELS)
-        else:
-            _at_rows(rows, ids, bary, corners, out, start, stop, nfrags, nc)
+        for i in range(start, stop):
+            r = rows[i]
+            f = ids[r] if 0 <= r < nfrags else -1
+            if f < 0:
+                for ch in range(nc):
+                    out[i, ch] = 0.0
+            elif nc <= _CORNER_LANES:
+                _weighted_corners(corners, f, bary[r, 0], bary[r, 1], bary[r, 2], out, i * nc)
+            else:
+                b0, b1, b2 = bary[r, 0], bary[r, 1], bary[r, 2]
+                for ch in range(nc):
+                    out[i, ch] = (b0 * corners[f, 0, ch] + b1 * corners[f, 1, ch]
+                                  + b2 * corners[f, 2, ch])
 
 
-#: the channel count interpolate_at is compiled for as a constant: the soft render's
-#: positions and normals (3 + 3)
-_AT_CHANNELS = 6
+#: the most channels _weighted_corners takes: one vector of 8 (float32: 256 bits, float64:
+#: 512)
+_CORNER_LANES = 8
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _at_rows(rows, ids, bary, corners, out, start, stop, nfrags, nc):
-    """interpolate_at_into's rows start..stop - 1 of nc channels."""
-    for i in range(start, stop):
-        r = rows[i]
-        f = ids[r] if 0 <= r < nfrags else -1
-        if f < 0:
-            for ch in range(nc):
-                out[i, ch] = 0.0
-            continue
-        b0, b1, b2 = bary[r, 0], bary[r, 1], bary[r, 2]
-        for ch in range(nc):
-            out[i, ch] = b0 * corners[f, 0, ch] + b1 * corners[f, 1, ch] + b2 * corners[f, 2, ch]
+@intrinsic
+def _weighted_corners(typingctx, corners, f, b0, b1, b2, out, at):
+    """The C <= _CORNER_LANES channels b0 * corners[f, 0] + b1 * corners[f, 1] +
+    b2 * corners[f, 2] (corners [F, 3, C], C-contiguous) written to out's elements at..at +
+    C - 1 (out C-contiguous), as vectors of _CORNER_LANES whose lanes from C on are
+    masked (masked loads and a masked store: nothing past the arrays is read or written).
+    The same operations in the same order as the loop over channels (no FMA: the kernel
+    contracts none), so the same numbers; LLVM kept that loop scalar, a load and a
+    multiply or add per channel and corner."""
+    if not (isinstance(corners, types.Array) and isinstance(out, types.Array)
+            and corners.dtype in (types.float32, types.float64) and out.dtype == corners.dtype
+            and corners.ndim == 3 and corners.layout == out.layout == "C"
+            and b0 == b1 == b2):
+        return None
+
+    def codegen(context, builder, signature, args):
+        corners, f, b0, b1, b2, out, at = args
+        corners_type, f_type, b_type, _, _, out_type, at_type = signature.args
+        element = context.get_data_type(corners_type.dtype)
+        i32, i64 = ir.IntType(32), ir.IntType(64)
+        vector = ir.VectorType(element, _CORNER_LANES)
+        pointer = ir.PointerType(vector)
+        mask_type = ir.VectorType(ir.IntType(1), _CORNER_LANES)
+        kind = "f32" if corners_type.dtype == types.float32 else "f64"
+        load = cgutils.get_or_insert_function(
+            builder.module, ir.FunctionType(vector, [pointer, i32, mask_type, vector]),
+            f"llvm.masked.load.v{_CORNER_LANES}{kind}.p0")
+        store = cgutils.get_or_insert_function(
+            builder.module, ir.FunctionType(ir.VoidType(), [vector, pointer, i32, mask_type]),
+            f"llvm.masked.store.v{_CORNER_LANES}{kind}.p0")
+        array = context.make_array(corners_type)(context, builder, corners)
+        channels = cgutils.unpack_tuple(builder, array.shape, 3)[2]
+        lanes = ir.Constant(ir.VectorType(i64, _CORNER_LANES), list(range(_CORNER_LANES)))
+        mask = builder.icmp_signed("<", lanes, _splat(builder, channels, _CORNER_LANES))
+        row = builder.mul(context.cast(builder, f, f_type, types.int64),
+                          builder.mul(channels, ir.Constant(i64, 3)))
+        alignment = ir.Constant(i32, 1)
+
+        def corner(j):
+            at_j = builder.add(row, builder.mul(channels, ir.Constant(i64, j)))
+            return builder.call(load, [builder.bitcast(builder.gep(array.data, [at_j]), pointer),
+                                       alignment, mask, ir.Constant(vector, None)])
+
+        def weight(b):
+            return _splat(builder, context.cast(builder, b, b_type, corners_type.dtype),
+                          _CORNER_LANES)
+        total = builder.fadd(builder.fadd(builder.fmul(weight(b0), corner(0)),
+                                          builder.fmul(weight(b1), corner(1))),
+                             builder.fmul(weight(b2), corner(2)))
+        data = context.make_array(out_type)(context, builder, out).data
+        at = context.cast(builder, at, at_type, types.int64)
+        builder.call(store, [total, builder.bitcast(builder.gep(data, [at]), pointer),
+                             alignment, mask])
+        return context.get_dummy_value()
+    return types.none(corners, f, b0, b1, b2, out, at), codegen
+
+
+def _splat(builder, scalar, lanes):
+    """<lanes x type of scalar> with every lane scalar."""
+    vector = ir.VectorType(scalar.type, lanes)
+    first = builder.insert_element(ir.Constant(vector, None), scalar,
+                                   ir.Constant(ir.IntType(32), 0))
+    return builder.shuffle_vector(first, ir.Constant(vector, None),
+                                  ir.Constant(ir.VectorType(ir.IntType(32), lanes), [0] * lanes))
 
 
 def interpolate_backward(ids, bary, corners, g_out, chunks):
