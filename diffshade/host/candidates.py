@@ -484,7 +484,11 @@ def _soft_face(clip, faces, f, width, height, cull_backfaces, radius_px, scr, ed
     for i in range(3):
         j = (i + 1) % 3
         edge[i, 0], edge[i, 1] = scr[j, 0] - scr[i, 0], scr[j, 1] - scr[i, 1]
-        length = np.hypot(edge[i, 0], edge[i, 1])
+        # the root of the sum of squares, not libm's hypot (its three calls a face were a
+        # quarter of the search's setup): the squares overflow only past ~1e154 pixels,
+        # where the edge functions' products (_soft_block) overflow anyway; an edge below
+        # ~1e-154 pixels becomes a point (length 0), as it nearly is
+        length = np.sqrt(edge[i, 0] * edge[i, 0] + edge[i, 1] * edge[i, 1])
         inv_len[i] = 1.0 / length if length > 0.0 else 0.0
     box[2] = max(_pixel_index(np.ceil(min(scr[0, 0], scr[1, 0], scr[2, 0]) - 0.5 - radius_px),
                               width), 0)
