@@ -465,7 +465,8 @@ def test_host_strip_rows_hold_every_pixel_in_reach():
     footprint can reach (candidates._strip_rows, from the triangle clipped to the strip of
     columns): against every pixel within radius_px of the triangle (the distance to its
     nearest point, in Python), on random triangles small and large, thin, off-screen and
-    far off-screen, for strips of 1 to 8 columns."""
+    far off-screen, with vertical and horizontal edges, for strips of 1 to 8 columns; and
+    the same rows as the loop with branches it replaced."""
     from diffshade.host.candidates import _strip_rows
 
     def distance(px, py, tri):
@@ -482,6 +483,24 @@ def test_host_strip_rows_hold_every_pixel_in_reach():
             best = min(best, np.hypot(px - x0 - t * ex, py - y0 - t * ey))
         return best
 
+    def strip_rows_loop(tri, c0, c1, radius, height):
+        """The rows as a Python loop with branches: the kernel's selects must give the
+        same, not merely rows enough (a wider range costs time, not pixels)."""
+        from diffshade.host.candidates import ROW_MARGIN, ROW_MARGIN_REL
+        reach = radius + ROW_MARGIN + ROW_MARGIN_REL * np.abs(tri).max()
+        x_lo, x_hi = c0 + 0.5 - reach, c1 + 0.5 + reach
+        ys = []
+        for (xi, yi), (xj, yj) in zip(tri, np.roll(tri, -1, 0), strict=True):
+            if x_lo <= xi <= x_hi:
+                ys.append(yi)
+            ys += [yi + (side - xi) / (xj - xi) * (yj - yi) for side in (x_lo, x_hi)
+                   if (xi - side) * (xj - side) < 0.0]
+        if not ys:
+            return 0, -1
+        first = max(min(np.ceil(min(ys) - 0.5 - reach), height), -1)
+        last = max(min(np.floor(max(ys) - 0.5 + reach), height), -1)
+        return max(int(first), 0), min(int(last), height - 1)
+
     rng = np.random.default_rng(8)
     height, checked = 40, 0
     for case in range(300):
@@ -489,10 +508,15 @@ def test_host_strip_rows_hold_every_pixel_in_reach():
         tri = rng.uniform(-10, 50, 2) + rng.normal(0, scale, (3, 2))
         if case % 7 == 0:
             tri[2] = tri[0] + rng.normal(0, 1e-3, 2)  # a sliver
+        if case % 5 == 1:
+            tri[1, 0] = tri[0, 0]  # a vertical edge (its crossings divide by 0: not kept)
+        if case % 5 == 2:
+            tri[2, 1] = tri[1, 1]  # a horizontal edge
         radius = rng.choice([0.5, 1.5, 3.03])
         c0 = int(rng.integers(0, 40))
         c1 = min(c0 + int(rng.integers(0, 8)), 47)
         first, last = _strip_rows(tri, c0, c1, radius, height)
+        assert (first, last) == strip_rows_loop(tri, c0, c1, radius, height)
         for row in range(height):
             for col in range(c0, c1 + 1):
                 if distance(col + 0.5, row + 0.5, tri) <= radius:

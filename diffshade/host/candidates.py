@@ -708,7 +708,7 @@ def _soft_keys(depth, signed_d2, count, soft):
 ROW_MARGIN, ROW_MARGIN_REL = 1e-6, 1e-12
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _strip_rows(scr, c0, c1, radius_px, height):
     """The rows (first, last; first > last: none) in which a face's footprint may reach a
     pixel of columns c0..c1: the footprint is the points within radius_px of the triangle
@@ -725,15 +725,20 @@ def _strip_rows(scr, c0, c1, radius_px, height):
     reach = radius_px + ROW_MARGIN + ROW_MARGIN_REL * largest
     x_lo, x_hi = c0 + 0.5 - reach, c1 + 0.5 + reach
     y_lo, y_hi = np.inf, -np.inf
+    # selects, not branches (whether a vertex lies in the strip and an edge crosses its
+    # sides changes from face to face): every crossing is computed, and kept only where
+    # the edge crosses (a crossing's x values differ, so its division is by a nonzero)
     for i in range(3):
         j = (i + 1) % 3
         xi, yi, xj, yj = scr[i, 0], scr[i, 1], scr[j, 0], scr[j, 1]
-        if x_lo <= xi <= x_hi:
-            y_lo, y_hi = min(y_lo, yi), max(y_hi, yi)
+        within = (x_lo <= xi) & (xi <= x_hi)
+        y_lo, y_hi = _select(within & (yi < y_lo), yi, y_lo), _select(within & (yi > y_hi),
+                                                                      yi, y_hi)
         for side in (x_lo, x_hi):
-            if (xi - side) * (xj - side) < 0.0:
-                y = yi + (side - xi) / (xj - xi) * (yj - yi)
-                y_lo, y_hi = min(y_lo, y), max(y_hi, y)
+            y = yi + (side - xi) / (xj - xi) * (yj - yi)
+            crosses = (xi - side) * (xj - side) < 0.0
+            y_lo, y_hi = _select(crosses & (y < y_lo), y, y_lo), _select(crosses & (y > y_hi),
+                                                                         y, y_hi)
     if not y_lo <= y_hi:
         return 0, -1
     first = np.ceil(y_lo - 0.5 - reach)
