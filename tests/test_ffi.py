@@ -156,6 +156,29 @@ def test_interpolate_backward_equals_a_loop_over_several_blocks(chunks):
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("channels", [1, 6, kernels._CORNER_LANES, kernels._CORNER_LANES + 1])
+def test_interpolate_forward_equals_a_loop(channels, dtype):
+    """interpolate_forward against a NumPy loop, bit for bit (b0 c0 + b1 c1, then + b2 c2,
+    each rounded to the dtype, as the kernel adds them): empty slots, channel counts up to
+    one vector (masked lanes) and one more (the scalar loop), split in 3 parts."""
+    rng = np.random.default_rng(4)
+    npix, k, faces = 301, 5, 13
+    ids = rng.integers(-1, faces, (npix, k)).astype(np.int32)
+    bary = rng.uniform(size=(npix, k, 3)).astype(dtype)
+    corners = rng.normal(size=(faces, 3, channels)).astype(dtype)
+    want = np.zeros((npix, k, channels), dtype)
+    for p in range(npix):
+        for slot in range(k):
+            f = ids[p, slot]
+            if f >= 0:
+                b, corner = bary[p, slot], corners[f]
+                want[p, slot] = b[0] * corner[0] + b[1] * corner[1] + b[2] * corner[2]
+    got = kernels.interpolate_forward(ids, bary, corners, 3)
+    assert got.dtype == dtype
+    np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
 @pytest.mark.parametrize("channels", [1, 5, 6, kernels._CORNER_LANES, kernels._CORNER_LANES + 1])
 @pytest.mark.parametrize("chunks", [1, 2, 3])
 def test_interpolate_at_equals_a_loop_over_several_blocks(chunks, channels, dtype):

@@ -529,6 +529,9 @@ def interpolate_forward_into(ids, bary, corners, chunks, out):
                         out[pixel, slot, ch] = 0.0
                     continue
                 b0, b1, b2 = bary[pixel, slot, 0], bary[pixel, slot, 1], bary[pixel, slot, 2]
+                if nc <= _CORNER_LANES:
+                    _weighted_corners(corners, f, b0, b1, b2, out, (pixel * k + slot) * nc)
+                    continue
                 for ch in range(nc):
                     out[pixel, slot, ch] = (b0 * corners[f, 0, ch] + b1 * corners[f, 1, ch]
                                             + b2 * corners[f, 2, ch])
