@@ -156,7 +156,7 @@ def test_interpolate_backward_equals_a_loop_over_several_blocks(chunks):
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
-@pytest.mark.parametrize("channels", [1, 6, kernels._CORNER_LANES, kernels._CORNER_LANES + 1])
+@pytest.mark.parametrize("channels", [1, 6, kernels.ROW_LANES, kernels.ROW_LANES + 1])
 def test_interpolate_forward_equals_a_loop(channels, dtype):
     """interpolate_forward against a NumPy loop, bit for bit (b0 c0 + b1 c1, then + b2 c2,
     each rounded to the dtype, as the kernel adds them): empty slots, channel counts up to
@@ -179,7 +179,7 @@ def test_interpolate_forward_equals_a_loop(channels, dtype):
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
-@pytest.mark.parametrize("channels", [1, 5, 6, kernels._CORNER_LANES, kernels._CORNER_LANES + 1])
+@pytest.mark.parametrize("channels", [1, 5, 6, kernels.ROW_LANES, kernels.ROW_LANES + 1])
 @pytest.mark.parametrize("chunks", [1, 2, 3])
 def test_interpolate_at_equals_a_loop_over_several_blocks(chunks, channels, dtype):
     """interpolate_at against a NumPy loop on thousands of rows split into 1 to 3 parts:

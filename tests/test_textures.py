@@ -60,10 +60,14 @@ def lookups(texture, uv, valid=None):
             "jax.numpy jit": jax.jit(path(False))}
 
 
+@pytest.mark.parametrize("channels", [1, 3, 8, 9])
 @pytest.mark.parametrize("wrap", ["repeat", "clamp"])
-def test_lookup_matches_a_naive_bilinear_loop_inside_and_outside_the_unit_square(wrap, x64):
+def test_lookup_matches_a_naive_bilinear_loop_inside_and_outside_the_unit_square(wrap, channels,
+                                                                                  x64):
+    """Every path against a naive loop; the host kernel blends a texel row of up to 8
+    channels as one vector (texture_kernels._blend_texels), 9 channels in its scalar loop."""
     rng = np.random.default_rng(1)
-    texels = rng.random((5, 7, 3))
+    texels = rng.random((5, 7, channels))
     uv = np.concatenate([rng.uniform(-2.5, 3.5, (60, 2)), [[0, 0], [1, 1], [0.5, 1e-9],
                                                           [1e6, -1e6], [-1.0, 2.0]]])
     want = np.array([naive_sample(texels, u, v, wrap) for u, v in uv])

@@ -37,6 +37,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from diffshade.host import numba_cache  # noqa: F401 (numba's cache saves, locked)
+from diffshade.host.intrinsics import ROW_LANES, Rows, splat
 
 
 def chunks() -> int:
@@ -177,7 +178,7 @@ def _edge_dist2(typingctx, table, f, px, py):
         add = lambda a, b: builder.fadd(a, b, flags=("contract",))
         sub = lambda a, b: builder.fsub(a, b, flags=("contract",))
         ax, ay, ex, ey, ix, iy = (field(number) for number in range(_EDGE_FIELDS))
-        rx, ry = sub(_splat(builder, px, 4), ax), sub(_splat(builder, py, 4), ay)
+        rx, ry = sub(splat(builder, px, 4), ax), sub(splat(builder, py, 4), ay)
         t = add(mul(rx, ix), mul(ry, iy))
         zero, one = ir.Constant(vector, [0.0] * 4), ir.Constant(vector, [1.0] * 4)
         t = builder.select(builder.fcmp_ordered("<", t, zero), zero, t)
@@ -529,7 +530,7 @@ def interpolate_forward_into(ids, bary, corners, chunks, out):
                         out[pixel, slot, ch] = 0.0
                     continue
                 b0, b1, b2 = bary[pixel, slot, 0], bary[pixel, slot, 1], bary[pixel, slot, 2]
-                if nc <= _CORNER_LANES:
+                if nc <= ROW_LANES:
                     _weighted_corners(corners, f, b0, b1, b2, out, (pixel * k + slot) * nc)
                     continue
                 for ch in range(nc):
@@ -561,7 +562,7 @@ def interpolate_at_into(rows, ids, bary, corners, chunks, out):
             if f < 0:
                 for ch in range(nc):
                     out[i, ch] = 0.0
-            elif nc <= _CORNER_LANES:
+            elif nc <= ROW_LANES:
                 _weighted_corners(corners, f, bary[r, 0], bary[r, 1], bary[r, 2], out, i * nc)
             else:
                 b0, b1, b2 = bary[r, 0], bary[r, 1], bary[r, 2]
@@ -570,20 +571,14 @@ def interpolate_at_into(rows, ids, bary, corners, chunks, out):
                                   + b2 * corners[f, 2, ch])
 
 
-#: the most channels _weighted_corners takes: one vector of 8 (float32: 256 bits, float64:
-#: 512)
-_CORNER_LANES = 8
-
-
 @intrinsic
 def _weighted_corners(typingctx, corners, f, b0, b1, b2, out, at):
-    """The C <= _CORNER_LANES channels b0 * corners[f, 0] + b1 * corners[f, 1] +
+    """The C <= ROW_LANES channels b0 * corners[f, 0] + b1 * corners[f, 1] +
     b2 * corners[f, 2] (corners [F, 3, C], C-contiguous) written to out's elements at..at +
-    C - 1 (out C-contiguous), as vectors of _CORNER_LANES whose lanes from C on are
-    masked (masked loads and a masked store: nothing past the arrays is read or written).
-    The same operations in the same order as the loop over channels (no FMA: the kernel
-    contracts none), so the same numbers; LLVM kept that loop scalar, a load and a
-    multiply or add per channel and corner."""
+    C - 1 (out C-contiguous), each row as one vector (intrinsics.Rows: masked loads and a
+    masked store). The same operations in the same order as the loop over channels (no
+    FMA: the kernel contracts none), so the same numbers; LLVM kept that loop scalar, a
+    load and a multiply or add per channel and corner."""
     if not (isinstance(corners, types.Array) and isinstance(out, types.Array)
             and corners.dtype in (types.float32, types.float64) and out.dtype == corners.dtype
             and corners.ndim == 3 and corners.layout == out.layout == "C"
@@ -593,52 +588,21 @@ def _weighted_corners(typingctx, corners, f, b0, b1, b2, out, at):
     def codegen(context, builder, signature, args):
         corners, f, b0, b1, b2, out, at = args
         corners_type, f_type, b_type, _, _, out_type, at_type = signature.args
-        element = context.get_data_type(corners_type.dtype)
-        i32, i64 = ir.IntType(32), ir.IntType(64)
-        vector = ir.VectorType(element, _CORNER_LANES)
-        pointer = ir.PointerType(vector)
-        mask_type = ir.VectorType(ir.IntType(1), _CORNER_LANES)
-        kind = "f32" if corners_type.dtype == types.float32 else "f64"
-        load = cgutils.get_or_insert_function(
-            builder.module, ir.FunctionType(vector, [pointer, i32, mask_type, vector]),
-            f"llvm.masked.load.v{_CORNER_LANES}{kind}.p0")
-        store = cgutils.get_or_insert_function(
-            builder.module, ir.FunctionType(ir.VoidType(), [vector, pointer, i32, mask_type]),
-            f"llvm.masked.store.v{_CORNER_LANES}{kind}.p0")
         array = context.make_array(corners_type)(context, builder, corners)
         channels = cgutils.unpack_tuple(builder, array.shape, 3)[2]
-        lanes = ir.Constant(ir.VectorType(i64, _CORNER_LANES), list(range(_CORNER_LANES)))
-        mask = builder.icmp_signed("<", lanes, _splat(builder, channels, _CORNER_LANES))
-        row = builder.mul(context.cast(builder, f, f_type, types.int64),
-                          builder.mul(channels, ir.Constant(i64, 3)))
-        alignment = ir.Constant(i32, 1)
-
-        def corner(j):
-            at_j = builder.add(row, builder.mul(channels, ir.Constant(i64, j)))
-            return builder.call(load, [builder.bitcast(builder.gep(array.data, [at_j]), pointer),
-                                       alignment, mask, ir.Constant(vector, None)])
-
-        def weight(b):
-            return _splat(builder, context.cast(builder, b, b_type, corners_type.dtype),
-                          _CORNER_LANES)
+        rows = Rows(context, builder, corners_type.dtype, channels)
+        first = builder.mul(context.cast(builder, f, f_type, types.int64),
+                            builder.mul(channels, ir.Constant(ir.IntType(64), 3)))
+        corner = lambda j: rows.load(array.data, builder.add(
+            first, builder.mul(channels, ir.Constant(ir.IntType(64), j))))
+        weight = lambda b: rows.weight(b, b_type)
         total = builder.fadd(builder.fadd(builder.fmul(weight(b0), corner(0)),
                                           builder.fmul(weight(b1), corner(1))),
                              builder.fmul(weight(b2), corner(2)))
-        data = context.make_array(out_type)(context, builder, out).data
-        at = context.cast(builder, at, at_type, types.int64)
-        builder.call(store, [total, builder.bitcast(builder.gep(data, [at]), pointer),
-                             alignment, mask])
+        rows.store(total, context.make_array(out_type)(context, builder, out).data,
+                   context.cast(builder, at, at_type, types.int64))
         return context.get_dummy_value()
     return types.none(corners, f, b0, b1, b2, out, at), codegen
-
-
-def _splat(builder, scalar, lanes):
-    """<lanes x type of scalar> with every lane scalar."""
-    vector = ir.VectorType(scalar.type, lanes)
-    first = builder.insert_element(ir.Constant(vector, None), scalar,
-                                   ir.Constant(ir.IntType(32), 0))
-    return builder.shuffle_vector(first, ir.Constant(vector, None),
-                                  ir.Constant(ir.VectorType(ir.IntType(32), lanes), [0] * lanes))
 
 
 def interpolate_backward(ids, bary, corners, g_out, chunks):

@@ -28,10 +28,12 @@ in a buffer of its own (no races), so that its sums run in the same order at eve
 
 import numba
 import numpy as np
-from numba import prange
+from numba import prange, types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 from diffshade.host import numba_cache  # noqa: F401 (numba's cache saves, locked)
-from diffshade.host.intrinsics import claim
+from diffshade.host.intrinsics import ROW_LANES, Rows, claim
 
 #: samples per block: a block's cells (texel rows and weights) are computed in one loop
 #: over the block, which LLVM vectorizes (several samples per instruction: one at a time,
@@ -129,13 +131,48 @@ def _corners(scratch, j):
             weights[j], weights[_BLOCK + j], weights[2 * _BLOCK + j], weights[3 * _BLOCK + j])
 
 
+@intrinsic
+def _blend_texels(typingctx, texels, a, b, c, d, w0, w1, w2, w3, out, j):
+    """out[j] = w0 texels[a] + w1 texels[b] + w2 texels[c] + w3 texels[d] for C <=
+    ROW_LANES channels (texels [T, C] and out [n, C] C-contiguous, one float dtype, the
+    weights' too), each row one vector (intrinsics.Rows), added in that order, as _blend's
+    loop over the channels: the same numbers. (The same for _scatter, a masked store then
+    a masked load of the row the next sample adds to, took twice as long as its loop:
+    a load that overlaps a masked store waits for it to reach the cache.)"""
+    if not (isinstance(texels, types.Array) and isinstance(out, types.Array)
+            and texels.dtype in (types.float32, types.float64) and out.dtype == texels.dtype
+            and texels.ndim == out.ndim == 2 and texels.layout == out.layout == "C"
+            and w0 == w1 == w2 == w3 == texels.dtype):
+        return None
+
+    def codegen(context, builder, signature, args):
+        texels, a, b, c, d, w0, w1, w2, w3, out, j = args
+        kinds = signature.args
+        array = context.make_array(kinds[0])(context, builder, texels)
+        channels = cgutils.unpack_tuple(builder, array.shape, 2)[1]
+        rows = Rows(context, builder, kinds[0].dtype, channels)
+        start = lambda at, index: builder.mul(
+            context.cast(builder, index, kinds[at], types.int64), channels)
+        term = lambda at, index, w: builder.fmul(rows.weight(w, kinds[at + 4]),
+                                                 rows.load(array.data, start(at, index)))
+        total = builder.fadd(builder.fadd(builder.fadd(term(1, a, w0), term(2, b, w1)),
+                                          term(3, c, w2)), term(4, d, w3))
+        rows.store(total, context.make_array(kinds[9])(context, builder, out).data,
+                   start(10, j))
+        return context.get_dummy_value()
+    return types.none(texels, a, b, c, d, w0, w1, w2, w3, out, j), codegen
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _blend(texels, scratch, out, nc):
     """out [n, nc] = each sample's four texel rows blended by their weights (0 where it
-    reads no texture)."""
+    reads no texture); a row of up to ROW_LANES channels as one vector (_blend_texels)."""
     valid = scratch[0][_VALID * _BLOCK:]
     for j in range(out.shape[0]):
         a, b, c, d, w0, w1, w2, w3 = _corners(scratch, j)
+        if nc <= ROW_LANES and valid[j]:
+            _blend_texels(texels, a, b, c, d, w0, w1, w2, w3, out, j)
+            continue
         for ch in range(nc):
             value = (w0 * texels[a, ch] + w1 * texels[b, ch] + w2 * texels[c, ch]
                      + w3 * texels[d, ch])
