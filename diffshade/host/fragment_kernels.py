@@ -56,9 +56,10 @@ def _inv(den, tiny):
 #: at _CZ; then the edges (edge i from corner i to corner i+1 mod 3) lane by lane, so that
 #: _edge_dist2 reads each quantity of the three as one vector of 4 doubles: from _EDGES,
 #: _LANES values (lane i = edge i, the last lane 0) of each of _EDGE_FIELDS: the edges'
-#: start x, start y, vector x, vector y (e = b - a) and e / |e|^2 (x, y). A row is 44
-#: doubles (352 bytes, a multiple of 32: where the table starts on a 32-byte boundary no
-#: vector read crosses a cache line)
+#: start x, start y, vector x, vector y (e = b - a) and e / |e|^2 (x, y). Values 18 and 19
+#: are 0, padding: the edges start 160 bytes into a row of 44 doubles (352 bytes, a
+#: multiple of 32), so where the table starts on a 32-byte boundary (numba allocates it
+#: so) no vector read crosses a cache line
 _COEFFS, _CW, _INV_W, _CZ, _EDGES, _LANES, _EDGE_FIELDS, _TABLE_WIDTH = (0, 9, 12, 15, 20, 4,
                                                                          6, 44)
 
